@@ -1,0 +1,111 @@
+"""Tuned configs: versioned JSON holding physical parameter values, settings, uncertainty and the
+fit's provenance. Readable without JAX (`read_config` is plain JSON + checks) so the NumPy runner
+can load the same files.
+
+Schema (version 1):
+    {"schema_version": 1,
+     "params": {"lookahead_m", "lookahead_gain_s", "weights": [H], "delay_s", "speed_mps"},
+     "settings": {"dt_s", "horizon", "wheelbase_m", "max_steer_rad", "blend", "model", "speed",
+                  "min_lookahead_m", "history"},
+     "uncertainty": null | {"frame": "track", "cov_m2": [H][2][2]},   # along-, cross-track
+     "provenance": {...}}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from fpe_jax.errors import InputError
+
+SCHEMA_VERSION = 1
+PARAM_KEYS = ("lookahead_m", "lookahead_gain_s", "weights", "delay_s", "speed_mps")
+SETTING_KEYS = (
+    "dt_s",
+    "horizon",
+    "wheelbase_m",
+    "max_steer_rad",
+    "blend",
+    "model",
+    "speed",
+    "min_lookahead_m",
+    "history",
+)
+
+
+def read_config(path) -> dict[str, Any]:
+    """Read and check a config JSON (no JAX). Raises InputError naming what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such config file", "a JSON config written by `fpe fit`")
+    try:
+        cfg = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(path, f"not valid JSON ({e})", "a JSON config") from None
+    if not isinstance(cfg, dict) or "schema_version" not in cfg:
+        raise InputError(path, "missing 'schema_version'", f"schema_version {SCHEMA_VERSION}")
+    version = cfg["schema_version"]
+    if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
+        raise InputError(
+            path,
+            f"schema_version {version!r} is not supported (newer than this fpe-jax?)",
+            f"schema_version <= {SCHEMA_VERSION}; upgrade fpe-jax to read it",
+        )
+    for section, keys in (("params", PARAM_KEYS), ("settings", SETTING_KEYS)):
+        if not isinstance(cfg.get(section), dict):
+            raise InputError(path, f"missing section '{section}'", f"keys {', '.join(keys)}")
+        missing = [k for k in keys if k not in cfg[section]]
+        if missing:
+            raise InputError(path, f"'{section}' lacks {', '.join(missing)}", "every key present")
+    horizon = cfg["settings"]["horizon"]
+    if len(cfg["params"]["weights"]) != horizon:
+        raise InputError(
+            path, f"{len(cfg['params']['weights'])} weights for horizon {horizon}", "H weights"
+        )
+    cfg.setdefault("uncertainty", None)
+    cfg.setdefault("provenance", {})
+    return cfg
+
+
+def config_to_params(cfg: dict[str, Any]):
+    """Params from a checked config dict."""
+    from fpe_jax.params import Params, Settings
+
+    settings = Settings(**{k: cfg["settings"][k] for k in SETTING_KEYS})
+    return Params.create(settings, **{k: cfg["params"][k] for k in PARAM_KEYS})
+
+
+def params_to_config(params, *, uncertainty=None, provenance=None) -> dict[str, Any]:
+    """A config dict from Params (+ optional uncertainty and provenance)."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "params": params.physical(),
+        "settings": dataclasses.asdict(params.settings),
+        "uncertainty": uncertainty,
+        "provenance": provenance or {},
+    }
+
+
+def write_config(path, cfg: dict[str, Any], *, force: bool = False) -> None:
+    """Write a config JSON; refuses to overwrite an existing file unless force."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise InputError(path, "exists", "a new path, or --force to overwrite")
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(cfg, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def load_params(*, preset: str | None = None, config: str | None = None):
+    """Params from a preset name or a config file (exactly one; default preset: 'default')."""
+    from fpe_jax.params import presets
+
+    if config is not None:
+        return config_to_params(read_config(config))
+    name = preset or "default"
+    if name not in presets:
+        raise InputError("--preset", f"unknown preset {name!r}", f"one of {', '.join(presets)}")
+    return presets[name]

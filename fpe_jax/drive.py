@@ -1,0 +1,74 @@
+"""`Drive`: one recorded or simulated drive of the leading car, as plain NumPy arrays.
+
+Readers in `fpe_jax.io` produce it; `estimate`, `fit` and `metrics` consume it. No file I/O here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Drive:
+    """Observations of the leading car, optionally with its ground truth.
+
+    Attributes:
+        t_s: (N,) observation stamps [s], strictly increasing.
+        xy_m: (N, 2) observed position x [m], y [m] in the map frame.
+        yaw_rad: (N,) observed orientation [rad]; NaN where the source has none.
+        truth_t_s: (M,) ground-truth stamps [s], strictly increasing, or None.
+        truth_xy_m: (M, 2) true position [m], or None.
+        truth_yaw_rad: (M,) true yaw [rad] (NaN if unknown), or None.
+        truth_v_mps: (M,) true speed [m/s] (NaN if unknown), or None.
+        meta: free-form provenance: source path, topics, frames, counts of dropped/reordered rows.
+    """
+
+    t_s: np.ndarray
+    xy_m: np.ndarray
+    yaw_rad: np.ndarray
+    truth_t_s: np.ndarray | None = None
+    truth_xy_m: np.ndarray | None = None
+    truth_yaw_rad: np.ndarray | None = None
+    truth_v_mps: np.ndarray | None = None
+    meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        n = len(self.t_s)
+        if self.xy_m.shape != (n, 2) or self.yaw_rad.shape != (n,):
+            raise ValueError(
+                f"Drive: shapes t {self.t_s.shape}, xy {self.xy_m.shape}, yaw {self.yaw_rad.shape}"
+                " do not agree (expected (N,), (N, 2), (N,))"
+            )
+        if n and np.any(np.diff(self.t_s) <= 0):
+            raise ValueError("Drive: observation stamps must be strictly increasing")
+        if self.truth_t_s is not None:
+            m = len(self.truth_t_s)
+            if self.truth_xy_m is None or self.truth_xy_m.shape != (m, 2):
+                raise ValueError("Drive: truth_xy_m must have shape (M, 2) matching truth_t_s")
+
+    @property
+    def has_truth(self) -> bool:
+        return self.truth_t_s is not None and len(self.truth_t_s) > 0
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t_s[-1] - self.t_s[0]) if len(self.t_s) else 0.0
+
+    def slice_time(self, t0_s: float, t1_s: float) -> Drive:
+        """The part of the drive with t0_s <= t < t1_s (observations and truth alike)."""
+        keep = (self.t_s >= t0_s) & (self.t_s < t1_s)
+        kw: dict[str, Any] = dict(
+            t_s=self.t_s[keep], xy_m=self.xy_m[keep], yaw_rad=self.yaw_rad[keep]
+        )
+        if self.has_truth:
+            tk = (self.truth_t_s >= t0_s) & (self.truth_t_s < t1_s)
+            kw.update(
+                truth_t_s=self.truth_t_s[tk],
+                truth_xy_m=self.truth_xy_m[tk],
+                truth_yaw_rad=None if self.truth_yaw_rad is None else self.truth_yaw_rad[tk],
+                truth_v_mps=None if self.truth_v_mps is None else self.truth_v_mps[tk],
+            )
+        return Drive(**kw, meta=dict(self.meta, time_range_s=(t0_s, t1_s)))

@@ -1,0 +1,126 @@
+"""The leading car's state at each prediction time, from its recent observation history.
+
+Two parts: `history_windows` (NumPy) gathers, for every observation, the last few *distinct*
+observations (a log repeats the last pose when no new detection came; repeats carry no
+information and would fake a stop); `estimate_state` (JAX, one window, vmap it) turns a window into
+a `State` with robust Theil-Sen slopes (the median of pairwise slopes ignores a single outlier).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from fpe_jax.drive import Drive
+from fpe_jax.rollout import State
+from fpe_jax.track import wrap_angle
+
+MIN_PAIR_DT_S = 0.05  # pairs closer in time than this give slopes dominated by noise
+MAX_SPAN_S = 1.0  # older observations describe a different motion
+OUTLIER_M = 0.6  # newest observation farther than this from the robust line is an outlier
+
+
+def distinct_mask(xy_m: np.ndarray) -> np.ndarray:
+    """(N,) True where a row is a new observation, False where it repeats the previous row exactly."""
+    same = np.zeros(len(xy_m), dtype=bool)
+    same[1:] = np.all(xy_m[1:] == xy_m[:-1], axis=1)
+    return ~same
+
+
+def history_windows(drive: Drive, n_hist: int) -> dict[str, np.ndarray]:
+    """For every observation k, the newest `n_hist` distinct observations up to k, right-aligned.
+
+    Returns a dict of arrays: t_s (N, W), xy_m (N, W, 2), yaw_rad (N, W), valid (N, W) bool and
+    t_now_s (N,) (the stamp of observation k, the prediction time). Slots with no observation
+    (the start of a drive, or older than MAX_SPAN_S before the newest) are invalid.
+    """
+    idx_distinct = np.flatnonzero(distinct_mask(drive.xy_m))
+    newest = np.searchsorted(idx_distinct, np.arange(len(drive.t_s)), side="right") - 1
+    slots = newest[:, None] + np.arange(-n_hist + 1, 1)[None, :]
+    valid = slots >= 0
+    rows = idx_distinct[np.clip(slots, 0, None)]
+    t = drive.t_s[rows]
+    valid &= (t[:, -1:] - t) <= MAX_SPAN_S
+    return {
+        "t_s": t,
+        "xy_m": drive.xy_m[rows],
+        "yaw_rad": drive.yaw_rad[rows],
+        "valid": valid,
+        "t_now_s": drive.t_s.copy(),
+    }
+
+
+def _masked_median(x, mask):
+    """Median of x over mask (any shape, reduces everything); 0 where the mask is empty."""
+    m = jnp.nanmedian(jnp.where(mask, x, jnp.nan))
+    return jnp.where(jnp.any(mask), m, 0.0)
+
+
+def estimate_state(
+    t_s: Float[Array, " W"],
+    xy_m: Float[Array, "W 2"],
+    yaw_rad: Float[Array, " W"],
+    valid: Bool[Array, " W"],
+    t_now_s: Float[Array, ""],
+) -> State:
+    """State at t_now from one right-aligned history window (index W-1 is the newest).
+
+    Args:
+        t_s: (W,) stamps [s]; xy_m: (W, 2) positions [m]; yaw_rad: (W,) observed yaw [rad] or NaN;
+        valid: (W,) which slots hold an observation (the newest must); t_now_s: prediction time [s].
+
+    Velocity is the Theil-Sen slope of x(t), y(t); yaw is the observed one at the newest
+    observation (smoothed along the same robust line) or, without orientation, the direction of
+    motion; yaw rate is the Theil-Sen slope of the yaw (or of the segment courses).
+    """
+    w = t_s.shape[0]
+    i, j = np.triu_indices(w, 1)
+    dt = t_s[j] - t_s[i]
+    pair_ok = valid[i] & valid[j] & (dt >= MIN_PAIR_DT_S)
+    safe_dt = jnp.where(pair_ok, dt, 1.0)
+    vx = _masked_median((xy_m[j, 0] - xy_m[i, 0]) / safe_dt, pair_ok)
+    vy = _masked_median((xy_m[j, 1] - xy_m[i, 1]) / safe_dt, pair_ok)
+    t_new = t_s[-1]
+
+    # robust line through the window, evaluated at the newest stamp: replaces an outlier newest
+    ahead = t_new - t_s
+    fit_x = _masked_median(xy_m[:, 0] + vx * ahead, valid)
+    fit_y = _masked_median(xy_m[:, 1] + vy * ahead, valid)
+    off = jnp.hypot(xy_m[-1, 0] - fit_x, xy_m[-1, 1] - fit_y)
+    use_fit = (off > OUTLIER_M) & (jnp.sum(valid) >= 3)
+    x = jnp.where(use_fit, fit_x, xy_m[-1, 0])
+    y = jnp.where(use_fit, fit_y, xy_m[-1, 1])
+
+    speed = jnp.hypot(vx, vy)
+    course = jnp.arctan2(vy, vx)
+
+    has_yaw = valid & jnp.isfinite(yaw_rad)
+    yaw0 = jnp.where(has_yaw, yaw_rad, 0.0)
+    yaw_ok = pair_ok & has_yaw[i] & has_yaw[j]
+    rate_obs = _masked_median(wrap_angle(yaw0[j] - yaw0[i]) / safe_dt, yaw_ok)
+    yaw_ref = jnp.where(has_yaw[-1], yaw0[-1], course)
+    yaw_fit = yaw_ref + _masked_median(wrap_angle(yaw0 + rate_obs * ahead - yaw_ref), has_yaw)
+
+    # without orientation: the course of each segment between consecutive observations
+    seg_ok = valid[:-1] & valid[1:] & ((t_s[1:] - t_s[:-1]) >= MIN_PAIR_DT_S)
+    seg_course = jnp.arctan2(xy_m[1:, 1] - xy_m[:-1, 1], xy_m[1:, 0] - xy_m[:-1, 0])
+    seg_t = 0.5 * (t_s[1:] + t_s[:-1])
+    a, b = np.triu_indices(w - 1, 1)
+    seg_pair_ok = seg_ok[a] & seg_ok[b] & ((seg_t[b] - seg_t[a]) >= MIN_PAIR_DT_S)
+    seg_dt = jnp.where(seg_pair_ok, seg_t[b] - seg_t[a], 1.0)
+    rate_course = _masked_median(wrap_angle(seg_course[b] - seg_course[a]) / seg_dt, seg_pair_ok)
+
+    n_yaw = jnp.sum(has_yaw)
+    yaw = jnp.where(n_yaw >= 2, wrap_angle(yaw_fit), yaw_ref)
+    yaw_rate = jnp.where(n_yaw >= 2, rate_obs, rate_course)
+    return State(
+        x_m=x,
+        y_m=y,
+        yaw_rad=yaw,
+        v_mps=speed,
+        yaw_rate_rps=yaw_rate,
+        course_rad=course,
+        s_m=None,
+        age_s=t_now_s - t_new,
+    )

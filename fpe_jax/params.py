@@ -1,0 +1,204 @@
+"""`Params` (fitted physical values, arrays) and `Settings` (static), presets, reparametrisation.
+
+Params holds physical values users read (`lookahead_m`, `weights`, ...). The fitter works on
+unconstrained raw values: `unconstrain(params)` and `constrain(raw)` map between the two, so
+every fitted value stays in its valid range without clipping (lookahead >= min_lookahead_m,
+gain >= 0, weights in [0, 1], delay >= 0).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator, Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+BLEND_MODES = ("position", "heading")
+MODELS = ("blend", "seed", "cv", "ctrv")
+SPEED_SOURCES = ("measured", "fixed")
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """Static settings: never traced, changing one recompiles.
+
+    Attributes:
+        dt_s: prediction step [s].
+        horizon: number of steps H.
+        wheelbase_m: kinematic-bicycle wheelbase [m].
+        max_steer_rad: steering limit [rad].
+        blend: "position" (blend the linear and pure-pursuit rollouts' positions per step) or
+            "heading" (one rollout whose turn is scaled by 1 - w per step, as the original did).
+        model: "blend" (linear / pure pursuit / their blend), "seed" (the original node's exact
+            discrete rules), "cv" (constant velocity vector from the history), "ctrv"
+            (constant turn rate and velocity).
+        speed: "measured" (the estimator's speed) or "fixed" (`Params.speed_mps`).
+        min_lookahead_m: lower bound of the lookahead distance [m].
+        history: number of distinct recent observations the state estimator uses.
+    """
+
+    dt_s: float = 0.1
+    horizon: int = 10
+    wheelbase_m: float = 0.325
+    max_steer_rad: float = 0.4189
+    blend: str = "position"
+    model: str = "blend"
+    speed: str = "measured"
+    min_lookahead_m: float = 0.3
+    history: int = 6
+
+    def __post_init__(self):
+        checks = [
+            (self.blend in BLEND_MODES, f"blend must be one of {BLEND_MODES}, got {self.blend!r}"),
+            (self.model in MODELS, f"model must be one of {MODELS}, got {self.model!r}"),
+            (self.speed in SPEED_SOURCES, f"speed must be one of {SPEED_SOURCES}"),
+            (self.dt_s > 0 and self.horizon >= 1, "dt_s must be > 0 and horizon >= 1"),
+            (self.wheelbase_m > 0 and self.max_steer_rad > 0, "wheelbase, max_steer must be > 0"),
+            (self.history >= 2, "history must be >= 2 observations"),
+        ]
+        for ok, msg in checks:
+            if not ok:
+                raise ValueError(f"Settings: {msg}")
+
+
+class Params(eqx.Module):
+    """Physical predictor parameters (array fields) plus their static `settings`.
+
+    Attributes:
+        lookahead_m: () pure-pursuit lookahead distance at zero speed [m].
+        lookahead_gain_s: () lookahead growth with speed [s]: L = lookahead_m + gain * v.
+        weights: (H,) per-step blend weight in [0, 1]; 1 = linear, 0 = pure pursuit.
+        delay_s: () observation delay offset [s] >= 0: the state is advanced by it first.
+        speed_mps: () speed used when settings.speed == "fixed" [m/s].
+        settings: static `Settings`.
+    """
+
+    lookahead_m: Float[Array, ""]
+    lookahead_gain_s: Float[Array, ""]
+    weights: Float[Array, " H"]
+    delay_s: Float[Array, ""]
+    speed_mps: Float[Array, ""]
+    settings: Settings = eqx.field(static=True)
+
+    @classmethod
+    def create(
+        cls,
+        settings: Settings | None = None,
+        *,
+        lookahead_m=1.5,
+        lookahead_gain_s=0.0,
+        weights=0.5,
+        delay_s=0.0,
+        speed_mps=1.0,
+    ) -> Params:
+        """Params from plain numbers; a scalar `weights` is broadcast to all H steps."""
+        settings = settings or Settings()
+        w = jnp.broadcast_to(jnp.asarray(weights, dtype=float), (settings.horizon,))
+        return cls(
+            lookahead_m=jnp.asarray(lookahead_m, dtype=float),
+            lookahead_gain_s=jnp.asarray(lookahead_gain_s, dtype=float),
+            weights=w,
+            delay_s=jnp.asarray(delay_s, dtype=float),
+            speed_mps=jnp.asarray(speed_mps, dtype=float),
+            settings=settings,
+        )
+
+    def physical(self) -> dict:
+        """The values as plain Python numbers / lists (for configs and reports)."""
+        return {
+            "lookahead_m": float(self.lookahead_m),
+            "lookahead_gain_s": float(self.lookahead_gain_s),
+            "weights": [float(w) for w in np.asarray(self.weights)],
+            "delay_s": float(self.delay_s),
+            "speed_mps": float(self.speed_mps),
+        }
+
+
+# ---- reparametrisation -------------------------------------------------------------------------
+
+_RAW_EPS = 1e-6  # keeps the inverse maps finite at the bounds (w = 0 or 1, delay = 0)
+
+
+def _inv_softplus(y):
+    y = jnp.maximum(y, _RAW_EPS)
+    return y + jnp.log(-jnp.expm1(-y))
+
+
+def unconstrain(params: Params) -> Params:
+    """Raw, unconstrained values (same pytree structure) for the fitter."""
+    s = params.settings
+    w = jnp.clip(params.weights, _RAW_EPS, 1 - _RAW_EPS)
+    return dataclasses.replace(
+        params,
+        lookahead_m=_inv_softplus(params.lookahead_m - s.min_lookahead_m),
+        lookahead_gain_s=_inv_softplus(params.lookahead_gain_s),
+        weights=jnp.log(w) - jnp.log1p(-w),
+        delay_s=_inv_softplus(params.delay_s),
+    )
+
+
+def constrain(raw: Params) -> Params:
+    """Physical values from raw ones: the inverse of `unconstrain`, smooth everywhere."""
+    s = raw.settings
+    return dataclasses.replace(
+        raw,
+        lookahead_m=s.min_lookahead_m + jax.nn.softplus(raw.lookahead_m),
+        lookahead_gain_s=jax.nn.softplus(raw.lookahead_gain_s),
+        weights=jax.nn.sigmoid(raw.weights),
+        delay_s=jax.nn.softplus(raw.delay_s),
+    )
+
+
+# ---- presets -----------------------------------------------------------------------------------
+
+
+def _seed(speed: str) -> Params:
+    settings = Settings(max_steer_rad=0.5236, blend="heading", model="seed", speed=speed)
+    return Params.create(
+        settings, lookahead_m=2.0, weights=0.7 ** np.arange(settings.horizon), speed_mps=1.0
+    )
+
+
+_PRESET_BUILDERS = {
+    "seed": lambda: _seed("fixed"),
+    "seed-measured-speed": lambda: _seed("measured"),
+    "linear": lambda: Params.create(Settings(), weights=1.0),
+    "pure-pursuit": lambda: Params.create(Settings(), lookahead_m=2.0, weights=0.0),
+    "constant-velocity": lambda: Params.create(Settings(model="cv"), weights=1.0),
+    "ctrv": lambda: Params.create(Settings(model="ctrv"), weights=1.0),
+    "default": lambda: Params.create(
+        Settings(), lookahead_m=1.0, lookahead_gain_s=0.2, weights=0.5, delay_s=0.1
+    ),
+}
+
+PRESET_DOCS = {
+    "seed": "the original 2019 node exactly: 1 m/s, 2 m lookahead, reverse goal scan, 0.7^i",
+    "seed-measured-speed": "the original node's rules with the measured speed",
+    "linear": "constant speed along the current heading (thesis approach 2)",
+    "pure-pursuit": "kinematic bicycle following the path, 2 m lookahead (approach 3)",
+    "constant-velocity": "constant velocity vector from the recent history (approach 1)",
+    "ctrv": "constant turn rate and velocity",
+    "default": "the differentiable position blend; the fitter's starting point",
+}
+
+
+class _Presets(Mapping):
+    """Read-only mapping name -> Params, built on access (so arrays get the current dtype)."""
+
+    def __getitem__(self, name: str) -> Params:
+        if name not in _PRESET_BUILDERS:
+            raise KeyError(f"unknown preset {name!r}; presets: {', '.join(_PRESET_BUILDERS)}")
+        return _PRESET_BUILDERS[name]()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(_PRESET_BUILDERS)
+
+    def __len__(self) -> int:
+        return len(_PRESET_BUILDERS)
+
+
+presets: Mapping[str, Params] = _Presets()

@@ -1,0 +1,232 @@
+"""`Track`: a uniformly resampled path the leading car follows, with arc-length geometry.
+
+Built once from waypoints in NumPy (cleaning, loop detection, resampling, smoothing); every query
+(`point_at`, `heading_at`, `project*`) is a pure JAX function, differentiable in the arc length.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from fpe_jax.errors import InputError
+
+
+def wrap_angle(a):
+    """Wrap angles [rad] to [-pi, pi); works on NumPy and JAX arrays alike."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def _clean_polyline(xy: np.ndarray, min_step_m: float) -> np.ndarray:
+    """Drop jitter and backtracking: keep a point only if it is `min_step_m` from the last kept one
+    and does not reverse the direction of travel (hand-driven waypoints wobble and back up)."""
+    kept = [xy[0]]
+    for p in xy[1:]:
+        step = p - kept[-1]
+        if np.hypot(*step) < min_step_m:
+            continue
+        if len(kept) >= 2 and np.dot(step, kept[-1] - kept[-2]) <= 0.0:
+            continue
+        kept.append(p)
+    return np.asarray(kept)
+
+
+def _resample(xy: np.ndarray, closed: bool, ds_m: float) -> np.ndarray:
+    """Points at uniform arc-length spacing ~ds_m along the polyline (closing segment included)."""
+    pts = np.vstack([xy, xy[:1]]) if closed else xy
+    seg = np.hypot(*np.diff(pts, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    n = max(int(round(s[-1] / ds_m)), 3)
+    s_new = np.arange(n) * (s[-1] / n) if closed else np.linspace(0.0, s[-1], n + 1)
+    return np.stack([np.interp(s_new, s, pts[:, 0]), np.interp(s_new, s, pts[:, 1])], axis=1)
+
+
+def _smooth(xy: np.ndarray, closed: bool, half_window: int) -> np.ndarray:
+    """Moving average over 2 * half_window + 1 points (circular on loops, edge-padded otherwise)."""
+    if half_window < 1:
+        return xy
+    mode = "wrap" if closed else "edge"
+    padded = np.pad(xy, ((half_window, half_window), (0, 0)), mode=mode)
+    kernel = np.ones(2 * half_window + 1) / (2 * half_window + 1)
+    out = np.stack([np.convolve(padded[:, i], kernel, mode="valid") for i in range(2)], axis=1)
+    if not closed:  # keep the end points where the user put them
+        out[0], out[-1] = xy[0], xy[-1]
+    return out
+
+
+class Track(eqx.Module):
+    """A path resampled at uniform spacing, closed (a loop) or open.
+
+    Attributes:
+        xy_m: (M, 2) resampled points x [m], y [m]; on a loop point M-1 connects back to point 0.
+        heading_rad: (M,) path heading at each point [rad].
+        ds_m: () spacing between consecutive points [m].
+        length_m: () total arc length [m] (closing segment included on loops).
+        raw_xy_m: (K, 2) the waypoints as given, in their order (the legacy goal scan reads them).
+        closed: static; True for a loop (arc length wraps), False for an open path (clamps).
+    """
+
+    xy_m: Float[Array, "M 2"]
+    heading_rad: Float[Array, " M"]
+    ds_m: Float[Array, ""]
+    length_m: Float[Array, ""]
+    raw_xy_m: Float[Array, "K 2"]
+    closed: bool = eqx.field(static=True)
+
+    @classmethod
+    def from_waypoints(
+        cls,
+        waypoints_xy_m,
+        *,
+        ds_m: float = 0.1,
+        closed: bool | None = None,
+        smooth_m: float = 0.3,
+        min_step_m: float = 0.15,
+        source: str = "waypoints",
+    ) -> Track:
+        """Build a track from waypoints (K, 2) x [m], y [m].
+
+        Args:
+            ds_m: resampling spacing [m].
+            closed: force a loop or an open path; None detects a loop when the end comes back to
+                within max(3 steps, 5 % of the length) of the start.
+            smooth_m: half-width of the moving-average smoothing [m] (removes hand-driven jitter).
+            min_step_m: waypoints closer than this to the previous kept one are dropped.
+            source: name used in error messages.
+        """
+        xy = np.asarray(waypoints_xy_m, dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            raise InputError(source, f"waypoints have shape {xy.shape}", "(K, 2) x, y in metres")
+        if not np.all(np.isfinite(xy)):
+            raise InputError(source, "waypoints contain NaN or inf", "finite x, y")
+        step = min(min_step_m, ds_m * 1.5)
+        clean = _clean_polyline(xy, step)
+        if len(clean) < 3:
+            raise InputError(source, f"only {len(clean)} distinct waypoints", "at least 3")
+        seg = np.hypot(*np.diff(clean, axis=0).T)
+        length = seg.sum()
+        gap = np.hypot(*(clean[-1] - clean[0]))
+        if closed is None:
+            closed = bool(gap <= max(3 * np.median(seg), 0.05 * length))
+        pts = _resample(clean, closed, ds_m)
+        pts = _smooth(pts, closed, int(round(smooth_m / ds_m)))
+        pts = _resample(pts, closed, ds_m)  # smoothing shifts spacing a little; make it uniform
+        ring = np.vstack([pts, pts[:1]]) if closed else pts
+        seg = np.hypot(*np.diff(ring, axis=0).T)
+        length = seg.sum()
+        spacing = length / (len(pts) if closed else len(pts) - 1)
+        if closed:
+            d = np.roll(pts, -1, axis=0) - np.roll(pts, 1, axis=0)
+        else:
+            d = np.gradient(pts, axis=0)
+        heading = np.arctan2(d[:, 1], d[:, 0])
+        return cls(
+            xy_m=jnp.asarray(pts),
+            heading_rad=jnp.asarray(heading),
+            ds_m=jnp.asarray(spacing),
+            length_m=jnp.asarray(length),
+            raw_xy_m=jnp.asarray(xy),
+            closed=bool(closed),
+        )
+
+    @property
+    def n_points(self) -> int:
+        return self.xy_m.shape[0]
+
+    def _locate(self, s_m):
+        """Segment index i, next index j and fraction f in [0, 1] for arc length s [m]."""
+        m = self.n_points
+        if self.closed:
+            u = jnp.mod(s_m, self.length_m) / self.ds_m
+            i = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, m - 1)
+            return i, (i + 1) % m, u - i
+        u = jnp.clip(s_m, 0.0, self.length_m) / self.ds_m
+        i = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, m - 2)
+        return i, i + 1, u - i
+
+    def point_at(self, s_m: Float[Array, ""]) -> Float[Array, "2"]:
+        """Position (2,) [m] at arc length s [m]; wraps on loops, clamps on open paths."""
+        i, j, f = self._locate(s_m)
+        return self.xy_m[i] * (1.0 - f) + self.xy_m[j] * f
+
+    def heading_at(self, s_m: Float[Array, ""]) -> Float[Array, ""]:
+        """Path heading [rad] at arc length s [m], interpolated without a wrap jump."""
+        i, j, f = self._locate(s_m)
+        h0 = self.heading_rad[i]
+        return wrap_angle(h0 + f * wrap_angle(self.heading_rad[j] - h0))
+
+    def _project_segments(self, p_m, idx):
+        """Closest point of p (2,) on the segments starting at indices idx (n,): arc length [m]."""
+        m = self.n_points
+        nxt = (idx + 1) % m if self.closed else jnp.clip(idx + 1, 0, m - 1)
+        a, b = self.xy_m[idx], self.xy_m[nxt]
+        ab = b - a
+        t = jnp.clip(
+            jnp.sum((p_m[None, :] - a) * ab, -1) / jnp.maximum(jnp.sum(ab * ab, -1), 1e-12), 0, 1
+        )
+        d2 = jnp.sum((a + t[:, None] * ab - p_m[None, :]) ** 2, -1)
+        k = jnp.argmin(d2)
+        return (idx[k] + t[k]) * self.ds_m
+
+    def project(self, p_m: Float[Array, "2"]) -> Float[Array, ""]:
+        """Arc length [m] of the closest point of the whole track to p (2,) [m] (global search)."""
+        last = self.n_points if self.closed else self.n_points - 1
+        return self._project_segments(p_m, jnp.arange(last))
+
+    def project_window(
+        self, p_m: Float[Array, "2"], s_hint_m: Float[Array, ""], behind_m=2.0, ahead_m=4.0
+    ) -> Float[Array, ""]:
+        """Arc length [m] of the closest point within [s_hint - behind, s_hint + ahead].
+
+        The window keeps a car on its own stretch of path: never snapped to the far side of a
+        hairpin or across the seam of a noisy loop. `behind_m`, `ahead_m` are static floats.
+        """
+        n_back = int(np.ceil(behind_m / float(self.ds_m)))
+        n_ahead = int(np.ceil(ahead_m / float(self.ds_m)))
+        i0 = jnp.floor(s_hint_m / self.ds_m).astype(jnp.int32)
+        idx = i0 + jnp.arange(-n_back, n_ahead + 1)
+        if self.closed:
+            idx = jnp.mod(idx, self.n_points)
+            s = self._project_segments(p_m, idx)
+            # keep s continuous with the hint across the seam (no jump by one lap length)
+            return s_hint_m + wrap_to(s - s_hint_m, self.length_m)
+        return self._project_segments(p_m, jnp.clip(idx, 0, self.n_points - 2))
+
+    def project_local(
+        self, p_m: Float[Array, "2"], s_hint_m: Float[Array, ""], iters: int = 2
+    ) -> Float[Array, ""]:
+        """Arc length [m] near s_hint by Newton steps along the tangent: O(1), smooth in p.
+
+        For the hot path of a rollout, where the car moves < 1 m between steps and stays near
+        the path; `iters` is static.
+        """
+        s = s_hint_m
+        for _ in range(iters):
+            h = self.heading_at(s)
+            s = s + jnp.dot(p_m - self.point_at(s), jnp.stack([jnp.cos(h), jnp.sin(h)]))
+        return s
+
+
+def wrap_to(x, period):
+    """Wrap x to [-period / 2, period / 2)."""
+    return (x + 0.5 * period) % period - 0.5 * period
+
+
+@jax.jit
+def arclength_along(track: Track, xy_m: Float[Array, "N 2"]) -> Float[Array, " N"]:
+    """Arc length [m] of each point of a drive (N, 2), each projected in a window around the last.
+
+    The first point is projected globally; later points stay continuous (no jumps across a
+    hairpin or the seam), so s may exceed the lap length on loops (it counts laps).
+    """
+    s0 = track.project(xy_m[0])
+
+    def step(s_prev, p):
+        s = track.project_window(p, s_prev)
+        return s, s
+
+    _, s = jax.lax.scan(step, s0, xy_m)
+    return s
