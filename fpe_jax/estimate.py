@@ -22,7 +22,7 @@ OUTLIER_M = 0.6  # newest observation farther than this from the robust line is 
 
 
 def distinct_mask(xy_m: np.ndarray) -> np.ndarray:
-    """(N,) True where a row is a new observation, False where it repeats the previous row exactly."""
+    """(N,) True where a row is a new observation, False where it repeats the previous row."""
     same = np.zeros(len(xy_m), dtype=bool)
     same[1:] = np.all(xy_m[1:] == xy_m[:-1], axis=1)
     return ~same

@@ -86,7 +86,7 @@ def rollout_ctrv(params: Params, state: State) -> Float[Array, "H 3"]:
 
     def step(c, dt):
         x, y, yaw = c
-        # exact arc: chord length 2 v/w sin(w dt / 2) along the mid heading; sinc keeps w -> 0 smooth
+        # exact arc: chord 2 v/w sin(w dt / 2) along the mid heading; sinc stays smooth at w = 0
         chord = v * dt * jnp.sinc(w * dt / (2 * jnp.pi))
         mid = yaw + 0.5 * w * dt
         c = (x + chord * jnp.cos(mid), y + chord * jnp.sin(mid), yaw + w * dt)

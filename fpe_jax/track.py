@@ -12,49 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fpe_jax.errors import InputError
-
-
-def wrap_angle(a):
-    """Wrap angles [rad] to [-pi, pi); works on NumPy and JAX arrays alike."""
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-def _clean_polyline(xy: np.ndarray, min_step_m: float) -> np.ndarray:
-    """Drop jitter and backtracking: keep a point only if it is `min_step_m` from the last kept one
-    and does not reverse the direction of travel (hand-driven waypoints wobble and back up)."""
-    kept = [xy[0]]
-    for p in xy[1:]:
-        step = p - kept[-1]
-        if np.hypot(*step) < min_step_m:
-            continue
-        if len(kept) >= 2 and np.dot(step, kept[-1] - kept[-2]) <= 0.0:
-            continue
-        kept.append(p)
-    return np.asarray(kept)
-
-
-def _resample(xy: np.ndarray, closed: bool, ds_m: float) -> np.ndarray:
-    """Points at uniform arc-length spacing ~ds_m along the polyline (closing segment included)."""
-    pts = np.vstack([xy, xy[:1]]) if closed else xy
-    seg = np.hypot(*np.diff(pts, axis=0).T)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    n = max(int(round(s[-1] / ds_m)), 3)
-    s_new = np.arange(n) * (s[-1] / n) if closed else np.linspace(0.0, s[-1], n + 1)
-    return np.stack([np.interp(s_new, s, pts[:, 0]), np.interp(s_new, s, pts[:, 1])], axis=1)
-
-
-def _smooth(xy: np.ndarray, closed: bool, half_window: int) -> np.ndarray:
-    """Moving average over 2 * half_window + 1 points (circular on loops, edge-padded otherwise)."""
-    if half_window < 1:
-        return xy
-    mode = "wrap" if closed else "edge"
-    padded = np.pad(xy, ((half_window, half_window), (0, 0)), mode=mode)
-    kernel = np.ones(2 * half_window + 1) / (2 * half_window + 1)
-    out = np.stack([np.convolve(padded[:, i], kernel, mode="valid") for i in range(2)], axis=1)
-    if not closed:  # keep the end points where the user put them
-        out[0], out[-1] = xy[0], xy[-1]
-    return out
+from fpe_jax.path import build_path, wrap_angle
 
 
 class Track(eqx.Module):
@@ -77,59 +35,17 @@ class Track(eqx.Module):
     closed: bool = eqx.field(static=True)
 
     @classmethod
-    def from_waypoints(
-        cls,
-        waypoints_xy_m,
-        *,
-        ds_m: float = 0.1,
-        closed: bool | None = None,
-        smooth_m: float = 0.3,
-        min_step_m: float = 0.15,
-        source: str = "waypoints",
-    ) -> Track:
-        """Build a track from waypoints (K, 2) x [m], y [m].
-
-        Args:
-            ds_m: resampling spacing [m].
-            closed: force a loop or an open path; None detects a loop when the end comes back to
-                within max(3 steps, 5 % of the length) of the start.
-            smooth_m: half-width of the moving-average smoothing [m] (removes hand-driven jitter).
-            min_step_m: waypoints closer than this to the previous kept one are dropped.
-            source: name used in error messages.
-        """
-        xy = np.asarray(waypoints_xy_m, dtype=np.float64)
-        if xy.ndim != 2 or xy.shape[1] != 2:
-            raise InputError(source, f"waypoints have shape {xy.shape}", "(K, 2) x, y in metres")
-        if not np.all(np.isfinite(xy)):
-            raise InputError(source, "waypoints contain NaN or inf", "finite x, y")
-        step = min(min_step_m, ds_m * 1.5)
-        clean = _clean_polyline(xy, step)
-        if len(clean) < 3:
-            raise InputError(source, f"only {len(clean)} distinct waypoints", "at least 3")
-        seg = np.hypot(*np.diff(clean, axis=0).T)
-        length = seg.sum()
-        gap = np.hypot(*(clean[-1] - clean[0]))
-        if closed is None:
-            closed = bool(gap <= max(3 * np.median(seg), 0.05 * length))
-        pts = _resample(clean, closed, ds_m)
-        pts = _smooth(pts, closed, int(round(smooth_m / ds_m)))
-        pts = _resample(pts, closed, ds_m)  # smoothing shifts spacing a little; make it uniform
-        ring = np.vstack([pts, pts[:1]]) if closed else pts
-        seg = np.hypot(*np.diff(ring, axis=0).T)
-        length = seg.sum()
-        spacing = length / (len(pts) if closed else len(pts) - 1)
-        if closed:
-            d = np.roll(pts, -1, axis=0) - np.roll(pts, 1, axis=0)
-        else:
-            d = np.gradient(pts, axis=0)
-        heading = np.arctan2(d[:, 1], d[:, 0])
+    def from_waypoints(cls, waypoints_xy_m, **kwargs) -> Track:
+        """Build a track from waypoints (K, 2) x [m], y [m]; keyword options as in
+        `fpe_jax.path.build_path` (ds_m, closed, smooth_m, min_step_m, source)."""
+        p = build_path(waypoints_xy_m, **kwargs)
         return cls(
-            xy_m=jnp.asarray(pts),
-            heading_rad=jnp.asarray(heading),
-            ds_m=jnp.asarray(spacing),
-            length_m=jnp.asarray(length),
-            raw_xy_m=jnp.asarray(xy),
-            closed=bool(closed),
+            xy_m=jnp.asarray(p["xy_m"]),
+            heading_rad=jnp.asarray(p["heading_rad"]),
+            ds_m=jnp.asarray(p["ds_m"]),
+            length_m=jnp.asarray(p["length_m"]),
+            raw_xy_m=jnp.asarray(p["raw_xy_m"]),
+            closed=p["closed"],
         )
 
     @property
