@@ -1,0 +1,21 @@
+"""Drive logs in, predictions out -- without a ROS installation (NumPy only; no JAX here).
+
+Readers: `load_drive` (ROS 2 MCAP, rosbag2 folders, ROS 1 bags, CSV) -> `Drive`;
+`load_waypoints` (CSV variants, nav_msgs/Path in a log) -> `Waypoints`; `describe_log`.
+Writers: `write_predictions` (CSV / MCAP), `write_drive_mcap` (simulated drives),
+`check_output_path`. Every bad input raises `fpe_jax.errors.InputError`.
+"""
+
+from fpe_jax.io.drives import describe_log, load_drive
+from fpe_jax.io.waypoints import Waypoints, load_waypoints
+from fpe_jax.io.writers import check_output_path, write_drive_mcap, write_predictions
+
+__all__ = [
+    "Waypoints",
+    "check_output_path",
+    "describe_log",
+    "load_drive",
+    "load_waypoints",
+    "write_drive_mcap",
+    "write_predictions",
+]

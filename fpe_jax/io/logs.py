@@ -1,0 +1,223 @@
+"""Reading ROS logs without ROS: plain MCAP files, rosbag2 folders and ROS 1 bags.
+
+`open_log` returns a `Log`: an index of its topics (message type, count, log-time span) and a way
+to iterate decoded messages of chosen topics. Two back ends hide behind it:
+
+- plain `.mcap` files: the `mcap` reader, decoding with mcap_ros2's decoder factory, which builds
+  CDR decoders from the schemas embedded in the file;
+- rosbag2 folders (any storage plugin) and ROS 1 `.bag` files: rosbags' `AnyReader`.
+
+Decoded messages from both expose the same attribute names (`msg.header.stamp.sec`, ...), so the
+extraction code (`pose_rows`) is shared. Every error the libraries raise on a broken file -- which
+varies wildly and includes MemoryError for truncated MCAP -- becomes an `InputError`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fpe_jax.errors import InputError
+from fpe_jax.io import ros_msgs as rm
+
+STAMPED_POSE_TYPES = ("geometry_msgs/PoseStamped", "geometry_msgs/PoseWithCovarianceStamped")
+ODOMETRY_TYPES = ("nav_msgs/Odometry",)
+TF_TYPES = ("tf2_msgs/TFMessage", "tf/tfMessage")  # the second: old ROS 1 `tf` package
+POSE_TYPES = STAMPED_POSE_TYPES + ODOMETRY_TYPES + TF_TYPES
+PATH_TYPES = ("nav_msgs/Path",)
+
+
+@dataclasses.dataclass(frozen=True)
+class TopicInfo:
+    """One topic of a log. msgtype is short (`pkg/Type`); times are log (recording) times [ns]."""
+
+    name: str
+    msgtype: str
+    count: int
+    first_ns: int | None
+    last_ns: int | None
+
+    @property
+    def rate_hz(self) -> float | None:
+        """Mean message rate over the topic's span, or None with fewer than 2 distinct times."""
+        if self.count < 2 or self.last_ns == self.first_ns:
+            return None
+        return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+
+
+@contextlib.contextmanager
+def _library_errors(source: Path, fmt: str):
+    """Turn whatever a reader library raises on a broken file into one clear InputError."""
+    try:
+        yield
+    except InputError:
+        raise
+    except Exception as e:  # the libraries raise anything, MemoryError included
+        detail = f"{type(e).__name__}: {e}"
+        if len(detail) > 200:
+            detail = detail[:200] + "..."
+        raise InputError(
+            source, f"cannot read it as {fmt} (corrupt or truncated?): {detail}", f"a valid {fmt}"
+        ) from e
+
+
+class Log:
+    """A ROS log opened for reading; see `open_log`."""
+
+    def __init__(self, source: Path, fmt: str, target: Path):
+        self.source = source  # what the user named
+        self.format = fmt  # "mcap", "rosbag2" or "rosbag1"
+        self._target = target  # the file or folder the back end opens
+        with _library_errors(source, fmt):
+            self.topics: dict[str, TopicInfo] = self._index()
+
+    def _index(self) -> dict[str, TopicInfo]:
+        types: dict[str, str] = {}
+        counts: dict[str, int] = {}
+        first: dict[str, int] = {}
+        last: dict[str, int] = {}
+        for topic, msgtype, log_ns, _ in self._raw(None, decode=False):
+            types.setdefault(topic, msgtype)
+            counts[topic] = counts.get(topic, 0) + 1
+            first[topic] = min(first.get(topic, log_ns), log_ns)
+            last[topic] = max(last.get(topic, log_ns), log_ns)
+        for topic, msgtype in self._declared_topics():  # topics with no messages still count
+            types.setdefault(topic, msgtype)
+        return {
+            t: TopicInfo(t, types[t], counts.get(t, 0), first.get(t), last.get(t))
+            for t in sorted(types)
+        }
+
+    def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, str, int, Any]]:
+        """Decoded (topic, short msgtype, log time [ns], message) of `topics`, in log-time order."""
+        with _library_errors(self.source, self.format):
+            yield from self._raw(list(topics), decode=True)
+
+    def _declared_topics(self) -> list[tuple[str, str]]:
+        if self.format == "mcap":
+            from mcap.reader import make_reader
+
+            with open(self._target, "rb") as f:
+                summary = make_reader(f).get_summary()
+            if summary is None:
+                return []
+            return [
+                (c.topic, rm.short_type(summary.schemas[c.schema_id].name) if c.schema_id else "")
+                for c in summary.channels.values()
+            ]
+        with self._anyreader() as reader:
+            return [(c.topic, rm.short_type(c.msgtype)) for c in reader.connections]
+
+    def _raw(self, topics, decode: bool) -> Iterator[tuple[str, str, int, Any]]:
+        if self.format == "mcap":
+            from mcap.reader import make_reader
+            from mcap_ros2.decoder import DecoderFactory
+
+            factory, decoders = DecoderFactory(), {}
+            with open(self._target, "rb") as f:
+                for schema, channel, message in make_reader(f).iter_messages(topics):
+                    name = rm.short_type(schema.name) if schema is not None else ""
+                    msg = None
+                    if decode:
+                        if channel.id not in decoders:
+                            decoders[channel.id] = factory.decoder_for(
+                                channel.message_encoding, schema
+                            )
+                        if decoders[channel.id] is None:  # e.g. protobuf, JSON or ROS 1 MCAP
+                            raise InputError(
+                                self.source,
+                                f"topic {channel.topic!r} is encoded as "
+                                f"{channel.message_encoding!r} with schema {name or 'none'}",
+                                "ROS 2 CDR messages with a ros2msg schema",
+                            )
+                        msg = decoders[channel.id](message.data)
+                    yield channel.topic, name, message.log_time, msg
+            return
+        with self._anyreader() as reader:
+            conns = [c for c in reader.connections if topics is None or c.topic in topics]
+            for conn, log_ns, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype) if decode else None
+                yield conn.topic, rm.short_type(conn.msgtype), log_ns, msg
+
+    def _anyreader(self):
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        # Fallback types for (old) recordings that embed no message definitions.
+        store = Stores.ROS1_NOETIC if self.format == "rosbag1" else Stores.ROS2_HUMBLE
+        return AnyReader([self._target], default_typestore=get_typestore(store))
+
+
+def open_log(path) -> Log:
+    """Open a ROS log: `.mcap`, `.bag`, a rosbag2 folder, or its `metadata.yaml` / storage file.
+
+    A `.mcap` file is read on its own even inside a rosbag2 folder (it is self-contained); a
+    `metadata.yaml` or `.db3` stands for its folder. Raises InputError if it cannot be read.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise InputError(p, "does not exist")
+    if p.is_dir():
+        if not (p / "metadata.yaml").is_file():
+            raise InputError(p, "is a folder without metadata.yaml", "a rosbag2 recording folder")
+        return Log(p, "rosbag2", p)
+    if p.stat().st_size == 0:
+        raise InputError(p, "is empty")
+    if p.name == "metadata.yaml" or (p.suffix == ".db3" and (p.parent / "metadata.yaml").is_file()):
+        return Log(p, "rosbag2", p.parent)
+    if p.suffix == ".mcap":
+        return Log(p, "mcap", p)
+    if p.suffix == ".bag":
+        return Log(p, "rosbag1", p)
+    raise InputError(
+        p, f"unknown log format {p.suffix or '(no suffix)'!r}", "a .mcap, .bag or rosbag2 folder"
+    )
+
+
+def is_log_path(path) -> bool:
+    """Whether `path` names a ROS log (rather than a CSV table), judged by its name only."""
+    p = Path(path)
+    return p.is_dir() or p.name == "metadata.yaml" or p.suffix in (".mcap", ".bag", ".db3")
+
+
+def _same_frame(a: str, b: str) -> bool:
+    # ROS 1 frames often carry a leading slash ("/map"); tf2 dropped it.
+    return a.lstrip("/") == b.lstrip("/")
+
+
+def pose_rows(msgtype: str, msg: Any, log_ns: int, tf_pair: tuple[str, str]) -> list[tuple]:
+    """Rows (stamp_ns, log_ns, x, y, qx, qy, qz, qw, v) of one decoded message.
+
+    v [m/s] is the planar speed hypot(linear.x, linear.y) of an Odometry twist, NaN otherwise.
+    A TFMessage gives one row per transform from tf_pair[0] to tf_pair[1] (often none).
+    """
+    if msgtype in TF_TYPES:
+        out = []
+        for tr in msg.transforms:
+            if _same_frame(tr.header.frame_id, tf_pair[0]) and _same_frame(
+                tr.child_frame_id, tf_pair[1]
+            ):
+                out.append(
+                    _row(tr.header.stamp, log_ns, tr.transform.translation, tr.transform.rotation)
+                )
+        return out
+    if msgtype == "geometry_msgs/PoseStamped":
+        pose, v = msg.pose, np.nan
+    elif msgtype == "geometry_msgs/PoseWithCovarianceStamped":
+        pose, v = msg.pose.pose, np.nan
+    elif msgtype == "nav_msgs/Odometry":
+        pose = msg.pose.pose
+        v = float(np.hypot(msg.twist.twist.linear.x, msg.twist.twist.linear.y))
+    else:
+        raise ValueError(f"pose_rows: unsupported type {msgtype}")
+    return [_row(msg.header.stamp, log_ns, pose.position, pose.orientation, v)]
+
+
+def _row(stamp, log_ns: int, p, q, v: float = np.nan) -> tuple:
+    stamp_ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    return (stamp_ns, int(log_ns), p.x, p.y, q.x, q.y, q.z, q.w, v)

@@ -1,0 +1,271 @@
+"""Writing files: predictions (CSV or ROS 2 MCAP) and simulated drives (ROS 2 MCAP).
+
+Every writer goes through `_atomic_output`: it writes a hidden temporary file next to the target
+and renames it into place only when writing succeeded, so a failure never leaves a half-written
+file, and an existing file is only replaced with `force`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fpe_jax.errors import InputError
+from fpe_jax.io import ros_msgs as rm
+
+PREDICTION_TOPIC = "/future_pose"
+OBSERVATION_TOPIC = "/opp/pose"
+_ZERO_COV = [0.0] * 36  # mcap_ros2 wants a list (not an array) for float64[36]
+
+
+def check_output_path(path, force: bool) -> Path:
+    """Fail early (before any work) if `path` cannot be written as asked.
+
+    Raises InputError if its folder does not exist, if it is a folder, or if it exists and `force`
+    is false. Returns the path as a `Path`.
+    """
+    p = Path(path)
+    if not p.parent.is_dir():
+        raise InputError(p, f"its folder {str(p.parent)!r} does not exist", "an existing folder")
+    if p.is_dir():
+        raise InputError(p, "is a folder", "a file name to write")
+    if p.exists() and not force:
+        raise InputError(p, "exists; pass --force to overwrite")
+    return p
+
+
+@contextlib.contextmanager
+def _atomic_output(path, force: bool) -> Iterator[Path]:
+    """Yield a temporary path in the target's folder; rename it to `path` if the body succeeds."""
+    target = check_output_path(path, force)
+    # Our own unique name (not mkstemp) so the file gets the user's umask permissions.
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.part")
+    try:
+        yield tmp
+        if target.exists() and not force:  # appeared while we were writing
+            raise InputError(target, "exists; pass --force to overwrite")
+        os.replace(tmp, target)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _write_ros2_mcap(tmp: Path, events: list[tuple[int, str, str, dict]]) -> None:
+    """Write (log_time_ns, topic, msgtype, message) events, in time order, as a ROS 2 MCAP."""
+    from mcap_ros2.writer import Writer  # imported here: only writers need it
+
+    events = sorted(events, key=lambda e: e[0])  # stable: equal times keep their given order
+    with open(tmp, "xb") as f:
+        writer = Writer(f)
+        schemas: dict[str, Any] = {}
+        for log_ns, topic, msgtype, msg in events:
+            if msgtype not in schemas:
+                schemas[msgtype] = writer.register_msgdef(
+                    rm.full_type(msgtype), rm.definition(msgtype)
+                )
+            writer.write_message(topic, schemas[msgtype], msg, log_time=log_ns, publish_time=log_ns)
+        writer.finish()
+
+
+def _stamps_ns(source, t_s, what: str) -> np.ndarray:
+    """(N,) stamps [s] -> (N,) int [ns], rejecting what a ROS stamp (and log time) cannot hold."""
+    t = np.asarray(t_s, dtype=np.float64)
+    if t.ndim != 1:
+        raise InputError(source, f"{what}: stamps have shape {t.shape}", "a 1-D array")
+    if not np.all(np.isfinite(t)) or np.any(t < 0) or np.any(t >= 2**31):
+        raise InputError(source, f"{what}: stamps must be finite and in [0, 2^31) s")
+    return rm.seconds_to_ns(t)
+
+
+def _series(source, spec: dict, what: str, fields: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+    """Stamps [ns] plus the named (N, ...) arrays of one writer spec, checked for matching N."""
+    missing = [k for k in ("t_s", *fields) if k not in spec]
+    if missing:
+        raise InputError(source, f"{what}: missing {', '.join(missing)}")
+    ns = _stamps_ns(source, spec["t_s"], what)
+    out = [np.asarray(spec[k], dtype=np.float64) for k in fields]
+    for k, a in zip(fields, out):
+        want = (len(ns), 2) if k == "xy_m" else (len(ns),)
+        if a.shape != want:
+            raise InputError(source, f"{what}: {k} has shape {a.shape}", f"shape {want}")
+    return (ns, *out)
+
+
+def _pose_msg(ns: int, frame_id: str, x: float, y: float, yaw: float) -> dict:
+    return {
+        "header": {"stamp": rm.stamp_dict(ns), "frame_id": frame_id},
+        "pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": rm.yaw_to_quaternion(yaw)},
+    }
+
+
+def _pose_events(source, spec: dict, default_topic: str) -> list:
+    ns, xy, yaw = _series(source, spec, "pose", ("xy_m", "yaw_rad"))
+    topic, frame = spec.get("topic", default_topic), spec.get("frame_id", "map")
+    return [
+        (int(n), topic, "geometry_msgs/PoseStamped", _pose_msg(n, frame, *p, a))
+        for n, p, a in zip(ns, xy.tolist(), yaw.tolist())
+    ]
+
+
+def _odom_events(source, spec: dict) -> list:
+    ns, xy, yaw, v, w = _series(source, spec, "odom", ("xy_m", "yaw_rad", "v_mps", "yaw_rate_rps"))
+    topic, frame = spec.get("topic", "/opp/odom"), spec.get("frame_id", "map")
+    child = spec.get("child_frame_id", "other_base_link")
+    events = []
+    for n, p, a, vi, wi in zip(ns, xy.tolist(), yaw.tolist(), v.tolist(), w.tolist()):
+        pose = _pose_msg(n, frame, *p, a)
+        msg = {
+            "header": pose["header"],
+            "child_frame_id": child,
+            "pose": {"pose": pose["pose"], "covariance": _ZERO_COV},
+            # Twist is in the child (body) frame: forward speed along x, turn rate about z.
+            "twist": {
+                "twist": {
+                    "linear": {"x": vi, "y": 0.0, "z": 0.0},
+                    "angular": {"x": 0.0, "y": 0.0, "z": wi},
+                },
+                "covariance": _ZERO_COV,
+            },
+        }
+        events.append((int(n), topic, "nav_msgs/Odometry", msg))
+    return events
+
+
+def _tf_events(source, spec: dict) -> list:
+    ns, xy, yaw = _series(source, spec, "tf", ("xy_m", "yaw_rad"))
+    topic = spec.get("topic", "/tf")
+    parent, child = spec.get("parent", "map"), spec.get("child", "other_base_link")
+    events = []
+    for n, (x, y), a in zip(ns, xy.tolist(), yaw.tolist()):
+        tr = {
+            "header": {"stamp": rm.stamp_dict(n), "frame_id": parent},
+            "child_frame_id": child,
+            "transform": {
+                "translation": {"x": x, "y": y, "z": 0.0},
+                "rotation": rm.yaw_to_quaternion(a),
+            },
+        }
+        events.append((int(n), topic, "tf2_msgs/TFMessage", {"transforms": [tr]}))
+    return events
+
+
+def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False) -> Path:
+    """Write a (simulated) drive as a ROS 2 MCAP that `load_drive` and ROS tools read.
+
+    Args:
+        path: the .mcap file to write.
+        pose: dict(t_s (N,) [s], xy_m (N, 2) [m], yaw_rad (N,) [rad] (NaN: no heading, written
+            as a zero quaternion), topic="/opp/pose", frame_id="map") ->
+            geometry_msgs/msg/PoseStamped.
+        odom: dict(t_s, xy_m, yaw_rad, v_mps (N,) [m/s], yaw_rate_rps (N,) [rad/s],
+            topic="/opp/odom", frame_id="map", child_frame_id="other_base_link") ->
+            nav_msgs/msg/Odometry (twist in the body frame: linear.x = speed, angular.z = yaw rate).
+        tf: dict(t_s, xy_m, yaw_rad, topic="/tf", parent="map", child="other_base_link") ->
+            tf2_msgs/msg/TFMessage with one transform per message.
+        force: replace an existing file.
+
+    Stamps are rounded to whole nanoseconds; every message's log time equals its header stamp.
+    Returns the written path.
+    """
+    if pose is None and odom is None and tf is None:
+        raise InputError(path, "nothing to write", "at least one of pose, odom, tf")
+    events = []
+    if pose is not None:
+        events += _pose_events(path, pose, OBSERVATION_TOPIC)
+    if odom is not None:
+        events += _odom_events(path, odom)
+    if tf is not None:
+        events += _tf_events(path, tf)
+    with _atomic_output(path, force) as tmp:
+        _write_ros2_mcap(tmp, events)
+    return Path(path)
+
+
+def _marker(ns: int, ident: int, kind: int, points: list, rgba: tuple) -> dict:
+    r, g, b, a = rgba
+    return {
+        "header": {"stamp": rm.stamp_dict(ns), "frame_id": "map"},
+        "ns": "future_pose",
+        "id": ident,
+        "type": kind,
+        "action": 0,  # ADD (replaces the previous marker with the same ns and id)
+        "pose": {
+            "position": {"x": 0.0, "y": 0.0, "z": 0.0},
+            "orientation": rm.yaw_to_quaternion(0),
+        },
+        "scale": {"x": 0.08, "y": 0.08, "z": 0.08},
+        "color": {"r": r, "g": g, "b": b, "a": a},
+        "points": [{"x": x, "y": y, "z": 0.0} for x, y in points],
+    }
+
+
+def write_predictions(
+    path, stamps_s, poses, dt_s: float, *, drive=None, force: bool = False
+) -> Path:
+    """Write predicted poses as CSV or ROS 2 MCAP, chosen by the suffix of `path`.
+
+    Args:
+        path: `*.csv` or `*.mcap`.
+        stamps_s: (N,) observation stamps [s] the predictions were made at.
+        poses: (N, H, 3) predicted x [m], y [m], yaw [rad] at stamps_s + step * dt_s, step 1..H.
+        dt_s: prediction step [s].
+        drive: the observed `Drive`; its poses are written alongside (MCAP only).
+        force: replace an existing file.
+
+    CSV: header `stamp,step,horizon_s,x,y,yaw`, one row per (observation, step), 9 decimals.
+    MCAP: one visualization_msgs/msg/MarkerArray per observation on /future_pose (frame `map`,
+    stamp = observation stamp): a SPHERE_LIST of the H predicted points and a LINE_STRIP through
+    them; plus the observations as geometry_msgs/msg/PoseStamped on /opp/pose. Markers carry no
+    yaw: use the CSV for predicted headings.
+    """
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".csv", ".mcap"):
+        raise InputError(
+            path, f"unknown output format {suffix or '(no suffix)'!r}", ".csv or .mcap"
+        )
+    stamps = np.asarray(stamps_s, dtype=np.float64)
+    poses = np.asarray(poses, dtype=np.float64)
+    if stamps.ndim != 1 or poses.ndim != 3 or poses.shape[0] != len(stamps) or poses.shape[2] != 3:
+        raise ValueError(
+            f"write_predictions: stamps {stamps.shape} and poses {poses.shape} do not agree"
+            " (expected (N,) and (N, H, 3))"
+        )
+    n, h, _ = poses.shape
+    if suffix == ".csv":
+        step = np.tile(np.arange(1, h + 1), n)
+        table = np.column_stack(
+            [np.repeat(stamps, h), step, step * float(dt_s), poses.reshape(n * h, 3)]
+        )
+        with _atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
+            np.savetxt(
+                f,
+                table,
+                fmt=["%.9f", "%d", "%.9f", "%.9f", "%.9f", "%.9f"],
+                delimiter=",",
+                header="stamp,step,horizon_s,x,y,yaw",
+                comments="",
+            )
+        return Path(path)
+
+    ns = _stamps_ns(path, stamps, "predictions")
+    events = []
+    for k in range(n):
+        pts = poses[k, :, :2].tolist()
+        markers = [
+            _marker(ns[k], 0, rm.MARKER_SPHERE_LIST, pts, (1.0, 0.5, 0.0, 1.0)),
+            _marker(ns[k], 1, rm.MARKER_LINE_STRIP, pts, (1.0, 0.5, 0.0, 0.6)),
+        ]
+        events.append(
+            (int(ns[k]), PREDICTION_TOPIC, "visualization_msgs/MarkerArray", {"markers": markers})
+        )
+    if drive is not None:
+        obs = dict(t_s=drive.t_s, xy_m=drive.xy_m, yaw_rad=drive.yaw_rad)
+        events += _pose_events(path, obs, OBSERVATION_TOPIC)
+    with _atomic_output(path, force) as tmp:
+        _write_ros2_mcap(tmp, events)
+    return Path(path)
