@@ -11,6 +11,9 @@ import sys
 
 from fpe_jax.errors import InputError
 
+# names `--fit` accepts (kept here so `fpe --help` does not import JAX)
+FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed")
+
 
 def _add_log_flags(p: argparse.ArgumentParser) -> None:
     """Flags shared by every command that reads a drive log."""
@@ -55,9 +58,250 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_log_flags(p)
     p.set_defaults(func=cmd_predict)
 
+    p = sub.add_parser(
+        "fit", help="fit lookahead, weights, delay and speed to drives; report held-out metrics"
+    )
+    p.add_argument("logs", nargs="+", metavar="LOG", help="drive logs, or one recipe .toml")
+    p.add_argument("--waypoints", help="waypoint / centerline / raceline file")
+    p.add_argument("--out", help="CONFIG.json to write (a recipe may name it)")
+    p.add_argument("--holdout", type=float, help="held-out fraction at each drive's end (0.3)")
+    p.add_argument("--test", nargs="+", metavar="LOG", help="separate held-out drives instead")
+    p.add_argument("--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: all but split)")
+    p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
+    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    _add_log_flags(p)
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("evaluate", help="metrics of a config or preset on a drive log")
+    p.add_argument("log", help="drive log (any supported format)")
+    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
+    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    p.add_argument("--json", action="store_true", help="print the metrics as JSON")
+    _add_log_flags(p)
+    p.set_defaults(func=cmd_evaluate)
+
     p = sub.add_parser("presets", help="list the built-in presets")
     p.set_defaults(func=cmd_presets)
+
+    p = sub.add_parser("info", help="topics, rates and the pose/truth topics a drive log would use")
+    p.add_argument("log", help="drive log: .mcap, rosbag2 folder, .bag or CSV")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    _add_log_flags(p)
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("simulate", help="simulate a leading car's drive and its detections")
+    p.add_argument(
+        "--track",
+        default="oval",
+        help="oval | hairpin | random:SEED | a centerline/waypoint file (default: oval)",
+    )
+    p.add_argument("--raceline", help="optional raceline file (with speeds) the driver follows")
+    p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds (def. 60)")
+    p.add_argument("--latency", type=float, default=0.3, metavar="S", help="detection latency")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--half-width", type=float, metavar="M", help="track half-width in metres")
+    p.add_argument("--stops-per-min", type=float, default=0.0, help="mean stops per minute")
+    p.add_argument("--out", required=True, help="folder for drive.mcap, waypoints.csv, scenario")
+    p.add_argument("--force", action="store_true", help="write into an existing non-empty folder")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("batch", help="predict many cars at once (chunked, compiled once)")
+    p.add_argument("states", help="cars: CSV with header x,y,yaw,v[,yaw_rate], or .npy (N, 4|5)")
+    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
+    p.add_argument("--out", required=True, help="OUT.npy (N, H, 3) or OUT.csv")
+    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    p.add_argument("--chunk", type=int, default=1 << 16, metavar="N", help="cars per call")
+    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    p.set_defaults(func=cmd_batch)
+
+    p = sub.add_parser("export", help="export a tuned config for the car: JSON, ROS 2, StableHLO")
+    p.add_argument("config", help="a tuned config JSON written by `fpe fit`")
+    p.add_argument(
+        "--format",
+        required=True,
+        choices=("json", "ros2", "stablehlo", "all"),
+        help="all: a folder with config.json, params.yaml, predictor.stablehlo (+ .json)",
+    )
+    p.add_argument("--out", required=True, help="output file (a folder for --format all)")
+    p.add_argument("--node", default="future_pose_estimator", help="ROS 2 node name")
+    p.add_argument(
+        "--waypoints", help="waypoint file: baked into stablehlo (required there), named in ros2"
+    )
+    p.add_argument("--force", action="store_true", help="overwrite existing files")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("run", help="stream predictions: observations on stdin, JSON lines out")
+    p.add_argument("--config", required=True, help="a tuned config JSON")
+    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
+    p.set_defaults(func=cmd_run)
     return parser
+
+
+def cmd_export(args) -> int:
+    from fpe_jax.export import export_config
+
+    written = export_config(
+        args.config,
+        args.format,
+        args.out,
+        node=args.node,
+        waypoints=args.waypoints,
+        force=args.force,
+    )
+    for path in written:
+        print(f"wrote {path}", file=sys.stderr)
+    return 0
+
+
+def cmd_run(args) -> int:
+    # NumPy only: this command must work on a car without JAX (tests/test_runner.py checks it)
+    import os
+
+    from fpe_jax.runner import Runner, run_stream
+
+    runner = Runner.from_config(args.config, args.waypoints)
+    try:
+        return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr)
+    except BrokenPipeError:  # the consumer went away: stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+
+
+def _fit_inputs(args):
+    """(drives, waypoints, descriptions, test drives, test waypoints, options) for `fpe fit`."""
+    from fpe_jax import io
+    from fpe_jax.recipe import load_recipe
+
+    if len(args.logs) == 1 and args.logs[0].endswith(".toml"):
+        r = load_recipe(args.logs[0])
+        out = args.out or r.out
+        opts = dict(holdout=args.holdout or r.holdout, fit=r.fit, blend=args.blend or r.blend)
+        return r.drives, r.test_drives, out, opts
+    if not args.waypoints:
+        raise InputError("--waypoints", "missing", "a waypoint file for the drives")
+    wp = io.load_waypoints(args.waypoints).xy_m
+    drives = []
+    for log in args.logs:
+        args.log = log
+        drives.append((_load_drive_from_args(args), wp, log))
+    tests = []
+    for log in args.test or []:
+        args.log = log
+        tests.append((_load_drive_from_args(args), wp, log))
+    opts = dict(holdout=args.holdout or 0.3, fit=None, blend=args.blend or "auto")
+    return drives, tests, args.out, opts
+
+
+def cmd_fit(args) -> int:
+    from fpe_jax import io
+    from fpe_jax.config import params_to_config, write_config
+    from fpe_jax.progress import Progress
+
+    fit_names = tuple(f.strip() for f in args.fit.split(",") if f.strip()) if args.fit else None
+    if fit_names:
+        bad = [f for f in fit_names if f not in FIT_NAMES]
+        if bad:
+            raise InputError("--fit", f"unknown {', '.join(bad)}", f"names from {FIT_NAMES}")
+    if args.out is None and not args.logs[0].endswith(".toml"):
+        raise InputError("--out", "missing", "CONFIG.json to write")
+    if args.out:
+        io.check_output_path(args.out, args.force)
+    with Progress() as say:
+        say("reading drives")
+        drives, tests, out, opts = _fit_inputs(args)
+        if out is None:
+            raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
+        io.check_output_path(out, args.force)
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        from fpe_jax.fit import DEFAULT_FIT, fit, format_table, provenance
+        from fpe_jax.track import Track
+
+        tracks = [Track.from_waypoints(wp) for _, wp, _ in drives]
+        test_tracks = [Track.from_waypoints(wp) for _, wp, _ in tests] or None
+        result = fit(
+            [d for d, _, _ in drives],
+            tracks,
+            fit=fit_names or opts["fit"] or DEFAULT_FIT,
+            blend=opts["blend"],
+            holdout=opts["holdout"],
+            test_drives=[d for d, _, _ in tests] or None,
+            test_tracks=test_tracks,
+            progress=say,
+        )
+    topics = {
+        "pose": drives[0][0].meta.get("pose_topic"),
+        "truth": drives[0][0].meta.get("truth_topic"),
+    }
+    sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
+    cfg = params_to_config(
+        result.params,
+        uncertainty=result.uncertainty,
+        provenance=provenance(result, sources, topics),
+    )
+    write_config(out, cfg, force=args.force)
+    p = result.params.physical()
+    print(
+        f"fitted ({result.info['blend']} blend, {result.info['steps']} solver steps): "
+        f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
+        f"delay {p['delay_s']:.3f} s, speed {p['speed_weight']:.2f} * measured + "
+        f"{1 - p['speed_weight']:.2f} * {p['speed_mps']:.2f} m/s"
+    )
+    print("weights " + " ".join(f"{w:.3f}" for w in p["weights"]))
+    print("\nheld-out:\n" + format_table(result.report))
+    cov = result.report["fitted"]
+    print(
+        f"\nellipse coverage: 1-sigma {cov['coverage_1sigma']:.1%} (ideal 39.3 %), "
+        f"2-sigma {cov['coverage_2sigma']:.1%} (ideal 86.5 %)"
+    )
+    print(f"wrote {out}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    import json
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from fpe_jax import io
+    from fpe_jax.config import config_to_params, read_config
+    from fpe_jax.fit import Dataset, evaluate, format_table, make_targets
+    from fpe_jax.params import presets
+    from fpe_jax.track import Track
+
+    cov = None
+    if args.config:
+        cfg = read_config(args.config)
+        params = config_to_params(cfg)
+        cov = (cfg.get("uncertainty") or {}).get("cov_m2")
+        name = args.config
+    else:
+        if args.preset not in presets:
+            raise InputError("--preset", f"unknown {args.preset!r}", ", ".join(presets))
+        params, name = presets[args.preset], args.preset
+    drive = _load_drive_from_args(args)
+    track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+    data = Dataset(drive, track, make_targets(drive, params.settings))
+    if len(data.targets.rows) == 0:
+        raise InputError(args.log, "no prediction has a target", "a longer drive")
+    metrics = evaluate(params, [data], cov)
+    if args.json:
+        print(json.dumps(metrics, indent=2))
+    else:
+        print(format_table({name: metrics}))
+        if cov is not None:
+            print(
+                f"ellipse coverage: 1-sigma {metrics['coverage_1sigma']:.1%} (ideal 39.3 %), "
+                f"2-sigma {metrics['coverage_2sigma']:.1%} (ideal 86.5 %)"
+            )
+    return 0
 
 
 def cmd_presets(args) -> int:
@@ -85,6 +329,86 @@ def cmd_predict(args) -> int:
     )
     print(
         f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr
+    )
+    return 0
+
+
+def cmd_info(args) -> int:
+    import json
+
+    from fpe_jax import io
+
+    info = io.describe_log(
+        args.log,
+        pose_topic=args.pose_topic,
+        truth_topic=args.truth_topic,
+        rate_hz=args.rate,
+        tf_parent=args.tf_parent,
+        tf_child=args.tf_child,
+    )
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    print(f"{info['source']}  ({info['format']}, {info['duration_s']:.3f} s)")
+    for t in info["topics"]:
+        rate = f"{t['rate_hz']:8.2f} Hz" if t["rate_hz"] is not None else "        - Hz"
+        print(f"  {t['name']:32s} {t['type']:40s} {t['count']:8d} msgs {rate}")
+    if info["pose_topic"] or "pose_error" in info:
+        print(f"pose:  {info['pose_topic'] or '(none: ' + info['pose_error'] + ')'}")
+        print(f"truth: {info['truth_topic'] or '(none)'}")
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    import dataclasses
+    from pathlib import Path
+
+    from fpe_jax import sim
+
+    out = Path(args.out)
+    if out.is_dir() and any(out.iterdir()) and not args.force:  # fail before simulating
+        raise InputError(out, "exists and is not empty; pass --force to write into it")
+    res = sim.simulate(
+        args.track,
+        duration_s=args.duration,
+        latency_s=args.latency,
+        seed=args.seed,
+        raceline=args.raceline,
+        half_width_m=args.half_width,
+        driver=dataclasses.replace(sim.Driver(), stops_per_min=args.stops_per_min),
+    )
+    sim.write_simulation(res, out, force=args.force)
+    d = res.drive
+    print(
+        f"wrote {len(d.t_s)} detections, {len(d.truth_t_s)} truth poses "
+        f"({args.duration:g} s on {res.scenario['track']}) to {out}/",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def cmd_batch(args) -> int:
+    import time
+
+    from fpe_jax import io
+    from fpe_jax.batch import predict_chunked, read_cars, write_poses
+    from fpe_jax.config import load_params
+    from fpe_jax.track import Track
+
+    out = io.check_output_path(args.out, args.force)
+    if out.suffix.lower() not in (".npy", ".csv"):
+        raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
+    params = load_params(preset=args.preset, config=args.config)
+    track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+    cars = read_cars(args.states)
+    t0 = time.perf_counter()
+    poses = predict_chunked(params, cars, track, dtype=args.dtype, chunk=args.chunk)
+    wall_s = time.perf_counter() - t0
+    write_poses(out, poses, params.settings.dt_s, force=args.force)
+    print(
+        f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
+        f"({args.dtype}, {wall_s:.2f} s incl. compilation)",
+        file=sys.stderr,
     )
     return 0
 

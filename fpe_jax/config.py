@@ -4,8 +4,9 @@ can load the same files.
 
 Schema (version 1):
     {"schema_version": 1,
-     "params": {"lookahead_m", "lookahead_gain_s", "weights": [H], "delay_s", "speed_mps"},
-     "settings": {"dt_s", "horizon", "wheelbase_m", "max_steer_rad", "blend", "model", "speed",
+     "params": {"lookahead_m", "lookahead_gain_s", "weights": [H], "delay_s", "speed_weight",
+                "speed_mps"},
+     "settings": {"dt_s", "horizon", "wheelbase_m", "max_steer_rad", "blend", "model",
                   "min_lookahead_m", "history"},
      "uncertainty": null | {"frame": "track", "cov_m2": [H][2][2]},   # along-, cross-track
      "provenance": {...}}
@@ -22,7 +23,7 @@ from typing import Any
 from fpe_jax.errors import InputError
 
 SCHEMA_VERSION = 1
-PARAM_KEYS = ("lookahead_m", "lookahead_gain_s", "weights", "delay_s", "speed_mps")
+PARAM_KEYS = ("lookahead_m", "lookahead_gain_s", "weights", "delay_s", "speed_weight", "speed_mps")
 SETTING_KEYS = (
     "dt_s",
     "horizon",
@@ -30,7 +31,6 @@ SETTING_KEYS = (
     "max_steer_rad",
     "blend",
     "model",
-    "speed",
     "min_lookahead_m",
     "history",
 )

@@ -4,6 +4,11 @@ Two parts: `history_windows` (NumPy) gathers, for every observation, the last fe
 observations (a log repeats the last pose when no new detection came; repeats carry no
 information and would fake a stop); `estimate_state` (JAX, one window, vmap it) turns a window into
 a `State` with robust Theil-Sen slopes (the median of pairwise slopes ignores a single outlier).
+
+A repeated row is predicted from as if it were fresh (its position is the last detection's, not
+advanced over the time since): on the real Levine trace, advancing stale rows by their age at the
+estimated speed raised the held-out FDE from 0.47 m to 0.54 m (rows repeat mostly while the car
+is slow or the tag is lost).
 """
 
 from __future__ import annotations
@@ -62,13 +67,14 @@ def estimate_state(
     xy_m: Float[Array, "W 2"],
     yaw_rad: Float[Array, " W"],
     valid: Bool[Array, " W"],
-    t_now_s: Float[Array, ""],
+    t_now_s: Float[Array, ""] | None = None,
 ) -> State:
     """State at t_now from one right-aligned history window (index W-1 is the newest).
 
     Args:
         t_s: (W,) stamps [s]; xy_m: (W, 2) positions [m]; yaw_rad: (W,) observed yaw [rad] or NaN;
-        valid: (W,) which slots hold an observation (the newest must); t_now_s: prediction time [s].
+        valid: (W,) which slots hold an observation (the newest must); t_now_s: prediction time
+        [s], unused (kept so windows from `history_windows` can be passed as they are).
 
     Velocity is the Theil-Sen slope of x(t), y(t); yaw is the observed one at the newest
     observation (smoothed along the same robust line) or, without orientation, the direction of
@@ -122,5 +128,4 @@ def estimate_state(
         yaw_rate_rps=yaw_rate,
         course_rad=course,
         s_m=None,
-        age_s=t_now_s - t_new,
     )

@@ -3,7 +3,7 @@
 Params holds physical values users read (`lookahead_m`, `weights`, ...). The fitter works on
 unconstrained raw values: `unconstrain(params)` and `constrain(raw)` map between the two, so
 every fitted value stays in its valid range without clipping (lookahead >= min_lookahead_m,
-gain >= 0, weights in [0, 1], delay >= 0).
+gain >= 0, weights and speed_weight in [0, 1], delay >= 0, speed_mps >= 0).
 """
 
 from __future__ import annotations
@@ -19,7 +19,10 @@ from jaxtyping import Array, Float
 
 BLEND_MODES = ("position", "heading")
 MODELS = ("blend", "seed", "cv", "ctrv")
-SPEED_SOURCES = ("measured", "fixed")
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int | np.integer) and not isinstance(x, bool)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,7 +39,6 @@ class Settings:
         model: "blend" (linear / pure pursuit / their blend), "seed" (the original node's exact
             discrete rules), "cv" (constant velocity vector from the history), "ctrv"
             (constant turn rate and velocity).
-        speed: "measured" (the estimator's speed) or "fixed" (`Params.speed_mps`).
         min_lookahead_m: lower bound of the lookahead distance [m].
         history: number of distinct recent observations the state estimator uses.
     """
@@ -47,18 +49,22 @@ class Settings:
     max_steer_rad: float = 0.4189
     blend: str = "position"
     model: str = "blend"
-    speed: str = "measured"
     min_lookahead_m: float = 0.3
-    history: int = 6
+    history: int = 10
 
     def __post_init__(self):
         checks = [
             (self.blend in BLEND_MODES, f"blend must be one of {BLEND_MODES}, got {self.blend!r}"),
             (self.model in MODELS, f"model must be one of {MODELS}, got {self.model!r}"),
-            (self.speed in SPEED_SOURCES, f"speed must be one of {SPEED_SOURCES}"),
             (self.dt_s > 0 and self.horizon >= 1, "dt_s must be > 0 and horizon >= 1"),
             (self.wheelbase_m > 0 and self.max_steer_rad > 0, "wheelbase, max_steer must be > 0"),
             (self.history >= 2, "history must be >= 2 observations"),
+            # Fix (tests/test_params.py): these were accepted and failed later or silently: a
+            # float horizon/history breaks array shapes, a steering limit >= pi/2 makes
+            # tan(steer) flip sign, a negative minimum lookahead lets the goal fall behind the car.
+            (_is_int(self.horizon) and _is_int(self.history), "horizon, history must be integers"),
+            (self.max_steer_rad < 0.5 * np.pi, "max_steer_rad must be < pi / 2"),
+            (self.min_lookahead_m >= 0, "min_lookahead_m must be >= 0"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -73,7 +79,10 @@ class Params(eqx.Module):
         lookahead_gain_s: () lookahead growth with speed [s]: L = lookahead_m + gain * v.
         weights: (H,) per-step blend weight in [0, 1]; 1 = linear, 0 = pure pursuit.
         delay_s: () observation delay offset [s] >= 0: the state is advanced by it first.
-        speed_mps: () speed used when settings.speed == "fixed" [m/s].
+        speed_weight: () trust in the measured speed in [0, 1]: the rollouts drive at
+            v = speed_weight * v_measured + (1 - speed_weight) * speed_mps (a noisy sensor's
+            speed is best shrunk toward a typical speed; 0 is the original's hard-coded speed).
+        speed_mps: () the typical speed the measured one is shrunk toward [m/s].
         settings: static `Settings`.
     """
 
@@ -81,6 +90,7 @@ class Params(eqx.Module):
     lookahead_gain_s: Float[Array, ""]
     weights: Float[Array, " H"]
     delay_s: Float[Array, ""]
+    speed_weight: Float[Array, ""]
     speed_mps: Float[Array, ""]
     settings: Settings = eqx.field(static=True)
 
@@ -93,6 +103,7 @@ class Params(eqx.Module):
         lookahead_gain_s=0.0,
         weights=0.5,
         delay_s=0.0,
+        speed_weight=1.0,
         speed_mps=1.0,
     ) -> Params:
         """Params from plain numbers; a scalar `weights` is broadcast to all H steps."""
@@ -103,6 +114,7 @@ class Params(eqx.Module):
             lookahead_gain_s=jnp.asarray(lookahead_gain_s, dtype=float),
             weights=w,
             delay_s=jnp.asarray(delay_s, dtype=float),
+            speed_weight=jnp.asarray(speed_weight, dtype=float),
             speed_mps=jnp.asarray(speed_mps, dtype=float),
             settings=settings,
         )
@@ -114,6 +126,7 @@ class Params(eqx.Module):
             "lookahead_gain_s": float(self.lookahead_gain_s),
             "weights": [float(w) for w in np.asarray(self.weights)],
             "delay_s": float(self.delay_s),
+            "speed_weight": float(self.speed_weight),
             "speed_mps": float(self.speed_mps),
         }
 
@@ -128,16 +141,22 @@ def _inv_softplus(y):
     return y + jnp.log(-jnp.expm1(-y))
 
 
+def _logit(p):
+    p = jnp.clip(p, _RAW_EPS, 1 - _RAW_EPS)
+    return jnp.log(p) - jnp.log1p(-p)
+
+
 def unconstrain(params: Params) -> Params:
     """Raw, unconstrained values (same pytree structure) for the fitter."""
     s = params.settings
-    w = jnp.clip(params.weights, _RAW_EPS, 1 - _RAW_EPS)
     return dataclasses.replace(
         params,
         lookahead_m=_inv_softplus(params.lookahead_m - s.min_lookahead_m),
         lookahead_gain_s=_inv_softplus(params.lookahead_gain_s),
-        weights=jnp.log(w) - jnp.log1p(-w),
+        weights=_logit(params.weights),
         delay_s=_inv_softplus(params.delay_s),
+        speed_weight=_logit(params.speed_weight),
+        speed_mps=_inv_softplus(params.speed_mps),
     )
 
 
@@ -150,28 +169,35 @@ def constrain(raw: Params) -> Params:
         lookahead_gain_s=jax.nn.softplus(raw.lookahead_gain_s),
         weights=jax.nn.sigmoid(raw.weights),
         delay_s=jax.nn.softplus(raw.delay_s),
+        speed_weight=jax.nn.sigmoid(raw.speed_weight),
+        speed_mps=jax.nn.softplus(raw.speed_mps),
     )
 
 
 # ---- presets -----------------------------------------------------------------------------------
 
 
-def _seed(speed: str) -> Params:
-    settings = Settings(max_steer_rad=0.5236, blend="heading", model="seed", speed=speed)
-    return Params.create(
-        settings, lookahead_m=2.0, weights=0.7 ** np.arange(settings.horizon), speed_mps=1.0
-    )
+def _seed(speed_weight: float) -> Params:
+    settings = Settings(max_steer_rad=0.5236, blend="heading", model="seed")
+    w = 0.7 ** np.arange(settings.horizon)
+    return Params.create(settings, lookahead_m=2.0, weights=w, speed_weight=speed_weight)
 
 
 _PRESET_BUILDERS = {
-    "seed": lambda: _seed("fixed"),
-    "seed-measured-speed": lambda: _seed("measured"),
+    "seed": lambda: _seed(0.0),
+    "seed-measured-speed": lambda: _seed(1.0),
     "linear": lambda: Params.create(Settings(), weights=1.0),
     "pure-pursuit": lambda: Params.create(Settings(), lookahead_m=2.0, weights=0.0),
     "constant-velocity": lambda: Params.create(Settings(model="cv"), weights=1.0),
     "ctrv": lambda: Params.create(Settings(model="ctrv"), weights=1.0),
     "default": lambda: Params.create(
-        Settings(), lookahead_m=1.0, lookahead_gain_s=0.2, weights=0.5, delay_s=0.1
+        Settings(),
+        lookahead_m=1.0,
+        lookahead_gain_s=0.2,
+        weights=0.5,
+        delay_s=0.1,
+        speed_weight=0.9,
+        speed_mps=2.0,
     ),
 }
 

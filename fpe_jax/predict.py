@@ -56,7 +56,7 @@ def states_from_drive(params: Params, drive: Drive, track: Track) -> State:
     """The state at every observation of a drive (leading axis N).
 
     For the seed model the original's rules apply: the current row is used alone (position and
-    observed yaw as recorded, age 0; the direction of motion stands in when the log has no yaw).
+    observed yaw as recorded; the direction of motion stands in when the log has no yaw).
     """
     windows = history_windows(drive, params.settings.history)
     states = _states_from_windows(jax.tree.map(jnp.asarray, windows), track)
@@ -67,7 +67,6 @@ def states_from_drive(params: Params, drive: Drive, track: Track) -> State:
             x_m=jnp.asarray(drive.xy_m[:, 0]),
             y_m=jnp.asarray(drive.xy_m[:, 1]),
             yaw_rad=jnp.where(jnp.isfinite(yaw_obs), yaw_obs, states.yaw_rad),
-            age_s=jnp.zeros_like(states.age_s),
         )
     return states
 

@@ -3,7 +3,7 @@
 All are pure functions of (params, state, track) returning (H, 3) poses x [m], y [m], yaw [rad]
 at t + h * dt_s for h = 1..H; vmap them at the edge. Every rollout except the seed's is
 differentiable in every fitted value. The observation delay is a fractional first step: the state
-is advanced by `delay_s + state.age_s` before the H regular steps.
+is advanced by `delay_s` before the H regular steps.
 """
 
 from __future__ import annotations
@@ -27,8 +27,6 @@ class State(eqx.Module):
         yaw_rate_rps: yaw rate [rad/s].
         course_rad: direction of motion [rad] (differs from yaw when sliding or noisy).
         s_m: arc length hint [m]: where on the track the car is (from a windowed projection).
-        age_s: how old the newest distinct observation is at the prediction stamp [s] (a log
-            that repeats the last pose makes it > 0); the rollout advances over it.
     """
 
     x_m: Float[Array, ""]
@@ -38,27 +36,25 @@ class State(eqx.Module):
     yaw_rate_rps: Float[Array, ""] | None = None
     course_rad: Float[Array, ""] | None = None
     s_m: Float[Array, ""] | None = None
-    age_s: Float[Array, ""] | None = None
 
     def __post_init__(self):
-        # omitted fields: no turn, moving along the body heading, a fresh observation
+        # omitted fields: no turn, moving along the body heading
         if self.yaw_rate_rps is None:
             self.yaw_rate_rps = jnp.zeros_like(self.x_m)
         if self.course_rad is None:
             self.course_rad = self.yaw_rad
-        if self.age_s is None:
-            self.age_s = jnp.zeros_like(self.x_m)
 
 
-def _step_times(params: Params, state: State) -> Float[Array, " H1"]:
+def _step_times(params: Params) -> Float[Array, " H1"]:
     """Durations [s] of the fractional delay step followed by the H regular steps."""
     h = params.settings.horizon
-    first = params.delay_s + state.age_s
-    return jnp.concatenate([first[None], jnp.full((h,), params.settings.dt_s)])
+    return jnp.concatenate([params.delay_s[None], jnp.full((h,), params.settings.dt_s)])
 
 
 def _speed(params: Params, state: State):
-    return params.speed_mps if params.settings.speed == "fixed" else state.v_mps
+    """Speed of the rollout [m/s]: the measured one shrunk toward the typical one."""
+    w = params.speed_weight
+    return w * state.v_mps + (1.0 - w) * params.speed_mps
 
 
 def _emit(xs, ys, yaws):
@@ -69,7 +65,7 @@ def _emit(xs, ys, yaws):
 def rollout_linear(params: Params, state: State, heading_rad=None) -> Float[Array, "H 3"]:
     """Constant speed along a fixed heading (default: the car's yaw): thesis approach 2."""
     yaw = state.yaw_rad if heading_rad is None else heading_rad
-    t = jnp.cumsum(_step_times(params, state))
+    t = jnp.cumsum(_step_times(params))
     v = _speed(params, state)
     xs, ys = state.x_m + v * t * jnp.cos(yaw), state.y_m + v * t * jnp.sin(yaw)
     return _emit(xs, ys, jnp.broadcast_to(yaw, t.shape))
@@ -93,7 +89,7 @@ def rollout_ctrv(params: Params, state: State) -> Float[Array, "H 3"]:
         return c, c
 
     _, (xs, ys, yaws) = jax.lax.scan(
-        step, (state.x_m, state.y_m, state.yaw_rad), _step_times(params, state)
+        step, (state.x_m, state.y_m, state.yaw_rad), _step_times(params)
     )
     return _emit(xs, ys, wrap_angle(yaws))
 
@@ -136,7 +132,7 @@ def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> 
         return c, c[:3]
 
     init = (state.x_m, state.y_m, state.yaw_rad, s0)
-    _, (xs, ys, yaws) = jax.lax.scan(step, init, (_step_times(params, state), turn_scale))
+    _, (xs, ys, yaws) = jax.lax.scan(step, init, (_step_times(params), turn_scale))
     return _emit(xs, ys, wrap_angle(yaws))
 
 

@@ -25,6 +25,8 @@ class Track(eqx.Module):
         length_m: () total arc length [m] (closing segment included on loops).
         raw_xy_m: (K, 2) the waypoints as given, in their order (the legacy goal scan reads them).
         closed: static; True for a loop (arc length wraps), False for an open path (clamps).
+        window_ds_m: static copy of the spacing [m], only to size projection windows (shapes
+            must be static; the traced `ds_m` does the arithmetic).
     """
 
     xy_m: Float[Array, "M 2"]
@@ -33,6 +35,7 @@ class Track(eqx.Module):
     length_m: Float[Array, ""]
     raw_xy_m: Float[Array, "K 2"]
     closed: bool = eqx.field(static=True)
+    window_ds_m: float = eqx.field(static=True, default=0.1)
 
     @classmethod
     def from_waypoints(cls, waypoints_xy_m, **kwargs) -> Track:
@@ -46,6 +49,7 @@ class Track(eqx.Module):
             length_m=jnp.asarray(p["length_m"]),
             raw_xy_m=jnp.asarray(p["raw_xy_m"]),
             closed=p["closed"],
+            window_ds_m=p["ds_m"],
         )
 
     @property
@@ -100,8 +104,8 @@ class Track(eqx.Module):
         The window keeps a car on its own stretch of path: never snapped to the far side of a
         hairpin or across the seam of a noisy loop. `behind_m`, `ahead_m` are static floats.
         """
-        n_back = int(np.ceil(behind_m / float(self.ds_m)))
-        n_ahead = int(np.ceil(ahead_m / float(self.ds_m)))
+        n_back = int(np.ceil(behind_m / self.window_ds_m))
+        n_ahead = int(np.ceil(ahead_m / self.window_ds_m))
         i0 = jnp.floor(s_hint_m / self.ds_m).astype(jnp.int32)
         idx = i0 + jnp.arange(-n_back, n_ahead + 1)
         if self.closed:

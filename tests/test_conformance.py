@@ -66,7 +66,6 @@ def test_seed_reproduces_recorded_sets(levine):
         yaw_rad=jnp.asarray(init[:, 2]),
         v_mps=jnp.zeros(len(init)),
         yaw_rate_rps=jnp.zeros(len(init)),
-        age_s=jnp.zeros(len(init)),
     )
     pred = np.asarray(predict_batch(presets["seed"], states, track))
     frac, err = _fraction_within_1mm(pred[:, :, :2], sets)

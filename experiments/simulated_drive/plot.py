@@ -1,0 +1,132 @@
+"""Look at simulated drives: a built-in track and an F1TENTH track, truth vs delayed detections.
+
+Writes experiments/simulated_drive/drive.png. Run from anywhere:
+    .venv/bin/python experiments/simulated_drive/plot.py
+The F1TENTH panel needs ../shared/data/tracks beside the project (it is left out otherwise).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from fpe_jax.sim import SimResult, simulate  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+TRACKS = HERE.parents[1].parent / "shared" / "data" / "tracks"
+DURATION_S, LATENCY_S, SEED = 60.0, 0.3, 0
+
+
+def _edges(center_xy_m: np.ndarray, half_width_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Left and right track edges (K+1, 2) of a closed centerline, closed for plotting."""
+    d = np.roll(center_xy_m, -1, axis=0) - np.roll(center_xy_m, 1, axis=0)
+    n = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
+    left, right = center_xy_m + half_width_m * n, center_xy_m - half_width_m * n
+    return np.vstack([left, left[:1]]), np.vstack([right, right[:1]])
+
+
+def _track_panel(ax, res: SimResult, title: str, zoom: tuple[float, float, float] | None = None):
+    d = res.drive
+    for edge in _edges(res.centerline_xy_m, res.half_width_m):
+        ax.plot(edge[:, 0], edge[:, 1], color="0.3", lw=0.8)
+    c = np.vstack([res.centerline_xy_m, res.centerline_xy_m[:1]])
+    ax.plot(
+        c[:, 0], c[:, 1], color="0.6", lw=0.8, ls="--", label="centerline (given to predictors)"
+    )
+    if res.scenario["raceline"]:
+        ax.plot(*res.reference_xy_m.T, color="tab:green", lw=0.8, label="raceline (driver's path)")
+    ax.plot(*d.truth_xy_m.T, color="tab:blue", lw=1.0, label="true path (50 Hz)")
+    ok = ~res.outlier
+    ax.plot(*d.xy_m[ok].T, ".", color="tab:red", ms=3, label="detections (~11 Hz)")
+    ax.plot(*d.xy_m[res.outlier].T, "x", color="black", ms=6, label="outliers")
+    if zoom is not None:
+        # One pass through the zoom window: tie each detection to where the car really was at
+        # its stamp; the lines show how far the car moved during the latency.
+        x0, y0, r = zoom
+        inside = np.hypot(d.truth_xy_m[:, 0] - x0, d.truth_xy_m[:, 1] - y0) < r
+        first = int(np.argmax(inside))
+        last = first + int(np.argmin(inside[first:])) if not inside[first:].all() else len(inside)
+        t0, t1 = d.truth_t_s[first], d.truth_t_s[last - 1]
+        sel = (d.t_s >= t0) & (d.t_s <= t1)
+        x_true = np.interp(d.t_s[sel], d.truth_t_s, d.truth_xy_m[:, 0])
+        y_true = np.interp(d.t_s[sel], d.truth_t_s, d.truth_xy_m[:, 1])
+        ax.plot(
+            x_true,
+            y_true,
+            "o",
+            mfc="none",
+            color="tab:blue",
+            ms=6,
+            label=f"true position at the detection's stamp ({t0:.0f}-{t1:.0f} s)",
+        )
+        for a, b, p, q in zip(d.xy_m[sel, 0], d.xy_m[sel, 1], x_true, y_true):
+            ax.plot([a, p], [b, q], color="tab:purple", lw=0.8)
+        ax.plot(*d.xy_m[sel & ok].T, "o", color="tab:red", ms=4)
+        ax.set_xlim(x0 - r, x0 + r)
+        ax.set_ylim(y0 - r, y0 + r)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title, fontsize=10)
+
+
+def main() -> None:
+    runs = [("hairpin", simulate("hairpin", duration_s=DURATION_S, latency_s=LATENCY_S, seed=SEED))]
+    if TRACKS.is_dir():
+        res = simulate(
+            TRACKS / "Spielberg_centerline.csv",
+            raceline=TRACKS / "Spielberg_raceline.csv",
+            duration_s=DURATION_S,
+            latency_s=LATENCY_S,
+            seed=SEED,
+        )
+        runs.append(("Spielberg (F1TENTH)", res))
+    else:
+        print(f"note: {TRACKS} not found; plotting the built-in track only")
+
+    fig = plt.figure(figsize=(17, 9))
+    grid = fig.add_gridspec(2, 3, height_ratios=[1.9, 1], width_ratios=[1.4, 1, 1.2])
+    hp = runs[0][1]
+    _track_panel(fig.add_subplot(grid[0, 0]), hp, "built-in 'hairpin' track")
+    _track_panel(
+        fig.add_subplot(grid[0, 1]),
+        hp,
+        f"hairpin, zoom: detections lag the car by {LATENCY_S} s (+ noise)",
+        zoom=(11.5, 5.5, 3.0),
+    )
+    if len(runs) > 1:
+        ax = fig.add_subplot(grid[0, 2])
+        _track_panel(ax, runs[1][1], "F1TENTH Spielberg, driver on the raceline")
+        ax.legend(loc="lower left", fontsize=7)
+    # The zoom panel has every legend entry; show them in the blank space under the first map.
+    handles, labels = fig.axes[1].get_legend_handles_labels()
+    fig.axes[0].legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, -0.3), ncol=2)
+
+    ax = fig.add_subplot(grid[1, :])
+    for (name, res), color in zip(runs, ("tab:blue", "tab:orange")):
+        ax.plot(
+            res.drive.truth_t_s, res.drive.truth_v_mps, color=color, label=f"{name}: true speed"
+        )
+    ax.axhspan(2.0, 8.0, color="0.9", zorder=0, label="target range 2-8 m/s")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("speed [m/s]")
+    ax.set_ylim(0, 9)
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title("speed of the leading car", fontsize=10)
+    fig.suptitle(
+        f"Simulated leading-car drives (dynamic single-track car, pure-pursuit driver; "
+        f"AprilTag-like detector, latency {LATENCY_S} s; seed {SEED})"
+    )
+    fig.tight_layout()
+    out = HERE / "drive.png"
+    fig.savefig(out, dpi=110)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,357 @@
+"""Fit the predictor to recorded drives by robust, gradient-based least squares (optimistix).
+
+Data flow: each drive -> prediction times with enough history and their future targets
+(`make_targets`) -> states (`predict.states_from_drive`) -> residuals of the position blend
+(Huber-weighted, masked) -> Levenberg-Marquardt on the raw (unconstrained) parameters. The blend
+mode is chosen on an inner validation split of the training data; held-out data is only used for
+the final report. Uncertainty: per-step residual covariance in the track frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import time
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from fpe_jax.drive import Drive
+from fpe_jax.errors import InputError
+from fpe_jax.estimate import history_windows
+from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
+from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
+from fpe_jax.predict import predict, predict_batch, states_from_drive
+from fpe_jax.rollout import State
+from fpe_jax.track import Track
+
+# What `--fit` may name, and the Params fields each name frees.
+FIT_GROUPS = {
+    "lookahead": ("lookahead_m", "lookahead_gain_s"),
+    "lookahead_m": ("lookahead_m",),
+    "gain": ("lookahead_gain_s",),
+    "weights": ("weights",),
+    "delay": ("delay_s",),
+    "speed": ("speed_weight", "speed_mps"),
+}
+DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")
+PARAM_FIELDS = (
+    "lookahead_m",
+    "lookahead_gain_s",
+    "weights",
+    "delay_s",
+    "speed_weight",
+    "speed_mps",
+)
+BLEND_CHOICES = ("position", "heading")
+BASELINES = ("seed", "seed-measured-speed", "linear", "pure-pursuit", "constant-velocity", "ctrv")
+MIN_HISTORY = 3  # distinct observations needed before a prediction counts
+HUBER_M = 0.3  # residuals beyond this grow linearly: AprilTag jumps must not dominate
+RAW_RIDGE = 1e-3  # light pull of raw values toward 0: stops saturated weights from drifting
+
+
+@dataclasses.dataclass(frozen=True)
+class Targets:
+    """Prediction times of one drive and what the car did after each.
+
+    Attributes:
+        rows: (N,) indices into the drive's observations (the prediction times).
+        xy_m: (N, H, 2) target positions [m] at stamp + h * dt_s.
+        mask: (N, H) True where the target exists.
+    """
+
+    rows: np.ndarray
+    xy_m: np.ndarray
+    mask: np.ndarray
+
+
+def make_targets(drive: Drive, settings: Settings) -> Targets:
+    """Targets for every observation with enough history.
+
+    From the ground-truth stream when the drive has one (linear interpolation, masked where the
+    stream has a gap > 0.1 s or ends); otherwise from the observations themselves: the nearest
+    new (non-repeated) observation within half a sample period, masked when none is.
+    """
+    h = np.arange(1, settings.horizon + 1) * settings.dt_s
+    windows = history_windows(drive, settings.history)
+    rows = np.flatnonzero(windows["valid"].sum(axis=1) >= MIN_HISTORY)
+    when = drive.t_s[rows, None] + h[None, :]  # (N, H)
+    if drive.has_truth:
+        tt, txy = drive.truth_t_s, drive.truth_xy_m
+        xy = np.stack([np.interp(when, tt, txy[:, 0]), np.interp(when, tt, txy[:, 1])], axis=-1)
+        k = np.clip(np.searchsorted(tt, when), 1, len(tt) - 1)
+        mask = (when >= tt[0]) & (when <= tt[-1]) & ((tt[k] - tt[k - 1]) <= 0.1)
+    else:
+        new = np.flatnonzero(np.r_[True, np.any(drive.xy_m[1:] != drive.xy_m[:-1], axis=1)])
+        tn = drive.t_s[new]
+        half_period = 0.5 * np.median(np.diff(drive.t_s)) if len(drive.t_s) > 1 else 0.0
+        k = np.clip(np.searchsorted(tn, when), 1, len(tn) - 1)
+        nearest = np.where(np.abs(tn[k - 1] - when) <= np.abs(tn[k] - when), k - 1, k)
+        xy = drive.xy_m[new[nearest]]
+        mask = np.abs(tn[nearest] - when) <= half_period + 1e-9
+    keep = mask.any(axis=1)
+    return Targets(rows=rows[keep], xy_m=xy[keep], mask=mask[keep])
+
+
+@dataclasses.dataclass(frozen=True)
+class Dataset:
+    """One drive ready for fitting: its track, targets and (for the blend model) states."""
+
+    drive: Drive
+    track: Track
+    targets: Targets
+
+    def states(self, params: Params) -> State:
+        """The model's states at the target rows (the seed model uses raw rows)."""
+        all_states = states_from_drive(params, self.drive, self.track)
+        return jax.tree.map(lambda x: x[self.targets.rows], all_states)
+
+
+def _huber_scale(err_m, delta_m):
+    """Factor that turns a squared residual into a Huber one: 1/2 (scale e)^2 = huber(e)."""
+    safe = jnp.maximum(err_m, delta_m)
+    return jnp.where(err_m <= delta_m, 1.0, jnp.sqrt(delta_m * (2.0 * safe - delta_m)) / safe)
+
+
+def _residuals(raw_free, args):
+    """Residual vector of all datasets: Huber-scaled masked position errors, then the ridge."""
+    raw_fixed, groups, huber_m = args
+    params = constrain(eqx.combine(raw_free, raw_fixed))
+    out = []
+    for states, track, target, mask in groups:
+        pred = jax.vmap(predict, in_axes=(None, 0, None))(params, states, track)[..., :2]
+        d = pred - target
+        e = jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12)
+        r = jnp.where(mask[..., None], d * _huber_scale(e, huber_m)[..., None], 0.0)
+        out.append(r.reshape(-1))
+    ridge = [jnp.sqrt(RAW_RIDGE) * jnp.ravel(x) for x in jax.tree.leaves(raw_free)]
+    return jnp.concatenate(out + ridge)
+
+
+def _free_mask(params: Params, fit: Sequence[str]) -> Params:
+    """A Params-shaped filter: True for the fields being fitted."""
+    names = {f for group in fit for f in FIT_GROUPS[group]}
+    return dataclasses.replace(params, **{f: f in names for f in PARAM_FIELDS})
+
+
+@eqx.filter_jit
+def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int):
+    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8)
+    sol = optx.least_squares(
+        _residuals,
+        solver,
+        raw_free,
+        args=(raw_fixed, groups, huber_m),
+        max_steps=max_steps,
+        throw=False,
+    )
+    loss = 0.5 * jnp.sum(_residuals(sol.value, (raw_fixed, groups, huber_m)) ** 2)
+    return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful, loss
+
+
+def fit_params(
+    datasets: Sequence[Dataset],
+    init: Params,
+    *,
+    fit: Sequence[str] = DEFAULT_FIT,
+    huber_m: float = HUBER_M,
+    max_steps: int = 100,
+) -> tuple[Params, dict]:
+    """Levenberg-Marquardt on the free raw parameters of `init` over all datasets jointly.
+
+    Returns the fitted Params and solver info (steps, converged, loss, seconds).
+    """
+    unknown = [f for f in fit if f not in FIT_GROUPS]
+    if unknown:
+        raise InputError("--fit", f"unknown name(s) {', '.join(unknown)}", ", ".join(FIT_GROUPS))
+    if init.settings.model != "blend":
+        raise ValueError("fit_params: only the blend model is fitted (presets are baselines)")
+    raw = unconstrain(init)
+    free, fixed = eqx.partition(raw, _free_mask(raw, fit))
+    groups = [
+        (d.states(init), d.track, jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask))
+        for d in datasets
+    ]
+    t0 = time.perf_counter()
+    value, steps, ok, loss = _solve(free, fixed, groups, huber_m, max_steps)
+    fitted = constrain(eqx.combine(value, fixed))
+    info = {
+        "steps": int(steps),
+        "converged": bool(ok),
+        "loss": float(loss),
+        "seconds": time.perf_counter() - t0,
+    }
+    return fitted, info
+
+
+def predict_targets(params: Params, dataset: Dataset) -> np.ndarray:
+    """(N, H, 3) predictions at a dataset's target rows."""
+    return np.asarray(predict_batch(params, dataset.states(params), dataset.track))
+
+
+def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
+    """Metrics (see `metrics.summarize`) of params over datasets, plus coverage when cov given."""
+    errs, res, masks = [], [], []
+    for d in datasets:
+        pred = predict_targets(params, d)
+        errs.append(errors_m(pred[..., :2], d.targets.xy_m, d.targets.mask))
+        if cov_m2 is not None:
+            res.append(_track_residuals(pred, d))
+            masks.append(d.targets.mask)
+    out = summarize(np.concatenate(errs))
+    if cov_m2 is not None:
+        out.update(coverage(np.concatenate(res), np.concatenate(masks), np.asarray(cov_m2)))
+    return out
+
+
+def _track_residuals(pred: np.ndarray, d: Dataset) -> np.ndarray:
+    heading = jax.vmap(jax.vmap(d.track.heading_at))(
+        jax.vmap(jax.vmap(d.track.project))(jnp.asarray(pred[..., :2]))
+    )
+    return track_frame_residuals(pred[..., :2], d.targets.xy_m, np.asarray(heading))
+
+
+def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
+    """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame."""
+    res = np.concatenate([_track_residuals(predict_targets(params, d), d) for d in datasets])
+    mask = np.concatenate([d.targets.mask for d in datasets])
+    return {
+        "frame": "track",
+        "axes": ["along_m", "cross_m"],
+        "cov_m2": fit_covariance(res, mask).tolist(),
+    }
+
+
+def split_drive(drive: Drive, holdout: float) -> tuple[Drive, Drive]:
+    """Temporal split: the first (1 - holdout) of the drive's duration, and the rest."""
+    if not 0.0 < holdout < 1.0:
+        raise InputError("--holdout", f"{holdout} is outside (0, 1)", "a fraction such as 0.3")
+    t_split = drive.t_s[0] + (1.0 - holdout) * drive.duration_s
+    return drive.slice_time(-np.inf, t_split), drive.slice_time(t_split, np.inf)
+
+
+def _datasets(drives: Sequence[Drive], tracks: Sequence[Track], settings: Settings, what: str):
+    out = []
+    for drv, trk in zip(drives, tracks, strict=True):
+        targets = make_targets(drv, settings)
+        if len(targets.rows) == 0:
+            src = drv.meta.get("source", "drive")
+            raise InputError(src, f"no usable predictions in the {what} part", "a longer drive")
+        out.append(Dataset(drv, trk, targets))
+    return out
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What `fit` returns: the fitted params, their uncertainty and the held-out report."""
+
+    params: Params
+    uncertainty: dict
+    report: dict  # name -> metrics on the held-out data (fitted + every preset)
+    info: dict  # solver and selection details
+
+
+def fit(
+    drives: Sequence[Drive],
+    tracks: Sequence[Track],
+    *,
+    fit: Sequence[str] = DEFAULT_FIT,
+    blend: str = "auto",
+    holdout: float = 0.3,
+    test_drives: Sequence[Drive] | None = None,
+    test_tracks: Sequence[Track] | None = None,
+    init: Params | None = None,
+    progress: Callable[[str], None] = lambda msg: None,
+) -> FitResult:
+    """Fit on the training data, report on held-out data.
+
+    Args:
+        drives, tracks: the drives to fit and the track each was driven on.
+        fit: which values to fit (names of FIT_GROUPS).
+        blend: "position", "heading", or "auto" (each is fitted on the first 75 % of the
+            training data and the one with the lower validation loss on the rest is kept).
+        holdout: fraction of each drive (its end) held out, unless test_drives are given.
+        test_drives, test_tracks: separate held-out drives (then all of `drives` is training).
+        init: starting point (default: the "default" preset).
+        progress: called with a short message at each phase.
+    """
+    jax.config.update("jax_enable_x64", True)  # fitting needs float64 (tiny gradients)
+    init = init or presets["default"]
+    settings = init.settings
+    if test_drives is None:
+        pairs = [split_drive(d, holdout) for d in drives]
+        train_d, test_d = [p[0] for p in pairs], [p[1] for p in pairs]
+        test_tracks = tracks
+        split = {"kind": "temporal", "holdout": holdout}
+    else:
+        train_d, test_d = list(drives), list(test_drives)
+        test_tracks = test_tracks or tracks
+        split = {"kind": "drives", "n_test": len(test_d)}
+    train = _datasets(train_d, tracks, settings, "training")
+    test = _datasets(test_d, test_tracks, settings, "held-out")
+    if "speed" in fit:  # start the typical speed where the data is
+        v = np.concatenate([np.asarray(d.states(init).v_mps) for d in train])
+        init = dataclasses.replace(init, speed_mps=jnp.asarray(max(float(np.median(v)), 0.1)))
+
+    modes = BLEND_CHOICES if blend == "auto" else (blend,)
+    selection = {}
+    if len(modes) > 1:
+        inner = [split_drive(d, 0.25) for d in train_d]
+        inner_fit = _datasets([p[0] for p in inner], tracks, settings, "training")
+        inner_val = _datasets([p[1] for p in inner], tracks, settings, "validation")
+        for mode in modes:
+            progress(f"choosing the blend mode: fitting '{mode}' on the inner split")
+            p0 = dataclasses.replace(init, settings=dataclasses.replace(settings, blend=mode))
+            p, _ = fit_params(inner_fit, p0, fit=fit)
+            selection[mode] = evaluate(p, inner_val)["ade_m"]
+        best = min(selection, key=selection.get)
+    else:
+        best = modes[0]
+    progress(f"fitting '{best}' blend on {sum(len(d.targets.rows) for d in train)} predictions")
+    p0 = dataclasses.replace(init, settings=dataclasses.replace(settings, blend=best))
+    params, info = fit_params(train, p0, fit=fit)
+    progress("estimating uncertainty and evaluating on held-out data")
+    uncertainty = fit_uncertainty(params, train)
+    report = {"fitted": evaluate(params, test, uncertainty["cov_m2"])}
+    for name in BASELINES:
+        report[name] = evaluate(presets[name], test)
+    info.update(blend=best, validation_ade_m=selection, split=split, fit=list(fit))
+    return FitResult(params, uncertainty, report, info)
+
+
+def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
+    """The provenance block of a tuned config."""
+    from fpe_jax import __version__
+
+    return {
+        "drives": list(sources),
+        "topics": topics,
+        "split": result.info["split"],
+        "fit": result.info["fit"],
+        "blend_selection_ade_m": result.info["validation_ade_m"],
+        "solver": {k: result.info[k] for k in ("steps", "converged", "loss", "seconds")},
+        "heldout": result.report,
+        "fitted_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "fpe_jax_version": __version__,
+    }
+
+
+def format_table(report: dict) -> str:
+    """A Markdown table of held-out metrics, one row per predictor."""
+    h = len(next(iter(report.values()))["per_step_m"])
+    steps = [0, h // 2 - 1, h - 1] if h >= 3 else list(range(h))
+    head = "| predictor | ADE m | FDE m | FDE p90 m | miss rate | " + " | ".join(
+        f"err@{k + 1} m" for k in steps
+    )
+    lines = [head + " | n |", "|" + "---|" * (6 + len(steps))]
+    for name, m in report.items():
+        cells = [m["ade_m"], m["fde_m"], m["fde_p90_m"], m["miss_rate"]]
+        cells += [m["per_step_m"][k] for k in steps]
+        lines.append(
+            f"| {name} | " + " | ".join(f"{c:.3f}" for c in cells) + f" | {m['n_predictions']} |"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,99 @@
+"""Fit recipes (TOML): which drives, which waypoints, what to fit, where the config goes.
+
+out = "levine.json"            # paths are relative to the recipe's folder
+waypoints = "../../shared/data/levine/levine-waypoints.csv"
+holdout = 0.4                  # or [[test_drives]] for separate held-out drives
+fit = ["lookahead", "weights", "delay", "speed"]
+blend = "auto"
+
+[[drives]]
+path = "../../shared/data/levine/actual-poses.csv"
+rate_hz = 10                   # also: pose_topic, truth_topic, waypoints, log_time
+
+[[drives]]
+simulate = { track = "oval", duration_s = 120, latency_s = 0.3, seed = 1 }
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+
+from fpe_jax.drive import Drive
+from fpe_jax.errors import InputError
+
+DRIVE_KEYS = {"path", "rate_hz", "pose_topic", "truth_topic", "waypoints", "log_time", "simulate"}
+TOP_KEYS = {"out", "waypoints", "holdout", "fit", "blend", "drives", "test_drives"}
+
+
+@dataclasses.dataclass
+class Recipe:
+    """A loaded recipe: drives with their waypoints (K, 2) [m], and the fit options."""
+
+    source: Path
+    out: Path | None
+    drives: list[tuple[Drive, object, str]]  # (drive, waypoints xy (K, 2), description)
+    test_drives: list[tuple[Drive, object, str]]
+    holdout: float
+    fit: tuple[str, ...] | None
+    blend: str
+
+
+def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
+    from fpe_jax import io
+
+    unknown = set(entry) - DRIVE_KEYS
+    if unknown:
+        raise InputError(source, f"unknown drive keys {sorted(unknown)}", f"{sorted(DRIVE_KEYS)}")
+    if "simulate" in entry:
+        from fpe_jax.sim import simulate
+
+        spec = dict(entry["simulate"])
+        track = spec.pop("track", "oval")
+        res = simulate(track, **spec)
+        desc = f"simulate:{track}:seed={spec.get('seed', 0)}:latency={spec.get('latency_s', 0.3)}"
+        return res.drive, res.centerline_xy_m, desc
+    if "path" not in entry:
+        raise InputError(source, "a drive has neither 'path' nor 'simulate'", "one of them")
+    wp = entry.get("waypoints", default_wp)
+    if wp is None:
+        raise InputError(source, f"no waypoints for drive {entry['path']}", "a 'waypoints' key")
+    drive = io.load_drive(
+        base / entry["path"],
+        pose_topic=entry.get("pose_topic"),
+        truth_topic=entry.get("truth_topic"),
+        rate_hz=entry.get("rate_hz"),
+        log_time=entry.get("log_time", False),
+    )
+    return drive, io.load_waypoints(base / wp).xy_m, str(base / entry["path"])
+
+
+def load_recipe(path) -> Recipe:
+    """Read a recipe TOML and load every drive it names (simulated ones are generated)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such recipe file", "a TOML recipe such as fit/levine.toml")
+    try:
+        spec = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(path, f"not valid TOML ({e})", "a TOML recipe") from None
+    unknown = set(spec) - TOP_KEYS
+    if unknown:
+        raise InputError(path, f"unknown keys {sorted(unknown)}", f"{sorted(TOP_KEYS)}")
+    if not spec.get("drives"):
+        raise InputError(path, "no [[drives]]", "at least one [[drives]] entry")
+    base = path.parent
+    wp = spec.get("waypoints")
+    drives = [_load_entry(e, base, wp, path) for e in spec["drives"]]
+    tests = [_load_entry(e, base, wp, path) for e in spec.get("test_drives", [])]
+    fit = spec.get("fit")
+    return Recipe(
+        source=path,
+        out=base / spec["out"] if "out" in spec else None,
+        drives=drives,
+        test_drives=tests,
+        holdout=float(spec.get("holdout", 0.3)),
+        fit=tuple(fit) if fit is not None else None,
+        blend=spec.get("blend", "auto"),
+    )

@@ -1,0 +1,617 @@
+"""Synthetic drives of a leading race car, seen through a trailing car's camera (the default data).
+
+The leading car is deliberately *not* from the predictor's model family (kinematic bicycle + pure
+pursuit), so fitting to these drives is honest:
+
+- vehicle: dynamic single-track model with linear tyres, load transfer and the F1TENTH parameters
+  (the CommonRoad "ST" model), blended into a kinematic bicycle below ~1 m/s where the dynamic
+  equations become singular; RK4 at 100 Hz; first-order, rate-limited steering servo.
+- driver: pure pursuit with a speed-dependent lookahead on a reference path (raceline or
+  centerline) shifted by a slowly wandering lateral offset; a speed profile (raceline speeds or a
+  curvature limit with accel/brake passes) tracked by a P-controller; optional stops.
+- sensor (after the thesis' AprilTag setup): detections at ~11.5 Hz with random inter-arrival
+  times, a fixed latency (a detection shows the car `latency_s` before its stamp), noise growing
+  with the range to the trailing car, yaw noise, ~1 % outliers, more dropouts in fast turns.
+
+Everything is NumPy + `math`, deterministic per seed. Time starts at 0 at the first truth sample.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fpe_jax.drive import Drive
+from fpe_jax.errors import InputError
+from fpe_jax.tracks import builtin_track, is_builtin, loop_arclength, loop_curvature, resample_loop
+
+SIM_VERSION = "1.0"
+DT_S = 0.01  # RK4 and driver step (100 Hz)
+TRUTH_EVERY = 2  # truth is recorded every 2nd step (50 Hz)
+REF_SPACING_M = 0.1  # the driver's reference path is resampled at this spacing
+G_MPS2 = 9.81
+
+
+@dataclasses.dataclass(frozen=True)
+class Vehicle:
+    """Dynamic single-track vehicle: F1TENTH parameters (CommonRoad vehicle 2 scaled to 1:10)."""
+
+    mu: float = 1.0489  # tyre-road friction coefficient [-]
+    c_sf: float = 4.718  # front cornering stiffness coefficient [1/rad]
+    c_sr: float = 5.4562  # rear cornering stiffness coefficient [1/rad]
+    lf_m: float = 0.15875  # centre of gravity to front axle [m]
+    lr_m: float = 0.17145  # centre of gravity to rear axle [m]
+    h_cg_m: float = 0.074  # centre of gravity height [m]
+    mass_kg: float = 3.74
+    inertia_kgm2: float = 0.04712  # yaw moment of inertia [kg m^2]
+    steer_max_rad: float = 0.4189
+    steer_rate_max_rps: float = 3.2  # [rad/s]
+    accel_max_mps2: float = 9.51
+    v_switch_mps: float = 7.319  # above it the motor is power-limited: a_max * v_switch / v
+    servo_tau_s: float = 0.1  # first-order steering servo lag [s]
+    v_kinematic_mps: float = 0.5  # at or below: purely kinematic
+    v_dynamic_mps: float = 1.0  # at or above: purely dynamic; smoothstep blend in between
+
+
+@dataclasses.dataclass(frozen=True)
+class Driver:
+    """The leading car's driver: pure pursuit on a wandering line, P-controlled speed, stops."""
+
+    lookahead_min_m: float = 0.5
+    lookahead_time_s: float = 0.3  # lookahead = max(lookahead_min_m, lookahead_time_s * v)
+    offset_max_m: float = 0.3  # lateral offset amplitude on a 1.1 m half-width track; scales
+    offset_period_s: tuple[float, float] = (6.0, 20.0)  # periods of the offset's sinusoids
+    edge_margin_m: float = 0.3  # the offset never puts the aim point closer to an edge
+    lat_accel_mps2: float = 5.0  # curvature speed limit v = sqrt(a_lat / |kappa|)
+    accel_mps2: float = 3.0  # speed profile's forward pass
+    brake_mps2: float = 4.0  # speed profile's backward pass
+    v_min_mps: float = 2.0
+    v_max_mps: float = 8.0
+    raceline_speed_scale: float = 0.9  # raceline speeds (at the grip limit) x this, clipped
+    speed_gain_1ps: float = 2.0  # P-controller: a = gain * (v_target - v) [1/s]
+    speed_preview_s: float = 0.3  # the target speed is read this far ahead on the path
+    stops_per_min: float = 0.0  # Poisson rate of stops (brake to 0, wait, go on)
+    stop_wait_s: tuple[float, float] = (1.0, 3.0)
+    stop_brake_mps2: float = 3.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Sensor:
+    """AprilTag-like detector on a trailing car that follows `ego_gap_m` behind on the track."""
+
+    rate_hz: float = 11.5  # mean detection rate before dropouts (thesis: 11-12 Hz)
+    jitter_frac: float = 0.15  # inter-arrival times uniform in (1 +- jitter_frac) / rate_hz
+    sigma_m: float = 0.02  # position noise along the line of sight: sigma_m + sigma_per_m * range
+    sigma_per_m: float = 0.06  # [m per m of range]
+    lateral_ratio: float = 0.35  # noise across the line of sight, relative (bearing is sharper)
+    yaw_sigma_rad: float = 0.05
+    outlier_prob: float = 0.01  # a detection jumps 0.5-2 m in a random direction
+    outlier_jump_m: tuple[float, float] = (0.5, 2.0)
+    miss_prob: float = 0.02  # dropout probability on straights
+    miss_per_radps: float = 0.15  # + this per rad/s of |yaw rate| above miss_yaw_rate_rps
+    miss_yaw_rate_rps: float = 1.0
+    ego_gap_m: tuple[float, float] = (2.0, 4.0)  # trailing car's distance behind along the track
+
+    @classmethod
+    def clean(cls, **changes) -> Sensor:
+        """A perfect detector: no noise, no outliers, no dropouts (same timing as the default)."""
+        base = dict(sigma_m=0.0, sigma_per_m=0.0, yaw_sigma_rad=0.0, outlier_prob=0.0)
+        return cls(**(base | dict(miss_prob=0.0, miss_per_radps=0.0) | changes))
+
+
+@dataclasses.dataclass(frozen=True)
+class SimResult:
+    """A simulated drive and what it was made from.
+
+    Attributes:
+        drive: detections (t_s (N,) arrival stamps [s], xy_m (N, 2), yaw_rad (N,)) and 50 Hz truth.
+        centerline_xy_m: (K, 2) the track's centerline [m] (what predictors get; not the raceline).
+        half_width_m: track half-width [m].
+        reference_xy_m: (R, 2) the path the driver followed (raceline or centerline) [m].
+        truth_yaw_rate_rps: (M,) true yaw rate at the truth stamps [rad/s].
+        truth_steer_rad: (M,) true front-wheel steering angle [rad].
+        capture_t_s: (N,) when each detection's image was taken [s] (= stamp - latency).
+        outlier: (N,) which detections are outliers.
+        range_m: (N,) distance from the trailing car's camera to the car at capture [m].
+        scenario: every setting, the seed, latency, track name and simulator version (JSON-able).
+    """
+
+    drive: Drive
+    centerline_xy_m: np.ndarray
+    half_width_m: float
+    reference_xy_m: np.ndarray
+    truth_yaw_rate_rps: np.ndarray
+    truth_steer_rad: np.ndarray
+    capture_t_s: np.ndarray
+    outlier: np.ndarray
+    range_m: np.ndarray
+    scenario: dict[str, Any]
+
+
+def simulate(
+    track: str | Path | np.ndarray,
+    *,
+    duration_s: float,
+    latency_s: float = 0.3,
+    seed: int = 0,
+    raceline: str | Path | None = None,
+    half_width_m: float | None = None,
+    vehicle: Vehicle = Vehicle(),
+    driver: Driver = Driver(),
+    sensor: Sensor = Sensor(),
+) -> SimResult:
+    """Simulate the leading car for `duration_s` and what the trailing car's detector reports.
+
+    Args:
+        track: a built-in name (``oval``, ``hairpin``, ``random:SEED``), a centerline/waypoint
+            file (read with `fpe_jax.io.load_waypoints`; speeds in it are used if no raceline is
+            given), or a (K, 2) closed centerline [m].
+        duration_s: length of the drive [s]; truth covers [0, duration_s] at 50 Hz.
+        latency_s: detection latency [s]: a detection stamped t shows the car at t - latency_s.
+        seed: seeds every random choice; equal seeds give identical results.
+        raceline: optional raceline/waypoint file with speeds; the driver follows it instead of
+            the centerline, at its (scaled, clipped) speeds.
+        half_width_m: track half-width [m]; default: the built-in's, else 1.1 (F1TENTH tracks).
+        vehicle, driver, sensor: model settings.
+
+    Returns:
+        A `SimResult`; detections stamped after `duration_s` are not recorded.
+    """
+    if not (duration_s > 0 and math.isfinite(duration_s)):
+        raise InputError("duration", f"{duration_s!r} s", "a positive number of seconds")
+    if not (latency_s >= 0 and math.isfinite(latency_s)):
+        raise InputError("latency", f"{latency_s!r} s", "a non-negative number of seconds")
+    name, center, hw, ref_xy, ref_v = _resolve_track(track, raceline, half_width_m)
+    rng_drive, rng_offset, rng_sensor = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)
+    )
+
+    ref = _reference_path(ref_xy, ref_v, center, hw, driver)
+    n_steps = int(round(duration_s / DT_S))
+    t_steps = np.arange(n_steps + 1) * DT_S
+    offset_m = _smooth_random(
+        rng_offset, t_steps, driver.offset_max_m * hw / 1.1, driver.offset_period_s
+    )
+    start = int(rng_drive.integers(len(ref["xy"])))
+    stop_times_s, stop_waits_s = _stop_schedule(rng_drive, duration_s, driver)
+    states = _drive(ref, start, offset_m, stop_times_s, stop_waits_s, vehicle, driver)
+
+    truth = states[::TRUTH_EVERY]
+    truth_t = t_steps[::TRUTH_EVERY]
+    det = _detect(rng_sensor, t_steps, states, center, duration_s, latency_s, sensor)
+
+    scenario = dict(
+        sim_version=SIM_VERSION,
+        track=name,
+        track_file=None if isinstance(track, np.ndarray) or is_builtin(str(track)) else str(track),
+        raceline=None if raceline is None else str(raceline),
+        half_width_m=hw,
+        duration_s=float(duration_s),
+        latency_s=float(latency_s),
+        seed=int(seed),
+        dt_s=DT_S,
+        truth_rate_hz=1.0 / (DT_S * TRUTH_EVERY),
+        vehicle=dataclasses.asdict(vehicle),
+        driver=dataclasses.asdict(driver),
+        sensor=dataclasses.asdict(sensor),
+    )
+    drive = Drive(
+        t_s=det["stamp"],
+        xy_m=det["xy"],
+        yaw_rad=det["yaw"],
+        truth_t_s=truth_t,
+        truth_xy_m=truth[:, 0:2].copy(),
+        truth_yaw_rad=_wrap(truth[:, 2]),
+        truth_v_mps=truth[:, 3].copy(),
+        meta=dict(
+            source="fpe_jax.sim",
+            track=name,
+            seed=int(seed),
+            latency_s=float(latency_s),
+            sim_version=SIM_VERSION,
+            n_captured=det["n_captured"],
+            n_dropped=det["n_captured"] - len(det["stamp"]),
+            n_outliers=int(det["outlier"].sum()),
+        ),
+    )
+    return SimResult(
+        drive=drive,
+        centerline_xy_m=center,
+        half_width_m=hw,
+        reference_xy_m=ref_xy,
+        truth_yaw_rate_rps=truth[:, 4].copy(),
+        truth_steer_rad=truth[:, 5].copy(),
+        capture_t_s=det["capture"],
+        outlier=det["outlier"],
+        range_m=det["range"],
+        scenario=scenario,
+    )
+
+
+# --- track and reference path -------------------------------------------------------------------
+
+
+def _resolve_track(track, raceline, half_width_m):
+    """-> (name, centerline (K, 2), half-width [m], reference xy (R, 2), its speeds (R,) | None)."""
+    if isinstance(track, np.ndarray):
+        name, center, hw, speeds = "array", np.asarray(track, dtype=float), 1.1, None
+        if center.ndim != 2 or center.shape[1] != 2 or len(center) < 3:
+            raise InputError("track", f"array of shape {center.shape}", "a (K, 2) closed loop")
+    elif isinstance(track, str) and is_builtin(track):
+        name, speeds = track, None
+        center, hw = builtin_track(track)
+    elif Path(track).exists():
+        wp = _load_waypoints(track)
+        name, center, hw, speeds = Path(track).stem, wp.xy_m, 1.1, wp.speed_mps
+    else:
+        expected = "oval, hairpin, random:SEED or a centerline/waypoint file"
+        raise InputError(track, "is neither a built-in track nor an existing file", expected)
+    hw = float(half_width_m) if half_width_m is not None else hw
+    if not (hw > 0 and math.isfinite(hw)):
+        raise InputError("half-width", f"{hw!r} m", "a positive number of metres")
+    if raceline is None:
+        return name, center, hw, center, speeds
+    rl = _load_waypoints(raceline)
+    return name, center, hw, rl.xy_m, rl.speed_mps
+
+
+def _load_waypoints(path):
+    from fpe_jax.io import load_waypoints  # only file-based tracks need the io package
+
+    return load_waypoints(path)
+
+
+def _reference_path(xy_m, speed_mps, center_xy_m, half_width_m, driver: Driver) -> dict:
+    """Resample the driver's path and precompute what the 100 Hz loop reads (as Python lists).
+
+    Returns dict: xy (R, 2) array, and lists x, y, nx, ny (left unit normal), v (target speed
+    [m/s]), lo/hi (allowed lateral offset [m] that keeps the aim point `edge_margin_m` inside the
+    track, so a raceline that touches an edge is followed with that margin), and spacing [m].
+    """
+    xy, v = resample_loop(xy_m, REF_SPACING_M, speed_mps)
+    spacing = loop_arclength(xy)[-1] / len(xy)
+    if v is None:
+        v = _speed_profile(loop_curvature(xy, smooth_m=1.0), spacing, driver)
+    else:
+        v = np.clip(v * driver.raceline_speed_scale, driver.v_min_mps, driver.v_max_mps)
+    normal = _left_normals(xy)
+    # Signed distance of each path point from the centerline (zero when the path is it).
+    idx = _nearest(xy, center_xy_m)
+    side = np.sum((xy - center_xy_m[idx]) * _left_normals(center_xy_m)[idx], axis=1)
+    room = max(half_width_m - driver.edge_margin_m, 0.0)
+    lo, hi = -room - side, room - side
+    return dict(
+        xy=xy,
+        x=xy[:, 0].tolist(),
+        y=xy[:, 1].tolist(),
+        nx=normal[:, 0].tolist(),
+        ny=normal[:, 1].tolist(),
+        v=v.tolist(),
+        lo=lo.tolist(),
+        hi=hi.tolist(),
+        spacing=float(spacing),
+    )
+
+
+def _speed_profile(kappa: np.ndarray, spacing_m: float, driver: Driver) -> np.ndarray:
+    """(R,) speeds [m/s]: the lateral-acceleration limit, then accel (forward) and brake
+    (backward) passes around the loop (two laps each, so the wrap-around is consistent)."""
+    v = np.minimum(driver.v_max_mps, np.sqrt(driver.lat_accel_mps2 / np.abs(kappa).clip(1e-9)))
+    v = v.tolist()
+    n = len(v)
+    acc2, brk2 = 2 * driver.accel_mps2 * spacing_m, 2 * driver.brake_mps2 * spacing_m
+    for k in range(1, 2 * n):
+        v[k % n] = min(v[k % n], math.sqrt(v[(k - 1) % n] ** 2 + acc2))
+    for k in range(2 * n - 2, -1, -1):
+        v[k % n] = min(v[k % n], math.sqrt(v[(k + 1) % n] ** 2 + brk2))
+    return np.maximum(np.array(v), driver.v_min_mps)
+
+
+def _left_normals(xy_m: np.ndarray) -> np.ndarray:
+    """(K, 2) unit normals pointing left of the direction of travel of a closed loop (K, 2)."""
+    d = np.roll(xy_m, -1, axis=0) - np.roll(xy_m, 1, axis=0)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.stack([-d[:, 1], d[:, 0]], axis=1)
+
+
+def _nearest(points_m: np.ndarray, loop_m: np.ndarray) -> np.ndarray:
+    """(P,) index of the nearest loop vertex (K, 2) to each point (P, 2), in bounded chunks."""
+    out = np.empty(len(points_m), dtype=np.int64)
+    for i in range(0, len(points_m), 256):
+        d = points_m[i : i + 256, None, :] - loop_m[None, :, :]
+        out[i : i + 256] = np.argmin(np.einsum("pkd,pkd->pk", d, d), axis=1)
+    return out
+
+
+def _smooth_random(rng, t_s: np.ndarray, amplitude: float, period_s, n: int = 3) -> np.ndarray:
+    """A smooth random signal on `t_s`: n sinusoids of random period/phase, |value| <= amplitude."""
+    periods = rng.uniform(*period_s, size=n)
+    phases = rng.uniform(0.0, 2 * math.pi, size=n)
+    weights = rng.uniform(0.5, 1.0, size=n)
+    weights *= amplitude / weights.sum()
+    return np.sin(2 * math.pi * t_s[:, None] / periods + phases) @ weights
+
+
+def _stop_schedule(rng, duration_s: float, driver: Driver) -> tuple[list[float], list[float]]:
+    """Stop start times [s] (a Poisson process) and each stop's standstill time [s]."""
+    n_max = int(duration_s * driver.stops_per_min / 60.0 * 3 + 10)
+    gaps = rng.exponential(60.0 / max(driver.stops_per_min, 1e-12), size=n_max)
+    waits = rng.uniform(*driver.stop_wait_s, size=n_max)
+    if driver.stops_per_min <= 0:
+        return [], []
+    times = np.cumsum(gaps)
+    keep = times < duration_s
+    return times[keep].tolist(), waits[keep].tolist()
+
+
+# --- vehicle and driver -------------------------------------------------------------------------
+
+
+def _drive(ref, start, offset_m, stop_times_s, stop_waits_s, veh: Vehicle, drv: Driver):
+    """Run the closed loop (driver at 100 Hz, RK4 at 100 Hz) from path point `start`.
+
+    Returns (S + 1, 7) states per step: x [m], y [m], yaw [rad] (unwrapped), v [m/s],
+    yaw rate [rad/s], steering angle [rad], slip angle at the centre of gravity [rad].
+    """
+    px, py, nx, ny, vref, lo, hi = (ref[k] for k in ("x", "y", "nx", "ny", "v", "lo", "hi"))
+    n_ref, spacing = len(px), ref["spacing"]
+    lf, lr = veh.lf_m, veh.lr_m
+    lwb = lf + lr
+    d_max, a_max, v_sw = veh.steer_max_rad, veh.accel_max_mps2, veh.v_switch_mps
+    f = _make_dynamics(veh)
+    h = DT_S
+
+    i = start
+    off0 = min(max(offset_m[0], lo[i]), hi[i])
+    x, y = px[i] + off0 * nx[i], py[i] + off0 * ny[i]
+    j = (i + 1) % n_ref
+    yaw = math.atan2(py[j] - py[i - 1], px[j] - px[i - 1])
+    v, r, steer, beta = vref[i], 0.0, 0.0, 0.0
+    mode, next_stop, stop_k, wait_until, steer_cmd = "drive", 0, 0, 0.0, 0.0
+    out = []
+    for k, off in enumerate(offset_m.tolist()):
+        out.append((x, y, yaw, v, r, steer, beta))
+        if k == len(offset_m) - 1:
+            break
+        t = k * h
+        # Nearest path point: walk from the last one (the car moves < 0.1 m per step).
+        dist = (x - px[i]) ** 2 + (y - py[i]) ** 2
+        for step in (1, -1):
+            while True:
+                c = (i + step) % n_ref
+                dc = (x - px[c]) ** 2 + (y - py[c]) ** 2
+                if dc >= dist:
+                    break
+                i, dist = c, dc
+        # Pure pursuit from the rear axle to the offset path point one lookahead ahead.
+        look_m = max(drv.lookahead_min_m, drv.lookahead_time_s * v)
+        g = (i + int(look_m / spacing)) % n_ref
+        off = min(max(off, lo[g]), hi[g])
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        gx, gy = px[g] + off * nx[g] - (x - lr * cy), py[g] + off * ny[g] - (y - lr * sy)
+        lateral = -sy * gx + cy * gy
+        if mode == "drive" or v > 0.5:  # a stopping driver holds the wheel still
+            steer_cmd = math.atan(2.0 * lwb * lateral / max(gx * gx + gy * gy, 1e-6))
+            steer_cmd = min(max(steer_cmd, -d_max), d_max)
+        # Speed: profile read slightly ahead; stops override it.
+        v_target = vref[(i + int(v * drv.speed_preview_s / spacing)) % n_ref]
+        brake = a_max
+        if mode == "drive" and next_stop < len(stop_times_s) and t >= stop_times_s[next_stop]:
+            mode, stop_k = "brake", next_stop
+        if mode == "brake" and v < 0.05:
+            mode, wait_until = "wait", t + stop_waits_s[stop_k]
+        if mode == "wait" and t >= wait_until:
+            mode = "drive"
+            while next_stop < len(stop_times_s) and stop_times_s[next_stop] <= t:
+                next_stop += 1
+        if mode != "drive":
+            v_target, brake = 0.0, drv.stop_brake_mps2
+        a_top = a_max if v <= v_sw else a_max * v_sw / v  # motor power limit
+        a = min(max(drv.speed_gain_1ps * (v_target - v), -brake), a_top)
+        # RK4 with the driver's commands held over the step.
+        k1 = f(steer, v, yaw, r, beta, steer_cmd, a)
+        k2 = f(*_add(steer, v, yaw, r, beta, k1, 0.5 * h), steer_cmd, a)
+        k3 = f(*_add(steer, v, yaw, r, beta, k2, 0.5 * h), steer_cmd, a)
+        k4 = f(*_add(steer, v, yaw, r, beta, k3, h), steer_cmd, a)
+        w6 = h / 6.0
+        x += w6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+        y += w6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+        steer += w6 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+        v += w6 * (k1[3] + 2 * k2[3] + 2 * k3[3] + k4[3])
+        yaw += w6 * (k1[4] + 2 * k2[4] + 2 * k3[4] + k4[4])
+        r += w6 * (k1[5] + 2 * k2[5] + 2 * k3[5] + k4[5])
+        beta += w6 * (k1[6] + 2 * k2[6] + 2 * k3[6] + k4[6])
+        steer = min(max(steer, -d_max), d_max)
+        v = max(v, 0.0)  # the driver never reverses
+    return np.array(out)
+
+
+def _add(steer, v, yaw, r, beta, k, h):
+    """The RK4 stage state: (steer, v, yaw, r, beta) + h * derivative (k[0:2] are x', y')."""
+    return steer + h * k[2], v + h * k[3], yaw + h * k[4], r + h * k[5], beta + h * k[6]
+
+
+def _make_dynamics(veh: Vehicle):
+    """The single-track right-hand side as a closure over the vehicle constants.
+
+    f(steer, v, yaw, yaw_rate, beta, steer_cmd, a) -> (x', y', steer', v', yaw', yaw_rate', beta').
+    Positions do not enter the dynamics, so they are not arguments.
+    """
+    mu, lf, lr, h, m, inertia = (
+        veh.mu,
+        veh.lf_m,
+        veh.lr_m,
+        veh.h_cg_m,
+        veh.mass_kg,
+        veh.inertia_kgm2,
+    )
+    c_sf, c_sr, g = veh.c_sf, veh.c_sr, G_MPS2
+    lwb = lf + lr
+    tau, rate_max, d_max = veh.servo_tau_s, veh.steer_rate_max_rps, veh.steer_max_rad
+    v_kin, v_dyn = veh.v_kinematic_mps, veh.v_dynamic_mps
+    # At low speed the tyre model's yaw rate and slip are tied to the kinematic ones by a fast
+    # first-order relaxation, so the state is consistent when the dynamic model takes over.
+    relax = 1.0 / 0.05
+    yaw_gain = mu * m / (inertia * lwb)
+
+    def f(steer, v, yaw, r, beta, steer_cmd, a):
+        d_steer = min(max((steer_cmd - steer) / tau, -rate_max), rate_max)
+        if (steer >= d_max and d_steer > 0) or (steer <= -d_max and d_steer < 0):
+            d_steer = 0.0
+        if v <= v_kin:
+            w = 0.0
+        elif v >= v_dyn:
+            w = 1.0
+        else:
+            u = (v - v_kin) / (v_dyn - v_kin)
+            w = u * u * (3.0 - 2.0 * u)
+        dx = dy = d_yaw = d_r = d_beta = 0.0
+        if w < 1.0:  # kinematic bicycle referenced at the centre of gravity
+            tan_d = math.tan(steer)
+            beta_k = math.atan(tan_d * lr / lwb)
+            r_k = v * math.cos(beta_k) * tan_d / lwb
+            q = 1.0 - w
+            dx += q * v * math.cos(yaw + beta_k)
+            dy += q * v * math.sin(yaw + beta_k)
+            d_yaw += q * r_k
+            d_r += q * relax * (r_k - r)
+            d_beta += q * relax * (beta_k - beta)
+        if w > 0.0:  # dynamic single-track with load transfer (only evaluated for v > v_kin)
+            ff = c_sf * (g * lr - a * h)  # front/rear cornering stiffness x normal load / mass
+            fr = c_sr * (g * lf + a * h)
+            dx += w * v * math.cos(yaw + beta)
+            dy += w * v * math.sin(yaw + beta)
+            d_yaw += w * r
+            d_r += (
+                w
+                * yaw_gain
+                * (
+                    lf * ff * steer
+                    + (lr * fr - lf * ff) * beta
+                    - (lf * lf * ff + lr * lr * fr) * r / v
+                )
+            )
+            d_beta += w * (
+                mu / (v * lwb) * (ff * steer - (fr + ff) * beta + (lr * fr - lf * ff) * r / v) - r
+            )
+        return dx, dy, d_steer, a, d_yaw, d_r, d_beta
+
+    return f
+
+
+# --- sensor -------------------------------------------------------------------------------------
+
+
+def _detect(rng, t_steps, states, center_xy_m, duration_s, latency_s, sen: Sensor) -> dict:
+    """Detections of the car: capture times, what the detector reports, and when it arrives.
+
+    Every random number is drawn for every capture whatever the settings, so a clean sensor sees
+    the same capture times as a noisy one with the same seed.
+    """
+    period = 1.0 / sen.rate_hz
+    n_max = int(duration_s * sen.rate_hz * 1.5) + 10
+    gaps = period * (1.0 + rng.uniform(-sen.jitter_frac, sen.jitter_frac, size=n_max))
+    capture = rng.uniform(0.0, period) + np.concatenate([[0.0], np.cumsum(gaps[:-1])])
+    u_miss, u_out = rng.uniform(size=n_max), rng.uniform(size=n_max)
+    jump_m = rng.uniform(*sen.outlier_jump_m, size=n_max)
+    jump_dir = rng.uniform(0.0, 2 * math.pi, size=n_max)
+    z_along, z_across, z_yaw = rng.standard_normal((3, n_max))
+    gap_m = np.mean(sen.ego_gap_m) + _smooth_random(
+        rng, capture, 0.5 * (sen.ego_gap_m[1] - sen.ego_gap_m[0]), (5.0, 15.0)
+    )
+
+    keep = capture + latency_s <= duration_s + 1e-9
+    capture = capture[keep]
+    x, y, yaw, _, r = (np.interp(capture, t_steps, states[:, c]) for c in range(5))
+    # The trailing car drives on the centerline, gap_m behind the car's projection onto it.
+    s = loop_arclength(center_xy_m)
+    closed = np.vstack([center_xy_m, center_xy_m[:1]])
+    s_ego = np.mod(s[:-1][_nearest(np.stack([x, y], 1), center_xy_m)] - gap_m[keep], s[-1])
+    ego = np.stack([np.interp(s_ego, s, closed[:, 0]), np.interp(s_ego, s, closed[:, 1])], 1)
+    los = np.stack([x, y], 1) - ego
+    range_m = np.linalg.norm(los, axis=1)
+    los /= np.maximum(range_m, 1e-9)[:, None]
+    sigma = sen.sigma_m + sen.sigma_per_m * range_m
+    z_along, z_across = z_along[keep] * sigma, z_across[keep] * sigma * sen.lateral_ratio
+    xy = np.stack([x, y], 1) + los * z_along[:, None]
+    xy += np.stack([-los[:, 1], los[:, 0]], 1) * z_across[:, None]
+    outlier = u_out[keep] < sen.outlier_prob
+    jump = jump_m[keep] * outlier
+    xy += np.stack([np.cos(jump_dir[keep]), np.sin(jump_dir[keep])], 1) * jump[:, None]
+    yaw = _wrap(yaw + sen.yaw_sigma_rad * z_yaw[keep])
+    fast = np.maximum(np.abs(r) - sen.miss_yaw_rate_rps, 0.0)
+    seen = u_miss[keep] >= np.minimum(sen.miss_prob + sen.miss_per_radps * fast, 0.9)
+    return dict(
+        capture=capture[seen],
+        stamp=capture[seen] + latency_s,
+        xy=xy[seen],
+        yaw=yaw[seen],
+        outlier=outlier[seen],
+        range=range_m[seen],
+        n_captured=int(len(capture)),
+    )
+
+
+def _wrap(angle_rad: np.ndarray) -> np.ndarray:
+    """Angles wrapped to [-pi, pi)."""
+    return np.mod(np.asarray(angle_rad) + math.pi, 2 * math.pi) - math.pi
+
+
+# --- files --------------------------------------------------------------------------------------
+
+POSE_TOPIC, ODOM_TOPIC, TF_TOPIC = "/opp/pose", "/opp/odom", "/tf"
+MAP_FRAME, CAR_FRAME = "map", "other_base_link"
+
+
+def write_simulation(res: SimResult, out_dir: str | Path, *, force: bool = False) -> list[Path]:
+    """Write a simulated drive as DIR/drive.mcap, DIR/waypoints.csv and DIR/scenario.json.
+
+    drive.mcap holds `/opp/pose` (geometry_msgs/PoseStamped detections, stamped at arrival),
+    `/opp/odom` (nav_msgs/Odometry truth, 50 Hz) and `/tf` (map -> other_base_link truth, 50 Hz);
+    waypoints.csv the centerline (header ``x,y``, metres); scenario.json every setting.
+
+    Raises InputError if `out_dir` is a file, or an existing non-empty folder and not `force`.
+    Returns the written paths.
+    """
+    import json
+
+    from fpe_jax.io import write_drive_mcap
+
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file", "a folder to write the simulated drive into")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise InputError(out, "exists and is not empty; pass --force to write into it")
+    out.mkdir(parents=True, exist_ok=True)
+    d = res.drive
+    truth = dict(t_s=d.truth_t_s, xy_m=d.truth_xy_m, yaw_rad=d.truth_yaw_rad)
+    mcap = write_drive_mcap(
+        out / "drive.mcap",
+        pose=dict(topic=POSE_TOPIC, t_s=d.t_s, xy_m=d.xy_m, yaw_rad=d.yaw_rad, frame_id=MAP_FRAME),
+        odom=dict(
+            truth,
+            topic=ODOM_TOPIC,
+            v_mps=d.truth_v_mps,
+            yaw_rate_rps=res.truth_yaw_rate_rps,
+            frame_id=MAP_FRAME,
+            child_frame_id=CAR_FRAME,
+        ),
+        tf=dict(truth, topic=TF_TOPIC, parent=MAP_FRAME, child=CAR_FRAME),
+        force=force,
+    )
+    waypoints = out / "waypoints.csv"
+    np.savetxt(waypoints, res.centerline_xy_m, fmt="%.6f", delimiter=",", header="x,y", comments="")
+    scenario = out / "scenario.json"
+    summary = dict(
+        topics=dict(pose=POSE_TOPIC, odom=ODOM_TOPIC, tf=TF_TOPIC, frames=[MAP_FRAME, CAR_FRAME]),
+        n_detections=len(d.t_s),
+        n_truth=len(d.truth_t_s),
+        n_outliers=d.meta["n_outliers"],
+        n_dropped=d.meta["n_dropped"],
+    )
+    scenario.write_text(json.dumps(res.scenario | summary, indent=2) + "\n")
+    return [mcap, waypoints, scenario]
