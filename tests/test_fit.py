@@ -1,0 +1,206 @@
+"""Fitting: targets, the robust loss, recovery of a known delay, held-out report, configs, CLI."""
+
+import dataclasses
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fpe_jax import fit as F
+from fpe_jax.cli import main
+from fpe_jax.config import config_to_params, params_to_config, read_config
+from fpe_jax.drive import Drive
+from fpe_jax.metrics import coverage, summarize
+from fpe_jax.params import Settings, presets
+from fpe_jax.sim import simulate
+from fpe_jax.track import Track
+
+
+@pytest.fixture(scope="module")
+def oval_drives():
+    """Short fit and test drives on the oval with a 0.3 s latency (CI-sized)."""
+    fit_d = simulate("oval", duration_s=40, latency_s=0.3, seed=11)
+    test_d = simulate("oval", duration_s=25, latency_s=0.3, seed=12)
+    return fit_d, test_d, Track.from_waypoints(fit_d.centerline_xy_m)
+
+
+def test_targets_from_truth_are_interpolated_exactly():
+    t = np.arange(0, 5, 0.02)
+    truth_xy = np.stack([2.0 * t, np.zeros_like(t)], axis=1)
+    obs_t = np.arange(0.05, 5, 0.1)
+    drive = Drive(
+        t_s=obs_t,
+        xy_m=np.stack([2.0 * obs_t, np.zeros_like(obs_t)], axis=1),
+        yaw_rad=np.zeros_like(obs_t),
+        truth_t_s=t,
+        truth_xy_m=truth_xy,
+    )
+    tg = F.make_targets(drive, Settings())
+    when = obs_t[tg.rows, None] + 0.1 * np.arange(1, 11)
+    ok = tg.mask
+    np.testing.assert_allclose(tg.xy_m[..., 0][ok], 2.0 * when[ok], atol=1e-12)
+    assert not ok[-1, -1]  # beyond the end of the truth stream: masked, not invented
+    assert tg.rows[0] == F.MIN_HISTORY - 1  # needs MIN_HISTORY distinct observations first
+
+
+def test_targets_from_observations_skip_repeats_and_gaps():
+    t = 0.1 * np.arange(40)
+    xy = np.stack([t, np.zeros_like(t)], axis=1)
+    xy[20] = xy[19]  # a repeated row (no new detection): never a target
+    drive = Drive(t_s=t, xy_m=xy, yaw_rad=np.full(40, np.nan))
+    tg = F.make_targets(drive, Settings())
+    k = np.flatnonzero(tg.rows == 10)[0]
+    assert not tg.mask[k, 9]  # the target at t = 2.0 s is the repeated row 20
+    np.testing.assert_allclose(tg.xy_m[k, 8], [1.9, 0.0], atol=1e-12)
+    assert tg.mask[k, 8]
+
+
+def test_huber_scale_matches_the_huber_loss():
+    e = jnp.array([0.0, 0.1, 0.3, 0.5, 2.0])
+    s = F._huber_scale(e, 0.3)
+    huber = jnp.where(e <= 0.3, 0.5 * e**2, 0.3 * (e - 0.15))
+    np.testing.assert_allclose(0.5 * (s * e) ** 2, huber, rtol=1e-12, atol=1e-15)
+
+
+def test_fit_recovers_the_latency_and_beats_the_presets(oval_drives):
+    fit_d, test_d, track = oval_drives
+    res = F.fit([fit_d.drive], [track], test_drives=[test_d.drive], blend="position")
+    assert abs(float(res.params.delay_s) - 0.3) <= 0.05, res.params.physical()
+    fitted = res.report["fitted"]
+    assert fitted["fde_m"] <= 0.5 * res.report["seed-measured-speed"]["fde_m"]
+    for name in F.BASELINES:
+        assert fitted["ade_m"] < res.report[name]["ade_m"], name
+    assert 0.25 <= fitted["coverage_1sigma"] <= 0.55
+    assert 0.75 <= fitted["coverage_2sigma"] <= 0.95
+    assert np.asarray(res.uncertainty["cov_m2"]).shape == (10, 2, 2)
+
+
+def test_fit_without_latency_fits_no_delay():
+    a = simulate("oval", duration_s=40, latency_s=0.0, seed=21)
+    track = Track.from_waypoints(a.centerline_xy_m)
+    res = F.fit([a.drive], [track], blend="position", fit=("delay", "weights", "speed"))
+    assert float(res.params.delay_s) <= 0.05
+
+
+def test_fit_subset_keeps_the_rest_fixed(oval_drives):
+    fit_d, _, track = oval_drives
+    init = presets["default"]
+    data = F._datasets([fit_d.drive], [track], init.settings, "training")
+    p, info = F.fit_params(data, init, fit=("delay",), max_steps=30)
+    assert float(p.lookahead_m) == pytest.approx(float(init.lookahead_m), abs=1e-9)
+    np.testing.assert_allclose(np.asarray(p.weights), np.asarray(init.weights), atol=1e-9)
+    assert float(p.delay_s) != pytest.approx(float(init.delay_s), abs=1e-3)
+    assert info["steps"] >= 1
+
+
+def test_residual_gradient_matches_finite_differences(oval_drives):
+    fit_d, _, track = oval_drives
+    init = presets["default"]
+    data = F._datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
+    raw = F.unconstrain(init)
+    groups = [(data.states(init), track, jnp.asarray(data.targets.xy_m), data.targets.mask)]
+
+    def loss(delay_raw):
+        r = dataclasses.replace(raw, delay_s=delay_raw)
+        free, fixed = eqx.partition(r, F._free_mask(r, ("delay",)))
+        return 0.5 * jnp.sum(F._residuals(free, (fixed, groups, F.HUBER_M)) ** 2)
+
+    x0 = raw.delay_s
+    g = jax.grad(loss)(x0)
+    h = 1e-6
+    fd = (loss(x0 + h) - loss(x0 - h)) / (2 * h)
+    assert float(g) == pytest.approx(float(fd), rel=1e-5)
+    assert abs(float(g)) > 1e-3
+
+
+def test_summarize_and_coverage_exact():
+    err = np.array([[0.1, 0.2, 0.6], [0.3, np.nan, 0.4]])
+    m = summarize(err)
+    assert m["ade_m"] == pytest.approx((0.1 + 0.2 + 0.6 + 0.3 + 0.4) / 5)
+    assert m["fde_m"] == pytest.approx(0.5)
+    assert m["miss_rate"] == pytest.approx(0.5)
+    assert m["per_step_m"][1] == pytest.approx(0.2)
+    assert m["n_predictions"] == 2
+    res = np.array([[[0.5, 0.0]], [[0.0, 1.5]], [[2.5, 0.0]]])  # unit covariance
+    c = coverage(res, np.ones((3, 1), bool), np.eye(2)[None])
+    assert c["coverage_1sigma"] == pytest.approx(1 / 3)  # d^2 = 0.25, 2.25, 6.25
+    assert c["coverage_2sigma"] == pytest.approx(2 / 3)
+
+
+def test_config_round_trip_and_bad_configs(tmp_path):
+    p = presets["default"]
+    cfg = params_to_config(p, provenance={"drives": ["x"]})
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(cfg))
+    q = config_to_params(read_config(path))
+    assert q.settings == p.settings
+    np.testing.assert_array_equal(np.asarray(q.weights), np.asarray(p.weights))
+    cfg["schema_version"] = 99
+    path.write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="schema_version 99"):
+        read_config(path)
+    cfg["schema_version"] = 1
+    del cfg["params"]["delay_s"]
+    path.write_text(json.dumps(cfg))
+    with pytest.raises(ValueError, match="delay_s"):
+        read_config(path)
+
+
+def test_cli_fit_evaluate_predict(tmp_path, capsys):
+    a = simulate("oval", duration_s=30, latency_s=0.3, seed=31)
+    from fpe_jax.sim import write_simulation
+
+    write_simulation(a, tmp_path / "sim")
+    log, wp = str(tmp_path / "sim" / "drive.mcap"), str(tmp_path / "sim" / "waypoints.csv")
+    out = tmp_path / "cfg.json"
+    args = ["fit", log, "--waypoints", wp, "--out", str(out), "--blend", "position"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    assert "held-out" in text and "| fitted |" in text and "seed-measured-speed" in text
+    cfg = read_config(out)
+    assert cfg["provenance"]["topics"]["pose"] == "/opp/pose"
+    assert set(cfg["params"]) >= {"lookahead_m", "lookahead_gain_s", "weights", "delay_s"}
+    assert main(args) == 2  # refuses to overwrite without --force
+    assert "exists" in capsys.readouterr().err
+    ev = ["evaluate", log, "--waypoints", wp, "--config", str(out), "--json"]
+    assert main(ev) == 0
+    metrics = json.loads(capsys.readouterr().out)
+    for key in ("ade_m", "fde_m", "fde_p90_m", "per_step_m", "miss_rate", "n_predictions"):
+        assert key in metrics
+    assert len(metrics["per_step_m"]) == 10 and "coverage_1sigma" in metrics
+    pred = tmp_path / "pred.csv"
+    assert main(["predict", log, "--waypoints", wp, "--config", str(out), "--out", str(pred)]) == 0
+    assert pred.read_text().startswith("stamp,step,horizon_s,x,y,yaw")
+
+
+def test_cli_fit_rejects_unknown_fit_names(tmp_path, capsys):
+    rc = main(
+        [
+            "fit",
+            "x.csv",
+            "--waypoints",
+            "w.csv",
+            "--out",
+            str(tmp_path / "c.json"),
+            "--fit",
+            "lookahead,wings",
+        ]
+    )
+    assert rc == 2
+    assert "wings" in capsys.readouterr().err
+
+
+def test_levine_fit_beats_seed_and_constant_velocity(shared_data):
+    """Issue acceptance on real data: fit the first 60 %, evaluate the last 40 %."""
+    from fpe_jax import io
+
+    drive = io.load_drive(shared_data / "levine" / "actual-poses.csv", rate_hz=10)
+    wp = io.load_waypoints(shared_data / "levine" / "levine-waypoints.csv").xy_m
+    res = F.fit([drive], [Track.from_waypoints(wp)], holdout=0.4, blend="position")
+    rep = res.report
+    for base in ("seed", "constant-velocity"):
+        assert rep["fitted"]["ade_m"] < rep[base]["ade_m"], base
+        assert rep["fitted"]["fde_m"] < rep[base]["fde_m"], base
