@@ -4,14 +4,34 @@ import fpe_jax as fpe
 track = fpe.Track.from_waypoints(waypoints_xy_m)
 params = fpe.presets["default"]
 poses = fpe.predict(params, fpe.State(x_m=..., y_m=..., yaw_rad=..., v_mps=...), track)
+
+The public names are imported lazily (module-level `__getattr__`), so that JAX-free modules such as
+`fpe_jax.runner`, `fpe_jax.config` and `fpe_jax.io` can be imported on a car that has no JAX.
 """
 
-from fpe_jax.drive import Drive
-from fpe_jax.errors import InputError
-from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
-from fpe_jax.predict import predict, predict_batch, predict_drive, stack_params
-from fpe_jax.rollout import State
-from fpe_jax.track import Track
+from __future__ import annotations
+
+import importlib
+import sys
+import types
+from typing import TYPE_CHECKING
+
+# public name -> the module that defines it
+_LAZY = {
+    "Drive": "fpe_jax.drive",
+    "InputError": "fpe_jax.errors",
+    "Params": "fpe_jax.params",
+    "Settings": "fpe_jax.params",
+    "constrain": "fpe_jax.params",
+    "presets": "fpe_jax.params",
+    "unconstrain": "fpe_jax.params",
+    "predict": "fpe_jax.predict",
+    "predict_batch": "fpe_jax.predict",
+    "predict_drive": "fpe_jax.predict",
+    "stack_params": "fpe_jax.predict",
+    "State": "fpe_jax.rollout",
+    "Track": "fpe_jax.track",
+}
 
 __all__ = [
     "Drive",
@@ -29,3 +49,38 @@ __all__ = [
     "unconstrain",
 ]
 __version__ = "0.1.0"
+
+if TYPE_CHECKING:  # static analysers and IDEs see the real imports
+    from fpe_jax.drive import Drive
+    from fpe_jax.errors import InputError
+    from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
+    from fpe_jax.predict import predict, predict_batch, predict_drive, stack_params
+    from fpe_jax.rollout import State
+    from fpe_jax.track import Track
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        # AttributeError (not ImportError) lets `from fpe_jax import io` import the subpackage
+        raise AttributeError(f"module 'fpe_jax' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name]), name)
+    globals()[name] = value  # cache: later lookups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
+
+
+class _Package(types.ModuleType):
+    # Fix (tests/test_predict.py): the submodule `fpe_jax.predict` shares its name with the public
+    # function `predict`; importing the submodule makes the import system bind the package
+    # attribute to the module, so `from fpe_jax import predict_batch, predict` returned a module.
+    # Keep the public name: skip that binding (the submodule stays in sys.modules).
+    def __setattr__(self, name, value):
+        if isinstance(value, types.ModuleType) and name in _LAZY:
+            return
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Package

@@ -17,43 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from fpe_jax.drive import Drive
+from fpe_jax.history import MIN_PAIR_DT_S, OUTLIER_M
 from fpe_jax.rollout import State
 from fpe_jax.track import wrap_angle
-
-MIN_PAIR_DT_S = 0.05  # pairs closer in time than this give slopes dominated by noise
-MAX_SPAN_S = 1.0  # older observations describe a different motion
-OUTLIER_M = 0.6  # newest observation farther than this from the robust line is an outlier
-
-
-def distinct_mask(xy_m: np.ndarray) -> np.ndarray:
-    """(N,) True where a row is a new observation, False where it repeats the previous row."""
-    same = np.zeros(len(xy_m), dtype=bool)
-    same[1:] = np.all(xy_m[1:] == xy_m[:-1], axis=1)
-    return ~same
-
-
-def history_windows(drive: Drive, n_hist: int) -> dict[str, np.ndarray]:
-    """For every observation k, the newest `n_hist` distinct observations up to k, right-aligned.
-
-    Returns a dict of arrays: t_s (N, W), xy_m (N, W, 2), yaw_rad (N, W), valid (N, W) bool and
-    t_now_s (N,) (the stamp of observation k, the prediction time). Slots with no observation
-    (the start of a drive, or older than MAX_SPAN_S before the newest) are invalid.
-    """
-    idx_distinct = np.flatnonzero(distinct_mask(drive.xy_m))
-    newest = np.searchsorted(idx_distinct, np.arange(len(drive.t_s)), side="right") - 1
-    slots = newest[:, None] + np.arange(-n_hist + 1, 1)[None, :]
-    valid = slots >= 0
-    rows = idx_distinct[np.clip(slots, 0, None)]
-    t = drive.t_s[rows]
-    valid &= (t[:, -1:] - t) <= MAX_SPAN_S
-    return {
-        "t_s": t,
-        "xy_m": drive.xy_m[rows],
-        "yaw_rad": drive.yaw_rad[rows],
-        "valid": valid,
-        "t_now_s": drive.t_s.copy(),
-    }
 
 
 def _masked_median(x, mask):

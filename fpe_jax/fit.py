@@ -22,7 +22,7 @@ import optimistix as optx
 
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
-from fpe_jax.estimate import history_windows
+from fpe_jax.history import distinct_mask, history_windows
 from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
 from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
 from fpe_jax.predict import predict, predict_batch, states_from_drive
@@ -86,7 +86,7 @@ def make_targets(drive: Drive, settings: Settings) -> Targets:
         k = np.clip(np.searchsorted(tt, when), 1, len(tt) - 1)
         mask = (when >= tt[0]) & (when <= tt[-1]) & ((tt[k] - tt[k - 1]) <= 0.1)
     else:
-        new = np.flatnonzero(np.r_[True, np.any(drive.xy_m[1:] != drive.xy_m[:-1], axis=1)])
+        new = np.flatnonzero(distinct_mask(drive.xy_m))
         tn = drive.t_s[new]
         half_period = 0.5 * np.median(np.diff(drive.t_s)) if len(drive.t_s) > 1 else 0.0
         k = np.clip(np.searchsorted(tn, when), 1, len(tn) - 1)

@@ -11,7 +11,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fpe_jax.drive import Drive
-from fpe_jax.estimate import estimate_state, history_windows
+from fpe_jax.estimate import estimate_state
+from fpe_jax.history import history_windows
 from fpe_jax.params import Params
 from fpe_jax.rollout import State, rollout
 from fpe_jax.track import Track, arclength_along

@@ -1,0 +1,376 @@
+"""Export a tuned config to the forms on-car runners take.
+
+- JSON: the normalized config (`fpe_jax.config`), the input of the NumPy runner (`fpe_jax.runner`).
+- ROS 2: a parameter YAML (`<node>:` / `ros__parameters:`) with flat, documented names.
+- StableHLO: a `jax.export` artifact of the batched predictor with the parameters and the track
+  baked in as constants; it takes the cars' states only (see `INPUTS`). `load(path)` runs it.
+
+Only the StableHLO functions import JAX (inside them), so JSON and ROS 2 exports work without it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fpe_jax.config import read_config, write_config
+from fpe_jax.errors import InputError
+
+FORMATS = ("json", "ros2", "stablehlo", "all")
+DEFAULT_NODE = "future_pose_estimator"
+ALL_FILES = {"json": "config.json", "ros2": "params.yaml", "stablehlo": "predictor.stablehlo"}
+
+INPUTS = (
+    ("x_m", "position x [m] (the newest observation, or its outlier-free replacement)"),
+    ("y_m", "position y [m]"),
+    ("yaw_rad", "heading of the car body [rad]"),
+    ("v_mps", "speed [m/s]"),
+    ("yaw_rate_rps", "yaw rate [rad/s]"),
+    ("course_rad", "direction of motion [rad]"),
+    ("s_m", "arc length along the track [m] from a windowed projection; NaN: project globally"),
+)
+"""The artifact's inputs, in order: each a (b,) float64 array (b >= 1, the batch of cars), the
+fields of `fpe_jax.rollout.State` as `fpe_jax.predict.states_from_drive` estimates them (for the
+seed model: the current row's position and observed yaw, as recorded). Output: (b, H, 3) float64
+x [m], y [m], yaw [rad] at stamp + h * dt_s, h = 1..H."""
+
+# ROS 2 parameter: (name, config section, config key, type, comment). Types are explicit because
+# ROS 2 types parameters by their YAML form: 1 is an integer, 1.0 a double (a node declaring a
+# double rejects an integer), so every float is written with a decimal point.
+ROS2_PARAMS = (
+    ("model", "settings", "model", str, "predictor: blend (linear/pure-pursuit), seed, cv, ctrv"),
+    ("blend_mode", "settings", "blend", str, "position: blend positions; heading: turn x (1 - w)"),
+    ("lookahead_distance_m", "params", "lookahead_m", float, "pure-pursuit lookahead at 0 m/s [m]"),
+    ("lookahead_gain_s", "params", "lookahead_gain_s", float, "lookahead = distance + gain*v [s]"),
+    ("blend_weights", "params", "weights", list, "per step, in [0, 1]: 1 linear, 0 pure pursuit"),
+    ("delay_offset_s", "params", "delay_s", float, "observation delay, advanced over first [s]"),
+    ("speed_weight", "params", "speed_weight", float, "v = w * measured + (1 - w) * typical"),
+    ("typical_speed_mps", "params", "speed_mps", float, "speed the measured one shrinks to [m/s]"),
+    ("step_s", "settings", "dt_s", float, "time between predicted poses [s]"),
+    ("horizon", "settings", "horizon", int, "number of predicted poses H"),
+    ("wheelbase_m", "settings", "wheelbase_m", float, "kinematic-bicycle wheelbase [m]"),
+    ("max_steering_rad", "settings", "max_steer_rad", float, "steering limit [rad]"),
+    ("min_lookahead_m", "settings", "min_lookahead_m", float, "lower bound of the lookahead [m]"),
+    ("history", "settings", "history", int, "distinct recent observations the estimate uses"),
+)
+
+
+# ---- JSON ----------------------------------------------------------------------------------------
+
+
+def export_json(cfg: dict[str, Any], out, *, force: bool = False) -> Path:
+    """Write the config (as read_config returns it) to `out`; refuses to overwrite unless force."""
+    write_config(out, cfg, force=force)
+    return Path(out)
+
+
+# ---- ROS 2 ---------------------------------------------------------------------------------------
+
+
+def _yaml_scalar(value) -> str:
+    """A YAML scalar that YAML 1.1 (PyYAML) and ROS 2 both read back with the same type."""
+    if isinstance(value, bool) or value is None:
+        raise TypeError(f"unexpected config value {value!r}")
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise InputError("config", f"non-finite value {value!r}", "finite numbers")
+        text = repr(value)
+        mantissa, e, exponent = text.partition("e")
+        # YAML 1.1 reads 1e-06 as a string: it needs a '.' in the mantissa (1.0e-06)
+        return mantissa + ("" if "." in mantissa else ".0") + e + exponent
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a valid double-quoted YAML string
+    if isinstance(value, list):
+        return "[" + ", ".join(_yaml_scalar(v) for v in value) + "]"
+    raise TypeError(f"unexpected config value {value!r}")
+
+
+def to_ros2_yaml(
+    cfg: dict[str, Any],
+    *,
+    node: str = DEFAULT_NODE,
+    waypoint_file: str | None = None,
+    source: str = "config",
+) -> str:
+    """The config as a ROS 2 parameter file (text): `node:` / `ros__parameters:` / flat names.
+
+    Args:
+        cfg: a config dict as `fpe_jax.config.read_config` returns it.
+        node: the node's name (may carry a namespace, `/ns/node`; `/**` matches every node).
+        waypoint_file: path written to `waypoint_file` ("" when None: set it on the car).
+        source: the config's file name, for the header comment.
+    """
+    if not re.fullmatch(r"/\*\*|/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*", node):
+        raise InputError("--node", f"{node!r} is not a ROS 2 node name", "letters, digits, _ and /")
+    prov = cfg.get("provenance") or {}
+    when = prov.get("fitted_at") if isinstance(prov, dict) else None
+    fitted = f"; fitted {when}" if when else ""
+    header = f"exported by fpe-jax from {source}, config schema_version {cfg['schema_version']}"
+    lines = [
+        "# Future pose estimator parameters (ROS 2 parameter file)",
+        "# " + " ".join((header + fitted).split()),  # one line, whatever the names hold
+        f"{node}:",
+        "  ros__parameters:",
+        "    # version of the fpe-jax config schema these values follow",
+        f"    schema_version: {int(cfg['schema_version'])}",
+    ]
+    for name, section, key, kind, doc in ROS2_PARAMS:
+        value = cfg[section][key]
+        value = [float(v) for v in value] if kind is list else kind(value)
+        lines += [f"    # {doc}", f"    {name}: {_yaml_scalar(value)}"]
+    lines += [
+        "    # waypoint / centerline CSV the track is built from (x, y rows, metres, map frame)",
+        f"    waypoint_file: {_yaml_scalar(waypoint_file or '')}",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+# ---- StableHLO -----------------------------------------------------------------------------------
+
+
+def _predictor(params, track):
+    """f(x_m, ..., s_m), each (b,) -> (b, H, 3), with params and track closed over (constants)."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from fpe_jax.predict import predict_batch
+    from fpe_jax.rollout import State
+
+    def f(x_m, y_m, yaw_rad, v_mps, yaw_rate_rps, course_rad, s_m):
+        states = State(
+            x_m=x_m,
+            y_m=y_m,
+            yaw_rad=yaw_rad,
+            v_mps=v_mps,
+            yaw_rate_rps=yaw_rate_rps,
+            course_rad=course_rad,
+            s_m=s_m,
+        )
+        if params.settings.model == "blend":  # only pure pursuit reads the arc length
+            # a NaN arc length asks for a global projection; skipped when every car has one
+            def global_s(s):
+                p = jnp.stack([x_m, y_m], axis=1)
+                return jnp.where(jnp.isfinite(s), s, jax.vmap(track.project)(p))
+
+            s = jax.lax.cond(jnp.all(jnp.isfinite(s_m)), lambda s: s, global_s, s_m)
+            states = dataclasses.replace(states, s_m=s)
+        return predict_batch(params, states, track)
+
+    return f
+
+
+def export_stablehlo(
+    cfg: dict[str, Any],
+    waypoints_xy_m,
+    out,
+    *,
+    force: bool = False,
+    waypoint_file: str | None = None,
+    platforms: tuple[str, ...] = ("cpu", "cuda"),
+) -> tuple[Path, Path]:
+    """Serialize the batched predictor of `cfg` on the track of `waypoints_xy_m` (K, 2) [m].
+
+    Writes `out` (the `jax.export` serialization) and `out + ".json"` (a sidecar describing the
+    inputs, output, platforms, track and config). Computes in float64 (1e-6 m parity with the
+    JAX path needs it). `platforms`: lowered for each (default CPU and CUDA, e.g. a Jetson).
+    """
+    import jax
+    from jax import export
+
+    from fpe_jax.config import config_to_params
+    from fpe_jax.track import Track
+
+    out = Path(out)
+    sidecar = out.with_name(out.name + ".json")
+    _check_free([out, sidecar], force)
+    with jax.enable_x64(True):
+        params = config_to_params(cfg)
+        track = Track.from_waypoints(np.asarray(waypoints_xy_m, dtype=np.float64))
+        (b,) = export.symbolic_shape("b")
+        spec = jax.ShapeDtypeStruct((b,), np.float64)
+        exported = export.export(jax.jit(_predictor(params, track)), platforms=platforms)(
+            *[spec] * len(INPUTS)
+        )
+        blob = exported.serialize()
+    h = cfg["settings"]["horizon"]
+    meta = {
+        "format": "jax.export serialized Exported (jax.export.deserialize)",
+        "jax_version": jax.__version__,
+        "calling_convention_version": exported.calling_convention_version,
+        "platforms": list(exported.platforms),
+        "inputs": [{"name": n, "shape": ["b"], "dtype": "float64", "doc": d} for n, d in INPUTS],
+        "output": {
+            "shape": ["b", h, 3],
+            "dtype": "float64",
+            "doc": f"x [m], y [m], yaw [rad] at stamp + h * dt_s, h = 1..{h}",
+        },
+        "horizon": h,
+        "dt_s": cfg["settings"]["dt_s"],
+        "track": {
+            "waypoint_file": waypoint_file,
+            "waypoints_sha256": hashlib.sha256(
+                np.ascontiguousarray(waypoints_xy_m, dtype="<f8").tobytes()
+            ).hexdigest(),
+            "n_points": int(track.xy_m.shape[0]),
+            "closed": track.closed,
+            "length_m": float(track.length_m),
+        },
+        "config": cfg,
+    }
+    _write_atomic(out, blob)
+    _write_atomic(sidecar, (json.dumps(meta, indent=2) + "\n").encode())
+    return out, sidecar
+
+
+class ExportedPredictor:
+    """A loaded StableHLO predictor: `predictor(x_m=..., y_m=..., ...)` -> (b, H, 3) ndarray.
+
+    Arguments by name or in the order of `INPUTS`; each a scalar or a (b,) array. Omitted
+    optional ones take the `State` defaults: yaw_rate_rps 0, course_rad = yaw_rad, and
+    s_m NaN (a global projection on the track).
+
+    Attributes:
+        exported: the `jax.export.Exported`.
+        meta: the sidecar's contents ({} when there is none).
+        horizon: H.
+    """
+
+    def __init__(self, exported, meta: dict[str, Any]):
+        self.exported = exported
+        self.meta = meta
+        self.horizon = int(exported.out_avals[0].shape[1])
+
+    def __call__(self, *args, **kwargs) -> np.ndarray:
+        import jax
+
+        names = [n for n, _ in INPUTS]
+        if len(args) > len(names):
+            raise TypeError(f"at most {len(names)} inputs: {', '.join(names)}")
+        given = dict(zip(names, args))
+        for k, v in kwargs.items():
+            if k not in names or k in given:
+                raise TypeError(f"unexpected or repeated input {k!r}; inputs: {', '.join(names)}")
+            given[k] = v
+        missing = [n for n in ("x_m", "y_m", "yaw_rad", "v_mps") if n not in given]
+        if missing:
+            raise TypeError(f"missing inputs: {', '.join(missing)}")
+        x = np.atleast_1d(np.asarray(given["x_m"], dtype=np.float64))
+        if x.ndim != 1:
+            raise ValueError(f"inputs must be scalars or (b,) arrays, got shape {x.shape}")
+        defaults = {
+            "yaw_rate_rps": 0.0,
+            "course_rad": given["yaw_rad"],
+            "s_m": math.nan,
+        }
+        arrays = [
+            np.broadcast_to(np.asarray(given.get(n, defaults.get(n)), dtype=np.float64), x.shape)
+            for n in names
+        ]
+        with jax.enable_x64(True):  # the artifact computes in float64
+            return np.asarray(self.exported.call(*arrays))
+
+
+def load(path) -> ExportedPredictor:
+    """Load a StableHLO predictor written by `export_stablehlo` (and its sidecar, if present)."""
+    from jax import export
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such file", "a predictor.stablehlo written by `fpe export`")
+    try:
+        exported = export.deserialize(bytearray(path.read_bytes()))
+    except Exception as e:  # flatbuffers raises assorted errors on foreign bytes
+        raise InputError(path, f"not a jax.export artifact ({type(e).__name__}: {e})") from None
+    sidecar = path.with_name(path.name + ".json")
+    meta = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+    return ExportedPredictor(exported, meta)
+
+
+# ---- files ---------------------------------------------------------------------------------------
+
+
+def _check_free(paths: list[Path], force: bool) -> None:
+    for p in paths:
+        if p.exists() and not force:
+            raise InputError(p, "exists", "a new path, or --force to overwrite")
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def export_config(
+    config_path,
+    fmt: str,
+    out,
+    *,
+    node: str = DEFAULT_NODE,
+    waypoints=None,
+    force: bool = False,
+) -> list[Path]:
+    """`fpe export`: write `config_path` in format `fmt` to `out` (a folder for "all").
+
+    Args:
+        config_path: a tuned config JSON.
+        fmt: "json", "ros2", "stablehlo" or "all" (config.json, params.yaml, predictor.stablehlo
+            and predictor.stablehlo.json in the folder `out`, created if missing).
+        node: ROS 2 node name.
+        waypoints: waypoint file; fills `waypoint_file` in the YAML and is baked into the
+            StableHLO artifact (required for stablehlo and all).
+        force: overwrite existing files.
+
+    Returns:
+        The paths written. Nothing is written when any target exists without force.
+    """
+    if fmt not in FORMATS:
+        raise InputError("--format", f"unknown format {fmt!r}", f"one of {', '.join(FORMATS)}")
+    from fpe_jax.runner import check_config, load_waypoints_xy  # JAX-free
+
+    cfg = check_config(read_config(config_path), str(config_path))
+    if fmt in ("stablehlo", "all") and waypoints is None:
+        raise InputError(
+            "--waypoints", "the stablehlo predictor bakes the track in", "--waypoints FILE"
+        )
+    # everything that can fail on input is checked before anything is written
+    text = None
+    if fmt in ("ros2", "all"):
+        wp_name = None if waypoints is None else str(waypoints)
+        source = Path(config_path).name
+        text = to_ros2_yaml(cfg, node=node, waypoint_file=wp_name, source=source)
+    xy = None
+    if fmt in ("stablehlo", "all"):
+        xy = load_waypoints_xy(waypoints)
+    out = Path(out)
+    if fmt == "all":
+        if out.exists() and not out.is_dir():
+            raise InputError(out, "is not a folder", "a folder for config.json, params.yaml, ...")
+        targets = {k: out / name for k, name in ALL_FILES.items()}
+        _check_free([*targets.values(), out / (ALL_FILES["stablehlo"] + ".json")], force)
+        out.mkdir(parents=True, exist_ok=True)
+    else:
+        targets = {fmt: out}
+    written = []
+    if "stablehlo" in targets:  # first: the slowest, and the only one that can fail late
+        written += export_stablehlo(
+            cfg, xy, targets["stablehlo"], force=force, waypoint_file=str(waypoints)
+        )
+    if "json" in targets:
+        written.append(export_json(cfg, targets["json"], force=force))
+    if "ros2" in targets:
+        _check_free([targets["ros2"]], force)
+        _write_atomic(targets["ros2"], text.encode())
+        written.append(targets["ros2"])
+    return written

@@ -1,0 +1,635 @@
+"""NumPy-only on-car runner: streaming predictions from a tuned config, without JAX.
+
+Cars (Jetson-class computers) often have no JAX, so this module re-implements, in NumPy and plain
+`math`, exactly what the JAX path does for a drive (`fpe_jax.predict.predict_drive`):
+
+- the distinct-observation history window and robust state estimate of `fpe_jax.estimate`
+  (repeated rows skipped, Theil-Sen medians, outlier replacement of the newest position);
+- the windowed track projection of `fpe_jax.track.arclength_along` (global on the first call);
+- every model of `fpe_jax.rollout`: the position and heading blends, linear, pure pursuit, the
+  seed's discrete rules, constant velocity and CTRV, with the fractional delay step.
+
+Parity with the JAX predictor is tested to 1e-6 m. The per-step math works on Python floats:
+for H = 10 scalar steps that is several times faster than NumPy's per-call overhead; NumPy is
+used where a step scans many points (the track window, the seed's waypoint scan).
+
+It imports only `fpe_jax.config`, `fpe_jax.errors`, `fpe_jax.path` and (to read waypoint files)
+`fpe_jax.io`, all JAX-free; a test runs it in a process where importing JAX fails.
+
+    runner = Runner.from_config("tuned.json", "waypoints.csv")
+    poses = runner.update(stamp_s, x_m, y_m, yaw_rad)   # (H, 3) x [m], y [m], yaw [rad]
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from fpe_jax.config import read_config
+from fpe_jax.errors import InputError
+from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
+from fpe_jax.path import build_path
+
+# The same constants as fpe_jax.estimate, fpe_jax.params and fpe_jax.track (which import JAX, so
+# they cannot be imported here); tests/test_runner.py checks that they agree.
+WINDOW_BEHIND_M = 2.0
+WINDOW_AHEAD_M = 4.0
+LOCAL_PROJECTION_ITERS = 2
+BLEND_MODES = ("position", "heading")
+MODELS = ("blend", "seed", "cv", "ctrv")
+
+_PI = math.pi
+_TWO_PI = 2 * math.pi
+
+
+def _wrap(a: float) -> float:
+    """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.path.wrap_angle."""
+    return (a + _PI) % _TWO_PI - _PI
+
+
+def _median(values: list[float]) -> float:
+    """Median as jnp.nanmedian computes it ((lo + hi) * 0.5); 0 for an empty list, like
+    fpe_jax.estimate's masked median."""
+    n = len(values)
+    if n == 0:
+        return 0.0
+    v = sorted(values)
+    return (v[(n - 1) // 2] + v[n // 2]) * 0.5
+
+
+class RunnerPath:
+    """The resampled track (same points as fpe_jax.track.Track) with its geometry on floats.
+
+    Attributes:
+        closed: loop (arc length wraps) or open path (clamps).
+        ds_m, length_m: point spacing and total length [m].
+        raw_xy_m: (K, 2) the waypoints as given (the seed's goal scan reads them).
+    """
+
+    def __init__(self, waypoints_xy_m, *, source: str = "waypoints"):
+        p = build_path(waypoints_xy_m, source=source)
+        xy = p["xy_m"]
+        m = len(xy)
+        self.closed: bool = p["closed"]
+        self.ds_m: float = float(p["ds_m"])
+        self.length_m: float = float(p["length_m"])
+        self.raw_xy_m: np.ndarray = np.ascontiguousarray(p["raw_xy_m"], dtype=np.float64)
+        self._m = m
+        # Python lists: scalar indexing of a list is ~10x faster than of an ndarray
+        self._xs = xy[:, 0].tolist()
+        self._ys = xy[:, 1].tolist()
+        self._hs = p["heading_rad"].tolist()
+        # per segment start i: a_x, a_y, (b - a)_x, (b - a)_y, max(|b - a|^2, 1e-12) as rows (5, M)
+        nxt = (np.arange(m) + 1) % m if self.closed else np.minimum(np.arange(m) + 1, m - 1)
+        ab = xy[nxt] - xy
+        ab2 = np.maximum(ab[:, 0] * ab[:, 0] + ab[:, 1] * ab[:, 1], 1e-12)
+        self._seg = np.stack([xy[:, 0], xy[:, 1], ab[:, 0], ab[:, 1], ab2])
+        self._all_segments = np.arange(m if self.closed else m - 1)
+        n_back = int(np.ceil(WINDOW_BEHIND_M / self.ds_m))
+        n_ahead = int(np.ceil(WINDOW_AHEAD_M / self.ds_m))
+        self._window = np.arange(-n_back, n_ahead + 1)
+
+    def locate(self, s_m: float) -> tuple[int, int, float]:
+        """Segment index i, next index j and fraction f in [0, 1] for arc length s [m]."""
+        if self.closed:
+            u = (s_m % self.length_m) / self.ds_m
+            i = int(u)  # u >= 0: int() is floor()
+            if i >= self._m - 1:  # the closing segment (or u rounded up to M)
+                i = self._m - 1
+                return i, 0, u - i
+            return i, i + 1, u - i
+        u = (0.0 if s_m < 0.0 else self.length_m if s_m > self.length_m else s_m) / self.ds_m
+        i = int(u)
+        if i > self._m - 2:
+            i = self._m - 2
+        return i, i + 1, u - i
+
+    def point_at(self, s_m: float) -> tuple[float, float]:
+        """Position x [m], y [m] at arc length s [m]."""
+        i, j, f = self.locate(s_m)
+        g = 1.0 - f
+        return self._xs[i] * g + self._xs[j] * f, self._ys[i] * g + self._ys[j] * f
+
+    def project_local(self, x_m: float, y_m: float, s_hint_m: float) -> float:
+        """Arc length [m] near s_hint by Newton steps along the tangent (Track.project_local)."""
+        s = s_hint_m
+        xs, ys, hs = self._xs, self._ys, self._hs
+        for _ in range(LOCAL_PROJECTION_ITERS):
+            i, j, f = self.locate(s)
+            h0 = hs[i]
+            # heading_at: h0 + f * wrap(h1 - h0), wrapped (wrap inlined: this is the hot path)
+            h = (h0 + f * ((hs[j] - h0 + _PI) % _TWO_PI - _PI) + _PI) % _TWO_PI - _PI
+            g = 1.0 - f
+            s = s + (
+                (x_m - (xs[i] * g + xs[j] * f)) * math.cos(h)
+                + (y_m - (ys[i] * g + ys[j] * f)) * math.sin(h)
+            )
+        return s
+
+    def _nearest(self, x_m: float, y_m: float, idx: np.ndarray, contiguous: bool) -> float:
+        """Arc length [m] of the closest point to (x, y) on the segments starting at idx (n,);
+        `contiguous` (idx = lo, lo + 1, ...) reads them as a view instead of gathering."""
+        lo = int(idx[0])
+        seg = self._seg[:, lo : lo + len(idx)] if contiguous else self._seg.take(idx, axis=1)
+        ax, ay, abx, aby, ab2 = seg
+        t = ((x_m - ax) * abx + (y_m - ay) * aby) / ab2
+        np.maximum(t, 0.0, out=t)
+        np.minimum(t, 1.0, out=t)
+        dx = ax + t * abx - x_m
+        dy = ay + t * aby - y_m
+        k = int(np.argmin(dx * dx + dy * dy))  # the first minimum, as jnp.argmin
+        return (int(idx[k]) + float(t[k])) * self.ds_m
+
+    def project(self, x_m: float, y_m: float) -> float:
+        """Arc length [m] of the closest point of the whole track (global search)."""
+        return self._nearest(x_m, y_m, self._all_segments, True)
+
+    def project_window(self, x_m: float, y_m: float, s_hint_m: float) -> float:
+        """Arc length [m] of the closest point within [s_hint - 2 m, s_hint + 4 m], continuous
+        with the hint across the seam of a loop (it counts laps), as Track.project_window."""
+        idx = self._window + math.floor(s_hint_m / self.ds_m)
+        last = self._m - 1 if self.closed else self._m - 2
+        if 0 <= idx[0] and idx[-1] <= last:
+            s = self._nearest(x_m, y_m, idx, True)
+        else:  # across the seam (wrap) or past an end (clamp), exactly as the JAX indices do
+            s = self._nearest(
+                x_m, y_m, idx % self._m if self.closed else np.clip(idx, 0, last), False
+            )
+        if not self.closed:
+            return s
+        half = 0.5 * self.length_m
+        return s_hint_m + ((s - s_hint_m + half) % self.length_m - half)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def check_config(cfg: dict, source: str) -> dict:
+    """Check the values of a config (read_config checks only that the keys exist); returns it.
+
+    Raises InputError naming the value, for a wrong type, a non-finite number or an unknown mode.
+    """
+    p, st = cfg["params"], cfg["settings"]
+    for key in ("lookahead_m", "lookahead_gain_s", "delay_s", "speed_weight", "speed_mps"):
+        if not _is_number(p[key]):
+            raise InputError(source, f"params.{key} is {p[key]!r}", "a finite number")
+    w = p["weights"]
+    if not (isinstance(w, list) and len(w) == st["horizon"] and all(map(_is_number, w))):
+        raise InputError(source, f"params.weights is {w!r}", "settings.horizon finite numbers")
+    for key, allowed in (("blend", BLEND_MODES), ("model", MODELS)):
+        if st[key] not in allowed:
+            raise InputError(source, f"settings.{key} is {st[key]!r}", f"one of {allowed}")
+    for key, least in (("horizon", 1), ("history", 2)):
+        if not (_is_number(st[key]) and isinstance(st[key], int) and st[key] >= least):
+            raise InputError(source, f"settings.{key} is {st[key]!r}", f"an integer >= {least}")
+    for key in ("dt_s", "wheelbase_m", "max_steer_rad"):
+        if not (_is_number(st[key]) and st[key] > 0):
+            raise InputError(source, f"settings.{key} is {st[key]!r}", "a positive number")
+    if not (_is_number(st["min_lookahead_m"]) and st["min_lookahead_m"] >= 0):
+        raise InputError(source, f"settings.min_lookahead_m is {st['min_lookahead_m']!r}", ">= 0")
+    return cfg
+
+
+class Runner:
+    """Streaming predictor for one leading car: feed observations, get (H, 3) predictions.
+
+    Keeps its own history of distinct observations and its own arc-length state, so calling
+    `update` for every row of a drive gives what `fpe_jax.predict.predict_drive` gives for it.
+
+    Attributes:
+        horizon: number of predicted steps H.
+        dt_s: step between predicted poses [s].
+        model, blend: the config's settings (see fpe_jax.params.Settings).
+    """
+
+    def __init__(self, config: dict, waypoints_xy_m, *, source: str = "config"):
+        """Args:
+        config: a config dict as `fpe_jax.config.read_config` returns it (schema checked).
+        waypoints_xy_m: (K, 2) waypoints x [m], y [m]; resampled exactly as Track does.
+        source: names the config in error messages.
+        """
+        cfg = check_config(config, source)
+        p, st = cfg["params"], cfg["settings"]
+        self.horizon: int = st["horizon"]
+        self.dt_s: float = float(st["dt_s"])
+        self.model: str = st["model"]
+        self.blend: str = st["blend"]
+        self._wheelbase_m = float(st["wheelbase_m"])
+        self._max_steer_rad = float(st["max_steer_rad"])
+        self._lookahead_m = float(p["lookahead_m"])
+        self._gain_s = float(p["lookahead_gain_s"])
+        self._weights = [float(w) for w in p["weights"]]
+        self._delay_s = float(p["delay_s"])
+        self._speed_weight = float(p["speed_weight"])
+        self._typical_speed_mps = float(p["speed_mps"])
+        self._history = deque(maxlen=int(st["history"]))  # distinct (t, x, y, yaw), oldest first
+        self.path = RunnerPath(waypoints_xy_m, source="waypoints")
+        if self.model == "seed":
+            self._goal_scan = GoalScan(self.path.raw_xy_m, self._lookahead_m)
+        self.reset()
+
+    @classmethod
+    def from_config(cls, config_path, waypoints_path) -> Runner:
+        """Runner from a tuned config JSON and a waypoint file (any form fpe_jax.io reads)."""
+        cfg = read_config(config_path)
+        return cls(cfg, load_waypoints_xy(waypoints_path), source=str(config_path))
+
+    def reset(self) -> None:
+        """Forget the history and the track position (a new drive starts)."""
+        self._history.clear()
+        self._last_stamp_s: float | None = None
+        self._last_xy: tuple[float, float] | None = None
+        self._s_m: float | None = None
+        self._motion: tuple[float, ...] | None = None
+
+    def update(self, stamp_s: float, x_m: float, y_m: float, yaw_rad: float | None = None):
+        """Add one observation and predict from it.
+
+        Args:
+            stamp_s: observation stamp [s], strictly increasing between calls.
+            x_m, y_m: observed position [m] in the map frame (a row equal to the previous one is
+                a repeat: no new detection, it does not enter the history).
+            yaw_rad: observed orientation [rad], or None / NaN when the source has none.
+
+        Returns:
+            (H, 3) float64 x [m], y [m], yaw [rad] at stamp + h * dt_s, h = 1..H.
+
+        Raises:
+            InputError for a non-finite stamp or position, or a stamp not after the previous one
+            (the runner's state is left unchanged).
+        """
+        t, x, y = float(stamp_s), float(x_m), float(y_m)
+        yaw = math.nan if yaw_rad is None else float(yaw_rad)
+        if not (math.isfinite(t) and math.isfinite(x) and math.isfinite(y)):
+            raise InputError("observation", f"t={t}, x={x}, y={y}", "finite stamp and position")
+        if self._last_stamp_s is not None and t <= self._last_stamp_s:
+            raise InputError(
+                "observation", f"stamp {t} is not after {self._last_stamp_s}", "increasing stamps"
+            )
+        if self._last_xy != (x, y):
+            self._history.append((t, x, y, yaw))
+            self._motion = None
+        self._last_stamp_s, self._last_xy = t, (x, y)
+        if self._motion is None:  # a repeated row is predicted from as if fresh: reuse
+            self._motion = self._estimate_motion()
+        est = self._motion  # x, y, yaw, v, yaw_rate, course
+        if self.model == "seed":
+            # the original's rules: the current row alone, observed yaw when there is one
+            return self._seed(x, y, yaw if math.isfinite(yaw) else est[2], self._speed(est[3]))
+        if self.model == "cv":
+            return self._linear(est, heading_rad=est[5])
+        if self.model == "ctrv":
+            return self._ctrv(est)
+        path = self.path
+        ex, ey = est[0], est[1]
+        s_prev = path.project(ex, ey) if self._s_m is None else self._s_m
+        self._s_m = path.project_window(ex, ey, s_prev)
+        if self.blend == "heading":
+            w = self._weights
+            return self._bicycle(est, self._s_m, [1.0 - wk for wk in [w[0], *w]])
+        return self._position_blend(est, self._s_m)
+
+    # ---- state estimation (fpe_jax.estimate.estimate_state on the valid slots) ----------------
+
+    def _estimate_motion(self) -> tuple[float, ...]:
+        """(x, y, yaw, v, yaw_rate, course) [m, m, rad, m/s, rad/s, rad] from the distinct
+        observations no older than MAX_SPAN_S before the newest (the valid slots of
+        fpe_jax.estimate's window)."""
+        t_new = self._history[-1][0]
+        obs = [o for o in self._history if t_new - o[0] <= MAX_SPAN_S]
+        n = len(obs)
+        ts, xs, ys, yaws = ([o[c] for o in obs] for c in range(4))
+        pairs = [(i, j, ts[j] - ts[i]) for j in range(n) for i in range(j)]
+        pairs = [p for p in pairs if p[2] >= MIN_PAIR_DT_S]
+        vx = _median([(xs[j] - xs[i]) / dt for i, j, dt in pairs])
+        vy = _median([(ys[j] - ys[i]) / dt for i, j, dt in pairs])
+
+        # robust line through the window at the newest stamp replaces an outlier newest position
+        ahead = [t_new - tk for tk in ts]
+        fit_x = _median([xk + vx * a for xk, a in zip(xs, ahead)])
+        fit_y = _median([yk + vy * a for yk, a in zip(ys, ahead)])
+        use_fit = math.hypot(xs[-1] - fit_x, ys[-1] - fit_y) > OUTLIER_M and n >= 3
+        x, y = (fit_x, fit_y) if use_fit else (xs[-1], ys[-1])
+        course = math.atan2(vy, vx)
+
+        has_yaw = [math.isfinite(a) for a in yaws]
+        ref = yaws[-1] if has_yaw[-1] else course
+        if sum(has_yaw) >= 2:
+            rate = _median(
+                [_wrap(yaws[j] - yaws[i]) / dt for i, j, dt in pairs if has_yaw[i] and has_yaw[j]]
+            )
+            off = [_wrap(a + rate * h - ref) for a, h, ok in zip(yaws, ahead, has_yaw) if ok]
+            yaw = _wrap(ref + _median(off))
+        else:
+            # without orientation: the turn rate of the courses of consecutive segments
+            yaw = ref
+            segs = [
+                (0.5 * (ts[k + 1] + ts[k]), math.atan2(ys[k + 1] - ys[k], xs[k + 1] - xs[k]))
+                for k in range(n - 1)
+                if ts[k + 1] - ts[k] >= MIN_PAIR_DT_S
+            ]
+            rate = _median(
+                [
+                    _wrap(cb - ca) / (tb - ta)
+                    for a, (ta, ca) in enumerate(segs)
+                    for tb, cb in segs[a + 1 :]
+                    if tb - ta >= MIN_PAIR_DT_S
+                ]
+            )
+        return x, y, yaw, math.hypot(vx, vy), rate, course
+
+    # ---- rollouts (fpe_jax.rollout), each -> (H, 3) ----------------------------------------------
+
+    def _speed(self, v_mps: float) -> float:
+        """Rollout speed [m/s]: the measured one shrunk toward the typical one."""
+        w = self._speed_weight
+        return w * v_mps + (1.0 - w) * self._typical_speed_mps
+
+    def _times(self) -> list[float]:
+        """Durations [s] of the fractional delay step and the H regular steps."""
+        return [self._delay_s] + [self.dt_s] * self.horizon
+
+    def _linear_rows(self, est, heading_rad: float) -> list[list[float]]:
+        x0, y0, v = est[0], est[1], self._speed(est[3])
+        c, s = math.cos(heading_rad), math.sin(heading_rad)
+        rows, t = [], 0.0
+        for k, dt in enumerate(self._times()):
+            t += dt
+            if k:
+                rows.append([x0 + v * t * c, y0 + v * t * s, heading_rad])
+        return rows
+
+    def _linear(self, est, heading_rad: float) -> np.ndarray:
+        return np.array(self._linear_rows(est, heading_rad))
+
+    def _ctrv(self, est) -> np.ndarray:
+        x, y, yaw = est[0], est[1], est[2]
+        v, w = self._speed(est[3]), est[4]
+        rows = []
+        for k, dt in enumerate(self._times()):
+            # exact arc as jnp.sinc computes it: chord = v dt sin(pi a) / (pi a), a = w dt / 2 pi
+            pi_a = _PI * (w * dt / _TWO_PI)
+            chord = v * dt * (math.sin(pi_a) / pi_a if pi_a != 0.0 else 1.0)
+            mid = yaw + 0.5 * w * dt
+            x, y, yaw = x + chord * math.cos(mid), y + chord * math.sin(mid), yaw + w * dt
+            if k:
+                rows.append([x, y, _wrap(yaw)])
+        return np.array(rows)
+
+    def _bicycle_rows(self, est, s_m: float, turn_scale: list[float]) -> list[list[float]]:
+        """Kinematic bicycle steered by pure pursuit; yaw change of step k times turn_scale[k]."""
+        path = self.path
+        x, y, yaw = est[0], est[1], est[2]
+        v = self._speed(est[3])
+        wb, lim = self._wheelbase_m, self._max_steer_rad
+        reach = self._gain_s * v
+        s = path.project_local(x, y, s_m)
+        rows = []
+        for k, dt in enumerate(self._times()):
+            s = path.project_local(x, y, s)
+            gx, gy = path.point_at(s + self._lookahead_m + reach)
+            dx, dy = gx - x, gy - y
+            d = math.sqrt(dx * dx + dy * dy + 1e-12)
+            sin_alpha = (math.cos(yaw) * dy - math.sin(yaw) * dx) / d
+            steer = min(max(math.atan(2.0 * wb * sin_alpha / d), -lim), lim)
+            dyaw = turn_scale[k] * v / wb * math.tan(steer) * dt
+            mid = yaw + 0.5 * dyaw
+            x, y, yaw = x + v * dt * math.cos(mid), y + v * dt * math.sin(mid), yaw + dyaw
+            if k:
+                rows.append([x, y, _wrap(yaw)])
+        return rows
+
+    def _bicycle(self, est, s_m: float, turn_scale: list[float]) -> np.ndarray:
+        return np.array(self._bicycle_rows(est, s_m, turn_scale))
+
+    def _position_blend(self, est, s_m: float) -> np.ndarray:
+        lin = self._linear_rows(est, est[2])
+        pp = self._bicycle_rows(est, s_m, [1.0] * (self.horizon + 1))
+        out = []
+        for w, (lx, ly, lyaw), (px, py, pyaw) in zip(self._weights, lin, pp):
+            g = 1.0 - w
+            out.append([w * lx + g * px, w * ly + g * py, _wrap(lyaw + g * _wrap(pyaw - lyaw))])
+        return np.array(out)
+
+    def _seed(self, x: float, y: float, yaw: float, v: float) -> np.ndarray:
+        """The original node's discrete rules (fpe_jax.rollout.rollout_seed)."""
+        goal = self._goal_scan
+        dt, wb, lim = self.dt_s, self._wheelbase_m, self._max_steer_rad
+        rows = []
+        for w in self._weights:
+            gx, gy = goal.goal(x, y)
+            d = math.hypot(gx - x, gy - y)
+            steer = 2.0 * math.sin(math.atan2(gy - y, gx - x) - yaw) / d if d > 0 else 0.0
+            steer = min(max(steer, -lim), lim)
+            yaw_pp = yaw + dt * v / wb * math.tan(steer)
+            yaw = w * yaw + (1.0 - w) * yaw_pp
+            x, y = x + v * dt * math.cos(yaw), y + v * dt * math.sin(yaw)
+            rows.append([x, y, yaw])
+        return np.array(rows)
+
+
+class GoalScan:
+    """The seed's goal: the last waypoint of the raw list within `radius_m` of the car, else row 0.
+
+    Scanning all K waypoints (2720 on Levine) ten times per update is most of the seed's cost, so
+    the waypoints are bucketed on a grid of cells a little larger than the radius: every waypoint
+    within the radius lies in the car's cell or one of its 8 neighbours, and each cell keeps those
+    candidates in list order. The distance test is the full scan's, on fewer points.
+    """
+
+    def __init__(self, raw_xy_m: np.ndarray, radius_m: float):
+        self.xy_m = raw_xy_m
+        self.radius_m = radius_m
+        self.cell_m = max(radius_m, 1e-3) * 1.001  # margin: |dx| <= r never spans 2 cells
+        cells = np.floor(raw_xy_m / self.cell_m).astype(np.int64).tolist()
+        buckets: dict[tuple[int, int], list[int]] = {}
+        for k, (cx, cy) in enumerate(cells):
+            for ox in (-1, 0, 1):
+                for oy in (-1, 0, 1):
+                    buckets.setdefault((cx + ox, cy + oy), []).append(k)
+        self._cells = {
+            c: (np.array(ks), raw_xy_m[ks, 0], raw_xy_m[ks, 1]) for c, ks in buckets.items()
+        }
+
+    def goal(self, x_m: float, y_m: float) -> tuple[float, float]:
+        """Goal position x [m], y [m] for a car at (x, y)."""
+        cell = self._cells.get((math.floor(x_m / self.cell_m), math.floor(y_m / self.cell_m)))
+        k = 0
+        if cell is not None:
+            idx, wx, wy = cell
+            within = np.flatnonzero(np.hypot(wx - x_m, wy - y_m) <= self.radius_m)
+            if len(within):
+                k = int(idx[within[-1]])
+        return self.xy_m[k, 0].item(), self.xy_m[k, 1].item()
+
+
+def load_waypoints_xy(path) -> np.ndarray:
+    """(K, 2) waypoints x [m], y [m] from any file fpe_jax.io.load_waypoints reads (JAX-free)."""
+    from fpe_jax.io.waypoints import load_waypoints
+
+    return np.asarray(load_waypoints(path).xy_m, dtype=np.float64)
+
+
+# ---- streaming over text lines (`fpe run`) -------------------------------------------------------
+
+
+def _number(value, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise InputError("observation", f"{what} is {value!r}", "a number")
+    try:
+        return float(value)
+    except ValueError:
+        raise InputError("observation", f"{what} is {value!r}", "a number") from None
+
+
+def _csv_header(cells: list[str]) -> tuple[int, int, int, int | None]:
+    """Column indices of t, x, y and yaw (None if absent) from a CSV header line."""
+    from fpe_jax.io.tables import T_NAMES, X_NAMES, Y_NAMES, YAW_NAMES
+
+    names = [c.lower() for c in cells]
+    found = []
+    for what, options in (("t", T_NAMES), ("x", X_NAMES), ("y", Y_NAMES), ("yaw", YAW_NAMES)):
+        idx = next((names.index(o) for o in options if o in names), None)
+        if idx is None and what != "yaw":
+            raise InputError("header", f"no {what} column in {','.join(cells)!r}", "t,x,y[,yaw]")
+        found.append(idx)
+    return found[0], found[1], found[2], found[3]
+
+
+def parse_observation(text: str, columns=None) -> tuple[float, float, float, float | None]:
+    """(t [s], x [m], y [m], yaw [rad] or None) from a JSON object line ({"t", "x", "y", "yaw"})
+    or a CSV line (t,x,y[,yaw], or the columns a header named). Raises InputError."""
+    if text.startswith("{"):
+        try:
+            obj = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError("observation", f"invalid JSON ({e.msg})", '{"t", "x", "y"}') from None
+        if not isinstance(obj, dict) or not {"t", "x", "y"} <= obj.keys():
+            raise InputError("observation", "JSON lacks t, x or y", '{"t", "x", "y"[, "yaw"]}')
+        cells = [obj["t"], obj["x"], obj["y"], obj.get("yaw")]
+    else:
+        raw = [c.strip() for c in text.split(",")]
+        if columns is None:
+            if len(raw) not in (3, 4):
+                raise InputError("observation", f"{len(raw)} columns", "t,x,y[,yaw]")
+            cells = raw + [None] * (4 - len(raw))
+        else:
+            if len(raw) <= max(c for c in columns if c is not None):
+                raise InputError("observation", f"{len(raw)} columns", "as many as the header")
+            cells = [None if c is None else raw[c] for c in columns]
+        if cells[3] == "":
+            cells[3] = None
+    t, x, y = (_number(v, what) for v, what in zip(cells[:3], ("t", "x", "y")))
+    yaw = None if cells[3] is None else _number(cells[3], "yaw")
+    return t, x, y, yaw
+
+
+def run_stream(runner: Runner, lines, out, err) -> int:
+    """Predict for every observation line of `lines`, writing one JSON line to `out` for each:
+    {"stamp": t, "poses": [[x, y, yaw] x H]}, flushed at once (a car's process pipes into it).
+
+    Input lines: CSV `t,x,y[,yaw]` (an optional header as the first line names the columns) or
+    JSON objects {"t", "x", "y"[, "yaw"]}; blank and `#` lines are skipped. A malformed line is
+    reported on `err` with its line number and skipped. Returns 0 at the end of the input.
+    """
+    columns, first = None, True
+    for lineno, line in enumerate(lines, 1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        try:
+            if first and not text.startswith("{"):
+                head = text.split(",", 1)[0].strip()
+                try:
+                    float(head)
+                except ValueError:  # a header line names the columns
+                    first = False
+                    columns = _csv_header([c.strip() for c in text.split(",")])
+                    continue
+            first = False
+            t, x, y, yaw = parse_observation(text, columns)
+            poses = runner.update(t, x, y, yaw)
+            reply = json.dumps({"stamp": t, "poses": poses.tolist()}, allow_nan=False)
+        except (InputError, ValueError) as e:
+            print(f"fpe run: line {lineno}: {e}; skipped", file=err, flush=True)
+            continue
+        out.write(reply + "\n")
+        out.flush()
+    return 0
+
+
+# ---- benchmark -----------------------------------------------------------------------------------
+
+BENCH_CONFIG = {
+    "schema_version": 1,
+    "params": {
+        "lookahead_m": 1.2,
+        "lookahead_gain_s": 0.25,
+        "weights": [0.9 - 0.07 * k for k in range(10)],
+        "delay_s": 0.08,
+        "speed_weight": 0.9,
+        "speed_mps": 2.0,
+    },
+    "settings": {
+        "dt_s": 0.1,
+        "horizon": 10,
+        "wheelbase_m": 0.325,
+        "max_steer_rad": 0.4189,
+        "blend": "position",
+        "model": "blend",
+        "min_lookahead_m": 0.3,
+        "history": 10,
+    },
+}
+"""A fitted-looking position blend (the costliest blend: both rollouts) for `benchmark_update`."""
+
+
+def benchmark_update(waypoints_xy_m, n_updates: int = 2000, config: dict | None = None) -> dict:
+    """Time `Runner.update` on a synthetic drive along the given waypoints.
+
+    The drive follows the resampled path at 3 m/s, observed at 10 Hz with 3 cm noise, no yaw,
+    and every third row a repeat (as real detectors log): the common case on a car.
+
+    Args:
+        waypoints_xy_m: (K, 2) waypoints [m] (e.g. the 2720-point Levine loop).
+        n_updates: number of timed updates.
+        config: a config dict (default `BENCH_CONFIG`, a position blend).
+
+    Returns:
+        dict with median_ms and p99_ms (per update [ms]), n_updates and the model name.
+    """
+    runner = Runner(config or BENCH_CONFIG, waypoints_xy_m, source="benchmark")
+    path = runner.path
+    rng = np.random.default_rng(0)
+    t = np.arange(n_updates) * 0.1
+    xy = np.array([path.point_at(s) for s in 3.0 * t]) + rng.normal(0.0, 0.03, (n_updates, 2))
+    for k in range(2, n_updates, 3):
+        xy[k] = xy[k - 1]
+    rows = [(float(tk), float(xk), float(yk)) for tk, (xk, yk) in zip(t, xy)]
+    took_ns = np.empty(n_updates)
+    for k, (tk, xk, yk) in enumerate(rows):
+        t0 = time.perf_counter_ns()
+        runner.update(tk, xk, yk)
+        took_ns[k] = time.perf_counter_ns() - t0
+    return {
+        "median_ms": float(np.median(took_ns) * 1e-6),
+        "p99_ms": float(np.percentile(took_ns, 99) * 1e-6),
+        "n_updates": n_updates,
+        "model": runner.model,
+    }
+
+
+def _main() -> None:  # python -m fpe_jax.runner WAYPOINTS: print the benchmark
+    import sys
+
+    print(json.dumps(benchmark_update(load_waypoints_xy(Path(sys.argv[1])))))
+
+
+if __name__ == "__main__":
+    _main()

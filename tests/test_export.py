@@ -1,0 +1,268 @@
+"""`fpe export`: JSON, ROS 2 parameters and the StableHLO artifact, round-tripped to predictions."""
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import yaml
+
+from fpe_jax import Params, Settings, State, Track, predict_batch, predict_drive
+from fpe_jax.cli import main
+from fpe_jax.config import params_to_config, read_config, write_config
+from fpe_jax.errors import InputError
+from fpe_jax.export import (
+    INPUTS,
+    ROS2_PARAMS,
+    _yaml_scalar,
+    load,
+    to_ros2_yaml,
+)
+from fpe_jax.predict import states_from_drive
+from fpe_jax.runner import Runner
+from fpe_jax.sim import simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+TOL_M = 1e-6
+BATCHES = (1, 7, 1000)
+
+
+def fitted_params() -> Params:
+    """Values as a fit leaves them: nothing round, every field away from its preset."""
+    return Params.create(
+        Settings(blend="heading"),
+        lookahead_m=1.2873451,
+        lookahead_gain_s=0.2331,
+        weights=[0.93, 0.81, 0.7002, 0.61, 0.5, 0.43, 0.37, 0.3, 0.2549, 1e-06],
+        delay_s=0.1617,
+        speed_weight=0.7312,
+        speed_mps=2.4186,
+    )
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """A tuned config (with the uncertainty and provenance sections a fit writes), the waypoints
+    of the simulated oval, a simulated drive on it, and `fpe export --format all` of the config."""
+    tmp = tmp_path_factory.mktemp("export")
+    res = simulate("oval", duration_s=20.0, seed=3)
+    params = fitted_params()
+    cov = np.tile(np.diag([0.04, 0.01]), (10, 1, 1)) * np.arange(1, 11)[:, None, None]
+    cfg = params_to_config(
+        params,
+        uncertainty={"frame": "track", "axes": ["along_m", "cross_m"], "cov_m2": cov.tolist()},
+        provenance={"drives": ["sim:oval"], "fitted_at": "2026-11-22T04:00:00+00:00"},
+    )
+    write_config(tmp / "tuned.json", cfg)
+    np.savetxt(tmp / "wp.csv", res.centerline_xy_m, delimiter=",", fmt="%.17g")
+    out = tmp / "car"
+    argv = ["export", str(tmp / "tuned.json"), "--format", "all", "--out", str(out)]
+    assert main([*argv, "--waypoints", str(tmp / "wp.csv")]) == 0
+    track = Track.from_waypoints(res.centerline_xy_m)
+    return dict(tmp=tmp, out=out, cfg=cfg, params=params, drive=res.drive, track=track, argv=argv)
+
+
+def test_all_writes_the_four_files(case):
+    names = sorted(p.name for p in case["out"].iterdir())
+    assert names == [
+        "config.json",
+        "params.yaml",
+        "predictor.stablehlo",
+        "predictor.stablehlo.json",
+    ]
+    assert read_config(case["out"] / "config.json") == read_config(case["tmp"] / "tuned.json")
+
+
+def test_round_trip_runner_matches_jax(case):
+    """(a) The car's NumPy runner, fed the exported config, predicts what the JAX path does."""
+    drive = case["drive"]
+    r = Runner.from_config(case["out"] / "config.json", case["tmp"] / "wp.csv")
+    got = np.stack(
+        [r.update(t, x, y, yaw) for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad)]
+    )
+    _, want = predict_drive(case["params"], drive, case["track"])
+    assert np.max(np.abs(got[..., :2] - want[..., :2])) <= TOL_M
+    assert np.max(np.abs(np.angle(np.exp(1j * (got[..., 2] - want[..., 2]))))) <= TOL_M
+
+
+FRESH = """
+import sys
+import jax
+import numpy as np
+from fpe_jax.export import load
+
+f = load(sys.argv[1])
+inputs = np.load(sys.argv[2])
+out = {}
+for b in (1, 7, 1000):
+    out[f"b{b}"] = f(**{k: inputs[k][:b] for k in inputs.files})
+# omitted optional inputs: the State defaults, s_m NaN (a global projection on the track)
+out["defaults"] = f(*(inputs[k][:7] for k in ("x_m", "y_m", "yaw_rad", "v_mps")))
+assert not jax.config.jax_enable_x64  # the loader's float64 does not leak into the process
+np.savez(sys.argv[3], **out)
+"""
+
+
+def test_round_trip_stablehlo_in_a_fresh_process(case):
+    """(b) The artifact, loaded in a new process, predicts what the JAX path does, for 1, 7 and
+    1000 cars, with only the states as inputs (params and track are baked in)."""
+    params, track = case["params"], case["track"]
+    states = states_from_drive(params, case["drive"], track)
+    rows = np.random.default_rng(0).integers(len(case["drive"].t_s), size=max(BATCHES))
+    states = jax.tree.map(lambda a: a[rows], states)
+    names = [n for n, _ in INPUTS]
+    np.savez(case["tmp"] / "in.npz", **{n: np.asarray(getattr(states, n)) for n in names})
+    proc = subprocess.run(
+        [sys.executable, "-c", FRESH, str(case["out"] / "predictor.stablehlo")]
+        + [str(case["tmp"] / "in.npz"), str(case["tmp"] / "out.npz")],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    got = np.load(case["tmp"] / "out.npz")
+    want = np.asarray(predict_batch(params, states, track))
+    for b in BATCHES:
+        assert got[f"b{b}"].shape == (b, 10, 3) and got[f"b{b}"].dtype == np.float64
+        assert np.max(np.abs(got[f"b{b}"] - want[:b])) <= TOL_M
+    # the defaults: no yaw rate, course = yaw, and the arc length of a global projection
+    first = jax.tree.map(lambda a: a[:7], states)
+    plain = State(x_m=first.x_m, y_m=first.y_m, yaw_rad=first.yaw_rad, v_mps=first.v_mps)
+    s_m = jax.vmap(track.project)(jnp.stack([first.x_m, first.y_m], axis=1))
+    want = np.asarray(predict_batch(params, dataclasses.replace(plain, s_m=s_m), track))
+    assert np.max(np.abs(got["defaults"] - want)) <= TOL_M
+
+
+def test_sidecar_documents_the_inputs(case):
+    meta = json.loads((case["out"] / "predictor.stablehlo.json").read_text())
+    assert [i["name"] for i in meta["inputs"]] == [n for n, _ in INPUTS]
+    assert all(i["dtype"] == "float64" and i["shape"] == ["b"] for i in meta["inputs"])
+    assert meta["output"]["shape"] == ["b", 10, 3]
+    assert meta["track"]["closed"] is True and meta["config"] == case["cfg"]
+    assert "cpu" in meta["platforms"]
+    assert load(case["out"] / "predictor.stablehlo").meta == meta
+
+
+def test_round_trip_ros2_yaml_holds_every_fitted_value(case):
+    """(c) The ROS 2 parameter file parses and holds the fitted values exactly, typed."""
+    text = (case["out"] / "params.yaml").read_text()
+    assert "from tuned.json, config schema_version 1; fitted 2026-11-22T04:00:00+00:00" in text
+    doc = yaml.safe_load(text)
+    assert list(doc) == ["future_pose_estimator"]
+    ros = doc["future_pose_estimator"]["ros__parameters"]
+    cfg = case["cfg"]
+    for name, section, key, kind, _ in ROS2_PARAMS:
+        assert ros[name] == cfg[section][key], name
+        if kind is list:
+            assert all(type(v) is float for v in ros[name])
+        else:
+            assert type(ros[name]) is kind, name
+    physical = case["params"].physical()
+    assert ros["blend_weights"] == physical["weights"]
+    assert ros["lookahead_distance_m"] == physical["lookahead_m"]
+    assert ros["lookahead_gain_s"] == physical["lookahead_gain_s"]
+    assert ros["delay_offset_s"] == physical["delay_s"]
+    assert ros["speed_weight"] == physical["speed_weight"]
+    assert ros["typical_speed_mps"] == physical["speed_mps"]
+    assert ros["waypoint_file"] == str(case["tmp"] / "wp.csv")
+    assert ros["schema_version"] == 1
+    assert set(ros) == {n for n, *_ in ROS2_PARAMS} | {"schema_version", "waypoint_file"}
+
+
+def test_refuses_to_overwrite_without_force(case, capsys):
+    before = {p.name: p.read_bytes() for p in case["out"].iterdir()}
+    assert main([*case["argv"], "--waypoints", str(case["tmp"] / "wp.csv")]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in case["out"].iterdir()} == before
+    for fmt, name in (("json", "config.json"), ("ros2", "params.yaml")):
+        argv = ["export", str(case["tmp"] / "tuned.json"), "--format", fmt]
+        assert main([*argv, "--out", str(case["out"] / name)]) == 2
+        assert main([*argv, "--out", str(case["out"] / name), "--force"]) == 0
+    assert read_config(case["out"] / "config.json") == case["cfg"]
+
+
+def test_single_formats_and_node_name(case):
+    tmp = case["tmp"]
+    argv = ["export", str(tmp / "tuned.json"), "--format", "ros2", "--out", str(tmp / "n.yaml")]
+    assert main([*argv, "--node", "/car1/predictor"]) == 0
+    doc = yaml.safe_load((tmp / "n.yaml").read_text())
+    assert doc["/car1/predictor"]["ros__parameters"]["waypoint_file"] == ""
+    with pytest.raises(InputError, match="not a ROS 2 node name"):
+        to_ros2_yaml(case["cfg"], node="bad node: {x}")
+    # a bad input found late would leave half an export: nothing is written
+    argv = ["export", str(tmp / "tuned.json"), "--format", "all", "--out", str(tmp / "half")]
+    assert main([*argv, "--waypoints", str(tmp / "wp.csv"), "--node", "a b"]) == 2
+    assert main([*argv, "--waypoints", str(tmp / "absent.csv")]) == 2
+    assert not (tmp / "half").exists()
+
+
+NO_JAX = """
+import sys
+class NoJax:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("jax", "jaxlib", "equinox", "optimistix"):
+            raise ImportError(f"{name} is blocked: this process has no JAX")
+sys.meta_path.insert(0, NoJax())
+from fpe_jax.cli import main
+rc = main(sys.argv[1:])
+assert "jax" not in sys.modules
+sys.exit(rc)
+"""
+
+
+@pytest.mark.parametrize("fmt", ["json", "ros2"])
+def test_json_and_ros2_export_without_jax(case, tmp_path, fmt):
+    argv = ["export", str(case["tmp"] / "tuned.json"), "--format", fmt]
+    argv += ["--out", str(tmp_path / "out"), "--waypoints", str(case["tmp"] / "wp.csv")]
+    proc = subprocess.run(
+        [sys.executable, "-c", NO_JAX, *argv], capture_output=True, text=True, cwd=ROOT, timeout=60
+    )
+    assert proc.returncode == 0, proc.stderr
+    if fmt == "json":
+        assert read_config(tmp_path / "out") == case["cfg"]
+    else:
+        wp = str(case["tmp"] / "wp.csv")
+        want = to_ros2_yaml(case["cfg"], waypoint_file=wp, source="tuned.json")
+        assert (tmp_path / "out").read_text() == want
+
+
+def test_stablehlo_needs_the_waypoints(case, capsys):
+    argv = ["export", str(case["tmp"] / "tuned.json"), "--format", "stablehlo"]
+    assert main([*argv, "--out", str(case["tmp"] / "p.stablehlo")]) == 2
+    assert "--waypoints" in capsys.readouterr().err
+    assert not (case["tmp"] / "p.stablehlo").exists()
+
+
+def test_export_rejects_newer_schema_and_missing_fields(tmp_path, case, capsys):
+    newer = dict(case["cfg"], schema_version=7)
+    (tmp_path / "newer.json").write_text(json.dumps(newer))
+    argv = ["export", str(tmp_path / "newer.json"), "--format", "json", "--out"]
+    assert main([*argv, str(tmp_path / "o.json")]) == 2
+    assert "schema_version 7 is not supported" in capsys.readouterr().err
+    lacking = json.loads(json.dumps(case["cfg"]))
+    del lacking["settings"]["horizon"]
+    (tmp_path / "lacking.json").write_text(json.dumps(lacking))
+    argv = ["export", str(tmp_path / "lacking.json"), "--format", "ros2", "--out"]
+    assert main([*argv, str(tmp_path / "o.yaml")]) == 2
+    assert "'settings' lacks horizon" in capsys.readouterr().err
+
+
+def test_load_rejects_what_is_not_an_artifact(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        load(tmp_path / "absent.stablehlo")
+    (tmp_path / "junk.stablehlo").write_bytes(b"not flatbuffers at all")
+    with pytest.raises(InputError, match="not a jax.export artifact"):
+        load(tmp_path / "junk.stablehlo")
+
+
+@pytest.mark.parametrize("value", [1e-06, 2.5e-12, 1e20, 0.1, 1.0, -3.0, 123456789.123])
+def test_yaml_floats_stay_floats(value):
+    assert type(yaml.safe_load(_yaml_scalar(value))) is float
+    assert yaml.safe_load(_yaml_scalar(value)) == value
+    assert yaml.safe_load(_yaml_scalar([value, value])) == [value, value]

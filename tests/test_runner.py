@@ -1,0 +1,394 @@
+"""The NumPy-only runner: parity with the JAX predictor, no JAX imported, streaming CLI, errors."""
+
+import inspect
+import json
+import select
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fpe_jax import Drive, Params, Settings, Track, params, predict_drive, presets, runner
+from fpe_jax.config import params_to_config, write_config
+from fpe_jax.errors import InputError
+from fpe_jax.runner import GoalScan, Runner, RunnerPath, parse_observation, run_stream
+from fpe_jax.sim import simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+LEVINE = ROOT.parent / "shared" / "data" / "levine"
+TOL_M = 1e-6
+
+# Run in a subprocess before anything else: importing JAX (or what needs it) fails there.
+NO_JAX = """
+import sys
+class NoJax:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("jax", "jaxlib", "equinox", "optimistix"):
+            raise ImportError(f"{name} is blocked: this process has no JAX")
+sys.meta_path.insert(0, NoJax())
+"""
+CHECK_NO_JAX = """
+leaked = [m for m in ("jax", "jaxlib", "equinox", "optimistix") if m in sys.modules]
+assert not leaked, leaked
+"""
+
+CUSTOM = {  # non-trivial weights, delay, gain and speed shrinkage; both blend modes
+    "heading-blend": lambda: Params.create(
+        Settings(blend="heading"),
+        lookahead_m=1.3,
+        lookahead_gain_s=0.3,
+        weights=np.linspace(0.95, 0.1, 10),
+        delay_s=0.15,
+    ),
+    "shrunk-speed": lambda: Params.create(
+        Settings(),
+        lookahead_m=0.8,
+        lookahead_gain_s=0.1,
+        weights=np.linspace(0.2, 0.9, 10),
+        delay_s=0.05,
+        speed_weight=0.3,
+        speed_mps=2.5,
+    ),
+}
+
+
+def get_params(name: str) -> Params:
+    return CUSTOM[name]() if name in CUSTOM else presets[name]
+
+
+def run_drive(r: Runner, drive: Drive) -> np.ndarray:
+    """(N, H, 3) runner predictions for every observation of a drive."""
+    return np.stack(
+        [r.update(t, x, y, yaw) for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad)]
+    )
+
+
+def assert_parity(pred_runner: np.ndarray, pred_jax: np.ndarray) -> None:
+    assert pred_runner.shape == pred_jax.shape
+    assert np.all(np.isfinite(pred_runner))
+    assert np.max(np.abs(pred_runner[..., :2] - pred_jax[..., :2])) <= TOL_M
+    dyaw = np.angle(np.exp(1j * (pred_runner[..., 2] - pred_jax[..., 2])))
+    assert np.max(np.abs(dyaw)) <= TOL_M
+
+
+@pytest.fixture(scope="module")
+def sim_drive():
+    """A 20 s simulated drive on the oval: noisy detections with yaw, outliers, repeats-free."""
+    res = simulate("oval", duration_s=20.0, seed=3)
+    return res.centerline_xy_m, res.drive
+
+
+@pytest.fixture(scope="module")
+def levine():
+    """The real 2019 drive: 10 Hz, no yaw, ~48 % repeated rows, stops and outlier jumps."""
+    if not LEVINE.is_dir():
+        pytest.skip(f"real data not found at {LEVINE} (../shared/data beside the checkout)")
+    wp = np.loadtxt(LEVINE / "levine-waypoints.csv", delimiter=",")[:, :2]
+    poses = np.loadtxt(LEVINE / "actual-poses.csv", delimiter=",")
+    n = len(poses)
+    drive = Drive(t_s=np.arange(n) * 0.1, xy_m=poses[:, :2], yaw_rad=np.full(n, np.nan))
+    return wp, drive
+
+
+def write_waypoints(path: Path, xy: np.ndarray) -> Path:
+    np.savetxt(path, xy, delimiter=",", fmt="%.17g")  # exact round trip of the floats
+    return path
+
+
+# ---- the constants the runner mirrors --------------------------------------------------------
+
+
+def test_mirrored_constants_match_the_jax_modules():
+    assert (runner.BLEND_MODES, runner.MODELS) == (params.BLEND_MODES, params.MODELS)
+    window = inspect.signature(Track.project_window).parameters
+    assert runner.WINDOW_BEHIND_M == window["behind_m"].default
+    assert runner.WINDOW_AHEAD_M == window["ahead_m"].default
+    local = inspect.signature(Track.project_local).parameters
+    assert runner.LOCAL_PROJECTION_ITERS == local["iters"].default
+
+
+# ---- parity with the JAX predictor -----------------------------------------------------------
+
+SIM_CONFIGS = [
+    "seed",
+    "seed-measured-speed",
+    "linear",
+    "pure-pursuit",
+    "constant-velocity",
+    "ctrv",
+    "default",
+    "heading-blend",
+    "shrunk-speed",
+]
+
+
+@pytest.mark.parametrize("name", SIM_CONFIGS)
+def test_parity_on_simulated_drive(sim_drive, name):
+    wp, drive = sim_drive
+    p = get_params(name)
+    _, pred_jax = predict_drive(p, drive, Track.from_waypoints(wp))
+    assert_parity(run_drive(Runner(params_to_config(p), wp), drive), pred_jax)
+
+
+@pytest.mark.parametrize("name", ["seed", "default", "heading-blend"])
+def test_parity_on_levine(levine, name):
+    wp, drive = levine
+    p = get_params(name)
+    _, pred_jax = predict_drive(p, drive, Track.from_waypoints(wp))
+    assert_parity(run_drive(Runner(params_to_config(p), wp), drive), pred_jax)
+
+
+def test_reset_starts_a_new_drive(sim_drive):
+    wp, drive = sim_drive
+    r = Runner(params_to_config(presets["default"]), wp)
+    first = run_drive(r, drive)
+    r.reset()
+    np.testing.assert_array_equal(run_drive(r, drive), first)
+
+
+@pytest.mark.parametrize("closed", [True, False])
+def test_path_geometry_matches_track(sim_drive, closed):
+    """Every query, on a loop (across its seam, over several laps) and on an open path (past its
+    ends, where the window is clamped)."""
+    wp = sim_drive[0] if closed else sim_drive[0][: len(sim_drive[0]) // 2]
+    track, path = Track.from_waypoints(wp), RunnerPath(wp)
+    assert path.closed == track.closed == closed
+    rng = np.random.default_rng(1)
+    span = (-3.0, 2 * path.length_m + 3.0) if closed else (-1.0, path.length_m + 1.0)
+    s = rng.uniform(*span, 300)
+    s[:4] = [0.0, path.length_m, -1e-9, path.length_m - 1e-9]
+    p = np.stack([path.point_at(si) for si in s]) + rng.normal(0, 0.3, (300, 2))
+    hint = s + rng.normal(0, 0.5, 300)
+
+    @jax.jit
+    @jax.vmap
+    def want(p, s, hint):
+        return jnp.stack(
+            [
+                track.project(p),
+                track.project_window(p, hint),
+                track.project_local(p, hint),
+                *track.point_at(s),
+            ]
+        )
+
+    got = [
+        [
+            path.project(*pi),
+            path.project_window(*pi, h),
+            path.project_local(*pi, h),
+            *path.point_at(si),
+        ]
+        for pi, si, h in zip(p, s, hint)
+    ]
+    np.testing.assert_allclose(np.array(got), want(p, s, hint), rtol=0, atol=1e-9)
+
+
+def test_goal_scan_equals_full_scan(levine):
+    wp = levine[0]
+    rng = np.random.default_rng(2)
+    pts = wp[rng.integers(len(wp), size=400)] + rng.normal(0, 1.5, (400, 2))
+    for radius in (0.3, 2.0):
+        scan = GoalScan(wp, radius)
+        for x, y in pts:
+            within = np.flatnonzero(np.hypot(wp[:, 0] - x, wp[:, 1] - y) <= radius)
+            assert scan.goal(x, y) == tuple(wp[within[-1] if len(within) else 0])
+    far = GoalScan(wp, 2.0).goal(1e4, 1e4)  # no waypoint near: row 0, as the original
+    assert far == tuple(wp[0])
+
+
+# ---- without JAX -----------------------------------------------------------------------------
+
+
+def run_python(code: str, *args: str, stdin: str = "") -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-c", NO_JAX + code + CHECK_NO_JAX, *args],
+        input=stdin,
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
+
+
+def test_runner_works_where_jax_cannot_be_imported(tmp_path, sim_drive):
+    wp, drive = sim_drive
+    p = get_params("heading-blend")
+    write_config(tmp_path / "cfg.json", params_to_config(p))
+    write_waypoints(tmp_path / "wp.csv", wp)
+    np.save(tmp_path / "obs.npy", np.column_stack([drive.t_s, drive.xy_m, drive.yaw_rad]))
+    code = """
+import numpy as np
+from fpe_jax.runner import Runner
+r = Runner.from_config(sys.argv[1] + "/cfg.json", sys.argv[1] + "/wp.csv")
+obs = np.load(sys.argv[1] + "/obs.npy")
+np.save(sys.argv[1] + "/pred.npy", np.stack([r.update(*row) for row in obs]))
+try:
+    import jax
+except ImportError:
+    pass
+else:
+    raise AssertionError("the blocker let jax in")
+"""
+    proc = run_python(code, str(tmp_path))
+    assert proc.returncode == 0, proc.stderr
+    _, pred_jax = predict_drive(p, drive, Track.from_waypoints(wp))
+    assert_parity(np.load(tmp_path / "pred.npy"), pred_jax)
+
+
+CLI = "from fpe_jax.cli import main\nrc = main(sys.argv[1:])\n"
+
+
+def test_fpe_run_streams_csv_and_json_without_jax(tmp_path, sim_drive):
+    wp, drive = sim_drive
+    cfg = params_to_config(presets["default"])
+    write_config(tmp_path / "cfg.json", cfg)
+    write_waypoints(tmp_path / "wp.csv", wp)
+    obs = np.column_stack([drive.t_s, drive.xy_m, drive.yaw_rad])[:30]
+    rows = [tuple(float(v) for v in row) for row in obs]
+    lines = ["t,x,y,yaw"]  # header, then CSV and JSON lines mixed, and two bad lines
+    for k, (t, x, y, yaw) in enumerate(rows):
+        if k % 2:
+            lines.append(json.dumps({"t": t, "x": x, "y": y, "yaw": yaw}))
+        else:
+            lines.append(f"{t!r},{x!r},{y!r},{yaw!r}")
+    lines.insert(5, "1.0,oops,2.0,0.1")  # line 6
+    lines.insert(9, '{"t": 1.0, "x": 2.0}')  # line 10
+    lines.append("")  # a trailing blank line is no observation
+    proc = run_python(
+        CLI + "sys.stdout.flush()\nsys.exit(rc)",
+        "run",
+        "--config",
+        str(tmp_path / "cfg.json"),
+        "--waypoints",
+        str(tmp_path / "wp.csv"),
+        stdin="\n".join(lines) + "\n",
+    )
+    assert proc.returncode == 0, proc.stderr
+    err = proc.stderr.strip().splitlines()
+    assert len(err) == 2
+    assert err[0].startswith("fpe run: line 6:") and "'oops'" in err[0] and "skipped" in err[0]
+    assert err[1].startswith("fpe run: line 10:") and "lacks t, x or y" in err[1]
+    out = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert [o["stamp"] for o in out] == [r[0] for r in rows]
+    r = Runner(cfg, wp)
+    want = np.stack([r.update(*row) for row in rows])
+    np.testing.assert_array_equal(np.array([o["poses"] for o in out]), want)
+
+
+def test_fpe_run_flushes_each_prediction(tmp_path, sim_drive):
+    """An on-car process writes one observation and waits for its prediction."""
+    wp = sim_drive[0]
+    write_config(tmp_path / "cfg.json", params_to_config(presets["ctrv"]))
+    write_waypoints(tmp_path / "wp.csv", wp)
+    cmd = [sys.executable, "-m", "fpe_jax.cli", "run", "--config", str(tmp_path / "cfg.json")]
+    cmd += ["--waypoints", str(tmp_path / "wp.csv")]
+    with subprocess.Popen(
+        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT
+    ) as proc:
+        try:
+            for k in range(3):
+                proc.stdin.write(f"{0.1 * k},{wp[k * 3, 0]},{wp[k * 3, 1]}\n")
+                proc.stdin.flush()
+                # the reply must come while stdin stays open: the line was flushed at once
+                ready, _, _ = select.select([proc.stdout], [], [], 30.0)
+                assert ready, "no prediction within 30 s of its observation"
+                reply = json.loads(proc.stdout.readline())
+                assert reply["stamp"] == pytest.approx(0.1 * k) and len(reply["poses"]) == 10
+            proc.stdin.close()
+            assert proc.wait(timeout=30) == 0
+        finally:
+            proc.kill()
+
+
+# ---- errors ----------------------------------------------------------------------------------
+
+
+def test_from_config_rejects_newer_schema_and_missing_fields(tmp_path, sim_drive):
+    wp = write_waypoints(tmp_path / "wp.csv", sim_drive[0])
+    cfg = params_to_config(presets["default"])
+    newer = dict(cfg, schema_version=99)
+    (tmp_path / "newer.json").write_text(json.dumps(newer))
+    with pytest.raises(InputError, match="schema_version 99 is not supported"):
+        Runner.from_config(tmp_path / "newer.json", wp)
+    lacking = json.loads(json.dumps(cfg))
+    del lacking["params"]["delay_s"]
+    (tmp_path / "lacking.json").write_text(json.dumps(lacking))
+    with pytest.raises(InputError, match="'params' lacks delay_s"):
+        Runner.from_config(tmp_path / "lacking.json", wp)
+    for section, key, value, message in (
+        ("settings", "model", "magic", "settings.model is 'magic'"),
+        ("settings", "dt_s", "fast", "settings.dt_s is 'fast'"),
+        ("settings", "history", 2.5, "settings.history is 2.5"),
+        ("params", "weights", [0.5] * 3, "params.weights is"),
+        ("params", "delay_s", None, "params.delay_s is None"),
+    ):
+        bad = json.loads(json.dumps(cfg))
+        bad[section][key] = value
+        with pytest.raises(InputError, match=message):
+            Runner(bad, sim_drive[0])
+    with pytest.raises(InputError, match="no such config file"):
+        Runner.from_config(tmp_path / "absent.json", wp)
+
+
+def test_fpe_run_reports_a_newer_schema_in_one_line(tmp_path, sim_drive):
+    wp = write_waypoints(tmp_path / "wp.csv", sim_drive[0])
+    cfg = dict(params_to_config(presets["default"]), schema_version=2)
+    (tmp_path / "cfg.json").write_text(json.dumps(cfg))
+    proc = run_python(
+        CLI + "sys.exit(rc)", "run", "--config", str(tmp_path / "cfg.json"), "--waypoints", str(wp)
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "schema_version 2 is not supported" in proc.stderr
+
+
+def test_update_rejects_bad_observations_and_keeps_its_state(sim_drive):
+    wp = sim_drive[0]
+    r = Runner(params_to_config(presets["default"]), wp)
+    r.update(0.0, *wp[0])
+    before = r.update(0.1, *wp[2])
+    with pytest.raises(InputError, match="not after"):
+        r.update(0.1, *wp[4])
+    with pytest.raises(InputError, match="finite"):
+        r.update(0.2, float("nan"), 1.0)
+    fresh = Runner(params_to_config(presets["default"]), wp)
+    fresh.update(0.0, *wp[0])
+    fresh.update(0.1, *wp[2])
+    np.testing.assert_array_equal(r.update(0.2, *wp[4]), fresh.update(0.2, *wp[4]))
+    assert before.shape == (10, 3)
+
+
+def test_parse_observation():
+    assert parse_observation("1.5, 2, 3") == (1.5, 2.0, 3.0, None)
+    assert parse_observation("1.5,2,3,0.25") == (1.5, 2.0, 3.0, 0.25)
+    assert parse_observation("1.5,2,3,") == (1.5, 2.0, 3.0, None)
+    assert parse_observation('{"t": 1, "x": 2, "y": 3, "yaw": null}') == (1.0, 2.0, 3.0, None)
+    assert parse_observation('{"t": 1, "x": 2, "y": 3, "yaw": 0.5}') == (1.0, 2.0, 3.0, 0.5)
+    assert parse_observation("9,1,2,3", columns=(3, 1, 2, None)) == (3.0, 1.0, 2.0, None)
+    for bad in ("1,2", "1,2,3,4,5", "a,2,3", '{"t": 1, "x": true, "y": 2}', "{not json", "[1,2,3]"):
+        with pytest.raises(InputError):
+            parse_observation(bad)
+
+
+def test_run_stream_header_names_the_columns(sim_drive):
+    import io
+
+    wp = sim_drive[0]
+    r = Runner(params_to_config(presets["constant-velocity"]), wp)
+    lines = ["# comment", "y_m, stamp, x_m", "0.0,0.0,1.0", "0.1,0.1,1.2", "0.2,0.2,1.4"]
+    out, err = io.StringIO(), io.StringIO()
+    assert run_stream(r, lines, out, err) == 0
+    assert err.getvalue() == ""
+    replies = [json.loads(line) for line in out.getvalue().splitlines()]
+    assert [o["stamp"] for o in replies] == [0.0, 0.1, 0.2]
+    assert replies[-1]["poses"][0][0] > 1.4  # moving along +x at ~2 m/s
+
+
+def test_benchmark_update_reports_median_and_p99(levine):
+    res = runner.benchmark_update(levine[0], n_updates=50)
+    assert set(res) >= {"median_ms", "p99_ms"}
+    assert 0 < res["median_ms"] <= res["p99_ms"]
