@@ -8,13 +8,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import yaml
 
 from fpe_jax import fit as F
+from fpe_jax import io
 from fpe_jax.cli import main
 from fpe_jax.config import config_to_params, params_to_config, read_config
 from fpe_jax.drive import Drive
 from fpe_jax.metrics import coverage, summarize
 from fpe_jax.params import Settings, presets
+from fpe_jax.runner import Runner
 from fpe_jax.sim import simulate
 from fpe_jax.track import Track
 
@@ -174,6 +177,26 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
     pred = tmp_path / "pred.csv"
     assert main(["predict", log, "--waypoints", wp, "--config", str(out), "--out", str(pred)]) == 0
     assert pred.read_text().startswith("stamp,step,horizon_s,x,y,yaw")
+    rows = np.genfromtxt(pred, delimiter=",", names=True)
+
+    # fit -> export all -> the NumPy runner and the ROS 2 YAML agree with the JAX predictor
+    exp = tmp_path / "export"
+    assert main(["export", str(out), "--format", "all", "--out", str(exp), "--waypoints", wp]) == 0
+    runner = Runner.from_config(exp / "config.json", wp)
+    drive = io.load_drive(log)
+    got = np.stack(
+        [
+            runner.update(t, x, y, yaw)
+            for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad)
+        ]
+    )
+    jax_xy = np.column_stack([rows["x"], rows["y"]]).reshape(len(drive.t_s), -1, 2)
+    assert np.max(np.abs(got[..., :2] - jax_xy)) <= 1e-6
+    ros = yaml.safe_load((exp / "params.yaml").read_text())
+    node = ros["future_pose_estimator"]["ros__parameters"]
+    assert node["blend_weights"] == pytest.approx(cfg["params"]["weights"], abs=0)
+    assert node["delay_offset_s"] == cfg["params"]["delay_s"]
+    assert node["lookahead_distance_m"] == cfg["params"]["lookahead_m"]
 
 
 def test_cli_fit_rejects_unknown_fit_names(tmp_path, capsys):
