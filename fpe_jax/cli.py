@@ -115,7 +115,7 @@ def _build_parser() -> argparse.ArgumentParser:
     src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
     p.add_argument("--out", required=True, help="OUT.npy (N, H, 3) or OUT.csv")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    p.add_argument("--chunk", type=int, default=1 << 16, metavar="N", help="cars per call")
+    p.add_argument("--chunk", type=int, default=1 << 14, metavar="N", help="cars per call")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     p.set_defaults(func=cmd_batch)
 
@@ -139,6 +139,23 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", required=True, help="a tuned config JSON")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "demo", help="simulate, fit, compare with every preset, plot and export (~1 min)"
+    )
+    p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("plot", help="draw a drive with its 1 s predictions (trajectory overlay)")
+    p.add_argument("log", help="drive log (any supported format)")
+    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
+    p.add_argument("--out", required=True, help="FIG.png (or .pdf, .svg)")
+    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    _add_log_flags(p)
+    p.set_defaults(func=cmd_plot)
     return parser
 
 
@@ -408,6 +425,69 @@ def cmd_batch(args) -> int:
     print(
         f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
         f"({args.dtype}, {wall_s:.2f} s incl. compilation)",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from pathlib import Path
+
+    from fpe_jax.demo import run_demo
+    from fpe_jax.fit import format_table
+    from fpe_jax.progress import Progress
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
+    with Progress() as say:
+        res = run_demo(out, progress=say)
+    case, result = res.case, res.result
+    p = result.params.physical()
+    print(f"demo: {case.description}")
+    print(
+        f"fitted ({result.info['blend']} blend, {result.info['steps']} solver steps): "
+        f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
+        f"delay {p['delay_s']:.3f} s, speed {p['speed_weight']:.2f} * measured + "
+        f"{1 - p['speed_weight']:.2f} * {p['speed_mps']:.2f} m/s"
+    )
+    print("weights " + " ".join(f"{w:.3f}" for w in p["weights"]))
+    print("\nheld-out (the separate test drive; seed = the 2019 node as written):")
+    print(format_table(result.report))
+    print(
+        f"\nfitted delay {p['delay_s']:.3f} s vs true latency {case.latency_s:.3f} s "
+        f"(error {p['delay_s'] - case.latency_s:+.3f} s)"
+    )
+    print("\nchecks:")
+    for claim, ok, detail in res.checks:
+        print(f"  {'PASS' if ok else 'FAIL'}  {claim}: {detail}")
+    names = " ".join(f.name for f in res.files)
+    print(f"\nwrote {out}/: {names}")
+    print(f"demo finished in {res.seconds:.0f} s")
+    return 0 if all(ok for _, ok, _ in res.checks) else 1
+
+
+def cmd_plot(args) -> int:
+    from pathlib import Path
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from fpe_jax import io
+    from fpe_jax.config import load_params
+    from fpe_jax.plots import FIGURE_SUFFIXES, plot_drive
+
+    out = io.check_output_path(args.out, args.force)
+    if out.suffix.lower() not in FIGURE_SUFFIXES:
+        raise InputError(out, f"unknown figure type {out.suffix!r}", " or ".join(FIGURE_SUFFIXES))
+    params = load_params(preset=args.preset, config=args.config)
+    name = args.preset or f"config {Path(args.config).name}"
+    waypoints = io.load_waypoints(args.waypoints)
+    drive = _load_drive_from_args(args)
+    m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log)
+    print(
+        f"wrote {out}: {m['n_predictions']} predictions, ADE {m['ade_m']:.3f} m, "
+        f"FDE {m['fde_m']:.3f} m",
         file=sys.stderr,
     )
     return 0
