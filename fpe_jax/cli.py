@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from fpe_jax.errors import InputError
 
@@ -331,18 +332,26 @@ def cmd_presets(args) -> int:
 
 def cmd_predict(args) -> int:
     from fpe_jax import io
-    from fpe_jax.config import load_params
+    from fpe_jax.config import load_params, read_config
+    from fpe_jax.fit import covariance_map, path_heading
     from fpe_jax.predict import predict_drive
     from fpe_jax.track import Track
 
     io.check_output_path(args.out, args.force)
+    if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
+        raise InputError(args.out, "unknown output format", ".csv or .mcap")
     params = load_params(preset=args.preset, config=args.config)
+    cov = None
+    if args.config:
+        cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
     waypoints = io.load_waypoints(args.waypoints)
     drive = _load_drive_from_args(args)
     track = Track.from_waypoints(waypoints.xy_m)
     stamps_s, poses = predict_drive(params, drive, track)
+    if cov is not None:  # the config's per-step ellipses, turned into the map frame
+        cov = covariance_map(cov, path_heading(track, poses[..., :2]))
     io.write_predictions(
-        args.out, stamps_s, poses, params.settings.dt_s, drive=drive, force=args.force
+        args.out, stamps_s, poses, params.settings.dt_s, drive=drive, cov_m2=cov, force=args.force
     )
     print(
         f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr

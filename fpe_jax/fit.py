@@ -214,11 +214,22 @@ def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
     return out
 
 
+def path_heading(track: Track, xy_m: np.ndarray) -> np.ndarray:
+    """Path heading [rad] (N, H) at predicted positions (N, H, 2): the frame of the uncertainty."""
+    along = jax.vmap(jax.vmap(track.project))(jnp.asarray(xy_m))
+    return np.asarray(jax.vmap(jax.vmap(track.heading_at))(along))
+
+
+def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
+    """(N, H, 2, 2) map-frame covariance [m^2] from the per-step track-frame one (H, 2, 2)."""
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (N, H, 2, 2)
+    return rot @ np.asarray(cov_track_m2)[None] @ np.swapaxes(rot, -1, -2)
+
+
 def _track_residuals(pred: np.ndarray, d: Dataset) -> np.ndarray:
-    heading = jax.vmap(jax.vmap(d.track.heading_at))(
-        jax.vmap(jax.vmap(d.track.project))(jnp.asarray(pred[..., :2]))
-    )
-    return track_frame_residuals(pred[..., :2], d.targets.xy_m, np.asarray(heading))
+    heading = path_heading(d.track, pred[..., :2])
+    return track_frame_residuals(pred[..., :2], d.targets.xy_m, heading)
 
 
 def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:

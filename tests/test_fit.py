@@ -176,8 +176,16 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
     assert len(metrics["per_step_m"]) == 10 and "coverage_1sigma" in metrics
     pred = tmp_path / "pred.csv"
     assert main(["predict", log, "--waypoints", wp, "--config", str(out), "--out", str(pred)]) == 0
-    assert pred.read_text().startswith("stamp,step,horizon_s,x,y,yaw")
+    assert pred.read_text().startswith("stamp,step,horizon_s,x,y,yaw,cov_xx_m2,cov_xy_m2,cov_yy_m2")
     rows = np.genfromtxt(pred, delimiter=",", names=True)
+    # the map-frame covariance keeps the track-frame one's eigenvalues (a rotation)
+    cov_track = np.asarray(cfg["uncertainty"]["cov_m2"])
+    cov_map = np.array(
+        [[rows["cov_xx_m2"][3], rows["cov_xy_m2"][3]], [rows["cov_xy_m2"][3], rows["cov_yy_m2"][3]]]
+    )
+    np.testing.assert_allclose(
+        np.linalg.eigvalsh(cov_map), np.linalg.eigvalsh(cov_track[3]), rtol=1e-6
+    )
 
     # fit -> export all -> the NumPy runner and the ROS 2 YAML agree with the JAX predictor
     exp = tmp_path / "export"

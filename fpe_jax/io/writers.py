@@ -205,7 +205,7 @@ def _marker(ns: int, ident: int, kind: int, points: list, rgba: tuple) -> dict:
 
 
 def write_predictions(
-    path, stamps_s, poses, dt_s: float, *, drive=None, force: bool = False
+    path, stamps_s, poses, dt_s: float, *, drive=None, cov_m2=None, force: bool = False
 ) -> Path:
     """Write predicted poses as CSV or ROS 2 MCAP, chosen by the suffix of `path`.
 
@@ -215,6 +215,8 @@ def write_predictions(
         poses: (N, H, 3) predicted x [m], y [m], yaw [rad] at stamps_s + step * dt_s, step 1..H.
         dt_s: prediction step [s].
         drive: the observed `Drive`; its poses are written alongside (MCAP only).
+        cov_m2: optional (N, H, 2, 2) map-frame covariance of each predicted position [m^2];
+            CSV only, as three more columns `cov_xx_m2,cov_xy_m2,cov_yy_m2`.
         force: replace an existing file.
 
     CSV: header `stamp,step,horizon_s,x,y,yaw`, one row per (observation, step), 9 decimals.
@@ -238,18 +240,16 @@ def write_predictions(
     n, h, _ = poses.shape
     if suffix == ".csv":
         step = np.tile(np.arange(1, h + 1), n)
-        table = np.column_stack(
-            [np.repeat(stamps, h), step, step * float(dt_s), poses.reshape(n * h, 3)]
-        )
+        cols = [np.repeat(stamps, h), step, step * float(dt_s), poses.reshape(n * h, 3)]
+        fmt = ["%.9f", "%d", "%.9f", "%.9f", "%.9f", "%.9f"]
+        header = "stamp,step,horizon_s,x,y,yaw"
+        if cov_m2 is not None:
+            c = np.asarray(cov_m2, dtype=np.float64).reshape(n * h, 2, 2)
+            cols += [c[:, 0, 0], c[:, 0, 1], c[:, 1, 1]]
+            fmt += ["%.9g"] * 3
+            header += ",cov_xx_m2,cov_xy_m2,cov_yy_m2"
         with _atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
-            np.savetxt(
-                f,
-                table,
-                fmt=["%.9f", "%d", "%.9f", "%.9f", "%.9f", "%.9f"],
-                delimiter=",",
-                header="stamp,step,horizon_s,x,y,yaw",
-                comments="",
-            )
+            np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",", header=header, comments="")
         return Path(path)
 
     ns = _stamps_ns(path, stamps, "predictions")
