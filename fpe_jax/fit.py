@@ -146,7 +146,9 @@ def _free_mask(params: Params, fit: Sequence[str]) -> Params:
 
 @eqx.filter_jit
 def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int):
-    solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8)
+    # rtol 1e-3 stops ~3x sooner than 1e-6 at a loss 2e-6 (relative) higher, with the fitted
+    # values equal to 4 digits (measured on a 120 s oval drive)
+    solver = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5)
     sol = optx.least_squares(
         _residuals,
         solver,
