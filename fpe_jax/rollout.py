@@ -48,7 +48,9 @@ class State(eqx.Module):
 def _step_times(params: Params) -> Float[Array, " H1"]:
     """Durations [s] of the fractional delay step followed by the H regular steps."""
     h = params.settings.horizon
-    return jnp.concatenate([params.delay_s[None], jnp.full((h,), params.settings.dt_s)])
+    # the params' dtype, not the global default: float32 batches must stay float32 under x64
+    dt = jnp.full((h,), params.settings.dt_s, dtype=params.delay_s.dtype)
+    return jnp.concatenate([params.delay_s[None], dt])
 
 
 def _speed(params: Params, state: State):
@@ -138,7 +140,9 @@ def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> 
 
 def rollout_pure_pursuit(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
     """Kinematic bicycle following the path by pure pursuit: thesis approach 3, done properly."""
-    return _rollout_bicycle(params, state, track, jnp.ones(params.settings.horizon + 1))
+    return _rollout_bicycle(
+        params, state, track, jnp.ones(params.settings.horizon + 1, dtype=params.weights.dtype)
+    )
 
 
 def rollout_blend(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:

@@ -1,0 +1,943 @@
+"""`make bench`: throughput, latency, fit time and memory of fpe-jax, against its ceiling and the
+original algorithm. Writes results.json, results.md and throughput.png next to this file.
+
+Sections (each records its own timings; every rate is a median over >= 5 runs, steady state
+after compilation, with compile time reported separately):
+
+1. batch   `fpe_jax.batch.predict_chunked` on the Levine track (2720 raw waypoints), N = 1, 1e3,
+           1e5, 1e6 cars, float32 and float64: cars in as a NumPy (N, 5) array without arc-length
+           hints (the grid projects them), poses out as NumPy (N, 10, 3): the whole public path.
+           Also the core `predict_batch` alone (hints given, arrays already on the device).
+2. ceiling a bare 10-step kinematic-bicycle rollout (no track, constant steering), jit(vmap).
+3. seed    the original 2019 algorithm as a faithful pure-Python per-prediction loop (reverse scan
+           over the raw waypoints every step), checked against the `seed` preset.
+4. fit     fit wall time for 1, 10, 60 min of 10 Hz drive; SciPy L-BFGS-B baseline (see FIT below).
+5. runner  the NumPy on-car runner's update latency (median, p99) when `fpe_jax.runner` exists.
+6. memory  peak resident memory of a fresh process predicting N = 1e6 cars.
+
+Usage: python experiments/benchmarks/run.py [--quick]   (--quick: small sizes, for smoke tests)
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+LEVINE = ROOT.parent / "shared" / "data" / "levine" / "levine-waypoints.csv"
+PRESET = "default"  # the product's position blend (pure pursuit + linear, delay step)
+NO_GPU = (
+    "No GPU machine was lent to this task (the device tool reported can_start_another=false); "
+    "every number here is from the 2-core CPU machine described below."
+)
+
+sys.path.insert(0, str(ROOT))  # run from a checkout without installing
+sys.path.insert(0, str(HERE))  # numpy_loss, rollout_proposal
+
+
+# ---- helpers -----------------------------------------------------------------------------------
+
+
+def machine() -> dict:
+    import jax
+    import jaxlib
+
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        cpu = platform.processor() or "unknown"
+    return {
+        "cpu": cpu,
+        "logical_cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "numpy": np.__version__,
+        "devices": [str(d) for d in jax.devices()],
+        "platform": platform.platform(),
+        "gpu": NO_GPU,
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+    }
+
+
+def load_average() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def timed_runs(fn, n_items: int, runs: int = 5, min_run_s: float = 0.05) -> dict:
+    """Median rate of fn() (already compiled) over `runs` runs; each run repeats fn enough
+    times to last >= min_run_s, so tiny batches are not lost in timer noise. Wall clock and the
+    process's CPU time (all threads) are both kept: the machine is shared, and CPU time shows
+    the work independent of other processes' load."""
+    t0 = time.perf_counter()
+    fn()
+    one = max(time.perf_counter() - t0, 1e-6)
+    reps = max(1, math.ceil(min_run_s / one))
+    wall, cpu = [], []
+    for _ in range(runs):
+        w0, c0 = time.perf_counter(), time.process_time()
+        for _ in range(reps):
+            fn()
+        wall.append((time.perf_counter() - w0) / reps)
+        cpu.append((time.process_time() - c0) / reps)
+    med = statistics.median(wall)
+    return {
+        "runs": runs,
+        "calls_per_run": reps,
+        "median_s": med,
+        "best_s": min(wall),
+        "rate_per_s": n_items / med,
+        "cpu_median_s": statistics.median(cpu),
+        "rate_per_cpu_s": n_items / statistics.median(cpu),
+    }
+
+
+def load_levine():
+    if not LEVINE.is_file():
+        raise SystemExit(f"bench: Levine waypoints not found at {LEVINE} (../shared/data)")
+    return np.loadtxt(LEVINE, delimiter=",")[:, :2]
+
+
+def make_cars(track, n: int, seed: int = 0) -> np.ndarray:
+    """(n, 5) cars on the track: lateral offset within +-0.5 m, heading along the path +- noise,
+    speed 1-6 m/s, yaw rate ~ N(0, 0.3) rad/s."""
+    rng = np.random.default_rng(seed)
+    i = rng.integers(0, track.n_points, n)
+    h = np.asarray(track.heading_rad, dtype=np.float64)[i]
+    normal = np.column_stack([-np.sin(h), np.cos(h)])
+    xy = np.asarray(track.xy_m, dtype=np.float64)[i] + normal * rng.uniform(-0.5, 0.5, (n, 1))
+    return np.column_stack(
+        [xy, h + rng.normal(0, 0.1, n), rng.uniform(1.0, 6.0, n), rng.normal(0, 0.3, n)]
+    )
+
+
+# ---- 1. batch prediction -----------------------------------------------------------------------
+
+
+def bench_batch(track, sizes, dtypes) -> list[dict]:
+    """A `BatchPredictor` built once per (dtype, N), then called repeatedly (a planner's use)."""
+    import jax
+
+    from fpe_jax.batch import BatchPredictor, ProjectionGrid, chunk_size
+    from fpe_jax.params import presets
+
+    params = presets[PRESET]
+    t0 = time.perf_counter()
+    grid = ProjectionGrid.build(track)
+    grid_s = time.perf_counter() - t0
+    rows = []
+    for dtype in dtypes:
+        for n in sizes:
+            cars = make_cars(track, n)
+            jax.clear_caches()  # so that compiling below is not a cache hit
+            info = {}
+            t0 = time.perf_counter()
+            predictor = BatchPredictor(params, track, dtype=dtype, grid=grid)
+            compile_s = _chunk_compile_s(predictor, cars, chunk_size(n))
+            predictor(cars, info=info)
+            first = time.perf_counter() - t0
+            res = timed_runs(lambda p=predictor, c=cars: p(c), n)
+            res.update(
+                path="BatchPredictor (end to end)",
+                dtype=dtype,
+                n_cars=n,
+                chunk=info["chunk"],
+                n_chunks=info["n_chunks"],
+                n_off_grid=info["n_off_grid"],
+                first_call_s=first,
+                compile_s=compile_s,
+                grid_build_s=grid_s,
+                load_avg=load_average(),
+            )
+            rows.append(res)
+            print(
+                f"  batch {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s "
+                f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {res['compile_s']:.2f} s)",
+                flush=True,
+            )
+    return rows
+
+
+def _chunk_compile_s(predictor, cars, chunk: int) -> float:
+    """Seconds to compile (ahead of time) the predictor's chunk function at this chunk size:
+    compile time measured apart from running (a first call's time minus a steady call's is
+    too noisy on a shared machine)."""
+    import jax.numpy as jnp
+
+    from fpe_jax.batch import _car_table, _pad_rows, _predict_block
+
+    names, table = _car_table(cars[:chunk], predictor.dtype)
+    with predictor._precision():
+        block = jnp.asarray(_pad_rows(table, chunk))
+        t0 = time.perf_counter()
+        _predict_block.lower(names, predictor._static, predictor._dynamic, block).compile()
+        return time.perf_counter() - t0
+
+
+def bench_core(track, sizes, dtypes) -> list[dict]:
+    """The core `predict_batch` alone: hints given, arrays on the device, no host copies."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from fpe_jax.batch import cast_floats, states_from_array
+    from fpe_jax.params import presets
+    from fpe_jax.predict import predict_batch
+
+    project = jax.jit(jax.vmap(lambda t, q: t.project(q), in_axes=(None, 0)))
+    hinted = {}
+    for n in sizes:  # exact arc-length hints, computed once in float64
+        cars = make_cars(track, n)
+        s = np.asarray(project(track, jnp.asarray(cars[:, :2])))
+        hinted[n] = dataclasses.replace(states_from_array(cars), s_m=s)
+    rows = []
+    for dtype in dtypes:
+        with jax.enable_x64(dtype == "float64"):
+            tr = jax.tree.map(jnp.asarray, cast_floats(track, dtype))
+            params = jax.tree.map(jnp.asarray, cast_floats(presets[PRESET], dtype))
+            for n in sizes:
+                st = jax.tree.map(jnp.asarray, cast_floats(hinted[n], dtype))
+                jax.clear_caches()
+                t0 = time.perf_counter()
+                predict_batch.lower(params, st, tr).compile()
+                compile_s = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                jax.block_until_ready(predict_batch(params, st, tr))
+                first = time.perf_counter() - t0
+                res = timed_runs(
+                    lambda p=params, x=st, t=tr: jax.block_until_ready(predict_batch(p, x, t)), n
+                )
+                res.update(
+                    path="predict_batch (core, on device, hinted)",
+                    dtype=dtype,
+                    n_cars=n,
+                    first_call_s=first,
+                    compile_s=compile_s,
+                    load_avg=load_average(),
+                )
+                rows.append(res)
+                print(
+                    f"  core  {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s "
+                    f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {compile_s:.2f} s)",
+                    flush=True,
+                )
+    return rows
+
+
+# ---- 2. ceiling: the bare kinematic bicycle ----------------------------------------------------
+
+
+def _bare_rollout(x, y, yaw, v, steer, wheelbase_m=0.325, dt_s=0.1, horizon=10):
+    """10 midpoint-heading steps of a kinematic bicycle at constant speed and steering: the
+    least work any track-following predictor can do per car."""
+    import jax
+    import jax.numpy as jnp
+
+    def step(c, _):
+        x, y, yaw = c
+        dyaw = v / wheelbase_m * jnp.tan(steer) * dt_s
+        mid = yaw + 0.5 * dyaw
+        c = (x + v * dt_s * jnp.cos(mid), y + v * dt_s * jnp.sin(mid), yaw + dyaw)
+        return c, c
+
+    _, out = jax.lax.scan(step, (x, y, yaw), None, length=horizon)
+    return jnp.stack(out, axis=-1)
+
+
+def bench_ceiling(sizes, dtypes) -> list[dict]:
+    import jax
+    import jax.numpy as jnp
+
+    rows = []
+    for dtype in dtypes:
+        with jax.enable_x64(dtype == "float64"):
+            f = jax.jit(jax.vmap(_bare_rollout))
+            for n in sizes:
+                rng = np.random.default_rng(0)
+                args = [
+                    jnp.asarray(a.astype(dtype))
+                    for a in (
+                        rng.normal(0, 10, n),
+                        rng.normal(0, 10, n),
+                        rng.uniform(-np.pi, np.pi, n),
+                        rng.uniform(1, 6, n),
+                        rng.normal(0, 0.2, n),
+                    )
+                ]
+                jax.clear_caches()
+                t0 = time.perf_counter()
+                f.lower(*args).compile()
+                compile_s = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                jax.block_until_ready(f(*args))
+                first = time.perf_counter() - t0
+                res = timed_runs(lambda g=f, a=args: jax.block_until_ready(g(*a)), n)
+                res.update(
+                    path="bare kinematic bicycle (ceiling)",
+                    dtype=dtype,
+                    n_cars=n,
+                    first_call_s=first,
+                    compile_s=compile_s,
+                    load_avg=load_average(),
+                )
+                rows.append(res)
+                print(f"  bare  {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s", flush=True)
+    return rows
+
+
+# ---- 3. the original algorithm, per prediction, in pure Python ---------------------------------
+
+
+def seed_predict_python(
+    waypoints,
+    x,
+    y,
+    yaw,
+    *,
+    v=1.0,
+    lookahead=2.0,
+    dt=0.1,
+    wheelbase=0.325,
+    max_steer=0.5236,
+    alpha=0.7,
+    horizon=10,
+):
+    """The 2019 node's prediction for one car, rule by rule (../shared/data/README.md).
+
+    waypoints: list of (x, y) tuples in file order. Each step scans them from the last row
+    backwards for the first one within the lookahead (row 0 when none is), steers by
+    2 sin(phi - yaw) / d used as an angle, blends the headings by alpha^i and moves.
+    """
+    out = []
+    for i in range(horizon):
+        gx, gy = waypoints[0]
+        for k in range(len(waypoints) - 1, -1, -1):
+            wx, wy = waypoints[k]
+            if math.hypot(wx - x, wy - y) <= lookahead:
+                gx, gy = wx, wy
+                break
+        d = math.hypot(gx - x, gy - y)
+        steer = 2.0 * math.sin(math.atan2(gy - y, gx - x) - yaw) / d if d > 0 else 0.0
+        steer = min(max(steer, -max_steer), max_steer)
+        yaw_pp = yaw + dt * v / wheelbase * math.tan(steer)
+        w = alpha**i
+        yaw = w * yaw + (1.0 - w) * yaw_pp
+        x += v * dt * math.cos(yaw)
+        y += v * dt * math.sin(yaw)
+        out.append((x, y, yaw))
+    return out
+
+
+def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    from fpe_jax.batch import states_from_array
+    from fpe_jax.params import presets
+    from fpe_jax.predict import predict_batch
+
+    wps = [tuple(map(float, p)) for p in waypoints_xy]
+    cars = make_cars(track, n_pred, seed=1)
+
+    def loop():
+        return [seed_predict_python(wps, c[0], c[1], c[2]) for c in cars]
+
+    res = timed_runs(loop, n_pred, runs=5, min_run_s=0.0)
+    # faithful? compare with the seed preset (JAX, float64)
+    with jax.enable_x64(True):
+        st = jax.tree.map(jnp.asarray, states_from_array(cars[:, :4]))
+        ref = np.asarray(predict_batch(presets["seed"], st, track))
+    ours = np.asarray(loop())
+    res.update(
+        path="original algorithm, pure-Python loop",
+        n_cars=n_pred,
+        n_waypoints=len(wps),
+        max_abs_diff_vs_seed_preset_m=float(np.max(np.abs(ours[..., :2] - ref[..., :2]))),
+        load_avg=load_average(),
+    )
+    print(
+        f"  seed loop: {res['rate_per_s']:.3g} pred/s "
+        f"(max diff vs seed preset {res['max_abs_diff_vs_seed_preset_m']:.1e} m)",
+        flush=True,
+    )
+    return res
+
+
+# ---- 4. FIT: fitting time and the SciPy baseline -----------------------------------------------
+# Drives are simulated (fpe_jax.sim) on its default track (the 30 m x 12 m oval; 0.3 s latency)
+# with a 10 Hz detector (noise and outliers on, no dropouts); targets come from the 50 Hz truth.
+# Each fit runs in a fresh process
+# so its time includes compilation. Timed: targets + state estimation + Levenberg-Marquardt
+# (`fpe_jax.fit.fit_params`, the default preset as start, the default fitted values). The SciPy
+# baseline minimises the same objective ported to NumPy (numpy_loss.py) with L-BFGS-B and
+# finite-difference gradients from the same start, on the 10-minute drive.
+
+FIT_MINUTES = (1, 10, 60)
+SCIPY_MINUTES = 10
+FIT_TRACK = "oval"
+FIT_SENSOR = dict(rate_hz=10.0, jitter_frac=0.0, miss_prob=0.0, miss_per_radps=0.0)
+
+
+def fit_child(minutes: float, with_scipy: bool) -> None:
+    """Run in a fresh process: simulate, fit (timed), optionally the SciPy baseline; print JSON."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import fpe_jax.fit as fpe_fit
+    from fpe_jax import sim
+    from fpe_jax.fit import (
+        DEFAULT_FIT,
+        FIT_GROUPS,
+        HUBER_M,
+        RAW_RIDGE,
+        Dataset,
+        fit_params,
+        make_targets,
+    )
+    from fpe_jax.params import presets, unconstrain
+    from fpe_jax.track import Track
+
+    res = sim.simulate(
+        FIT_TRACK, duration_s=60.0 * minutes, seed=7, sensor=sim.Sensor(**FIT_SENSOR)
+    )
+    track = Track.from_waypoints(res.centerline_xy_m)
+    init = presets[PRESET]
+    t0 = time.perf_counter()
+    data = Dataset(res.drive, track, make_targets(res.drive, init.settings))
+    fitted, info = fit_params([data], init)
+    total = time.perf_counter() - t0
+    out = {
+        "minutes": minutes,
+        "n_observations": int(len(res.drive.t_s)),
+        "n_samples": int(len(data.targets.rows)),
+        "wall_s_incl_compile": total,
+        "solve_s_incl_compile": info["seconds"],
+        "steps": info["steps"],
+        "converged": info["converged"],
+        "loss": info["loss"],
+        "fitted": fitted.physical(),
+    }
+    if with_scipy:
+        from numpy_loss import NumpyLoss, NumpyTrack
+        from scipy.optimize import minimize
+
+        st = data.states(init)
+        states = {k: np.asarray(getattr(st, k)) for k in ("x_m", "y_m", "yaw_rad", "v_mps", "s_m")}
+        groups = [(states, NumpyTrack(track), data.targets.xy_m, data.targets.mask)]
+        raw0 = {k: np.asarray(v) for k, v in vars(unconstrain(init)).items() if k != "settings"}
+        free = [f for g in DEFAULT_FIT for f in FIT_GROUPS[g]]
+        smoothing = getattr(fpe_fit, "WEIGHT_SMOOTHING_M2", 0.0)  # the fit's weight prior
+        loss = NumpyLoss(groups, raw0, free, init.settings, HUBER_M, RAW_RIDGE, smoothing)
+        raw_fit = {
+            k: np.asarray(v) for k, v in vars(unconstrain(fitted)).items() if k != "settings"
+        }
+        jax_solution = np.concatenate([np.ravel(raw_fit[f]) for f in loss.free])
+        t0 = time.perf_counter()
+        sol = minimize(loss, loss.x0(), method="L-BFGS-B", options={"maxiter": 1000})
+        scipy_s = time.perf_counter() - t0
+        out["scipy"] = {
+            "method": "L-BFGS-B, 2-point finite differences (scipy.optimize.minimize defaults)",
+            "wall_s": scipy_s,
+            "loss": float(sol.fun),
+            "iterations": int(sol.nit),
+            "loss_evaluations": int(sol.nfev),
+            "message": str(sol.message),
+            "n_free_values": int(loss.x0().size),
+            # the port reproduces the JAX objective: both evaluated at the JAX solution
+            "numpy_loss_at_jax_solution": float(loss(jax_solution)),
+            "numpy_loss_at_start": float(loss(loss.x0())),
+        }
+    print(json.dumps(out))
+
+
+def bench_fit(quick: bool) -> dict:
+    try:
+        import fpe_jax.fit  # noqa: F401
+    except ImportError as e:
+        return {"skipped": f"fpe_jax.fit not importable ({e})"}
+    minutes = (0.5,) if quick else FIT_MINUTES
+    scipy_minutes = 0.5 if quick else SCIPY_MINUTES
+    rows = []
+    for m in minutes:
+        proc = subprocess.run(
+            [sys.executable, str(Path(__file__).resolve()), "--fit-child", str(m)]
+            + (["--with-scipy"] if m == scipy_minutes else []),
+            capture_output=True,
+            text=True,
+        )
+        if proc.returncode != 0:
+            return {"skipped": f"fit benchmark failed: {proc.stderr.strip().splitlines()[-1]}"}
+        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(
+            f"  fit {m:g} min ({row['n_samples']} samples): {row['wall_s_incl_compile']:.2f} s, "
+            f"loss {row['loss']:.4g}",
+            flush=True,
+        )
+        if "scipy" in row:
+            sp = row["scipy"]
+            print(f"  scipy L-BFGS-B: {sp['wall_s']:.1f} s, loss {sp['loss']:.4g}", flush=True)
+    return {"drives": rows, "sensor": FIT_SENSOR, "track": f"built-in '{FIT_TRACK}' track"}
+
+
+def fit_markdown(fit: dict) -> list[str]:
+    lines = [
+        f"Simulated drives on the {fit['track']}, detections at 10 Hz (noise and outliers on), "
+        "targets from the 50 Hz truth. JAX: `fpe_jax.fit.fit_params` (Levenberg-Marquardt, "
+        "float64) in a fresh process, so the time includes compilation; it covers targets, "
+        "state estimation and the solve.",
+        "",
+        "| drive | samples | fit wall [s] (incl. compile) | LM steps | final loss |",
+        "| ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in fit["drives"]:
+        lines.append(
+            f"| {r['minutes']:g} min | {r['n_samples']:,} | {r['wall_s_incl_compile']:.2f} | "
+            f"{r['steps']} | {r['loss']:.5g} |"
+        )
+    sp_rows = [r for r in fit["drives"] if "scipy" in r]
+    if sp_rows:
+        r = sp_rows[0]
+        sp = r["scipy"]
+        speedup = sp["wall_s"] / r["wall_s_incl_compile"]
+        lines += [
+            "",
+            f"SciPy baseline on the {r['minutes']:g}-minute drive: {sp['method']} on the same "
+            f"objective ported to NumPy ({sp['n_free_values']} free values, same start).",
+            "",
+            "| solver | wall [s] | final loss | loss evaluations |",
+            "| --- | ---: | ---: | ---: |",
+            f"| fpe_jax (LM, JAX) | {r['wall_s_incl_compile']:.2f} | {r['loss']:.5g} | - |",
+            f"| SciPy L-BFGS-B (FD) | {sp['wall_s']:.2f} | {sp['loss']:.5g} | "
+            f"{sp['loss_evaluations']} |",
+            "",
+            f"Speed-up {speedup:.1f}x (target >= 20x at an equal or lower loss: "
+            f"{'met' if speedup >= 20 and r['loss'] <= sp['loss'] * (1 + 1e-6) else 'not met'}). "
+            f"The NumPy port evaluates to {sp['numpy_loss_at_jax_solution']:.6g} at the JAX "
+            f"solution (JAX: {r['loss']:.6g}); SciPy stopped with: {sp['message']}.",
+        ]
+    return lines
+
+
+# ---- 4b. core rollout proposal (see rollout_proposal.py) ---------------------------------------
+
+
+def bench_proposal(n: int) -> list[dict]:
+    from rollout_proposal import measure
+
+    rows = measure(n)
+    for r in rows:
+        print(f"  {r['variant']:26s} {r['rate_per_cpu_s']:.3g} per CPU-s", flush=True)
+    return rows
+
+
+# ---- 5. runner latency ------------------------------------------------------------------------
+
+
+def bench_runner(waypoints_xy) -> dict:
+    try:
+        from fpe_jax.runner import benchmark_update
+    except ImportError as e:
+        return {"skipped": f"fpe_jax.runner.benchmark_update not available ({e})"}
+    res = dict(benchmark_update(waypoints_xy, n_updates=2000))
+    res["load_avg"] = load_average()
+    print(f"  runner: median {res['median_ms']:.3f} ms, p99 {res['p99_ms']:.3f} ms", flush=True)
+    return res
+
+
+# ---- 6. peak memory ----------------------------------------------------------------------------
+
+
+def _vm_hwm_mb() -> float | None:
+    """Peak resident set of this process image [MB] from /proc (Linux), or None."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+def peak_memory_child(n: int, dtype: str) -> None:
+    """Run in a fresh process: predict n cars once, print peak RSS (MB) as JSON.
+
+    ru_maxrss can carry the parent's size over a fork, so the parent runs this before it loads
+    JAX, and VmHWM (reset by exec) is reported beside it.
+    """
+    import resource
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from fpe_jax.batch import predict_chunked
+    from fpe_jax.params import presets
+    from fpe_jax.track import Track
+
+    track = Track.from_waypoints(load_levine())
+    cars = make_cars(track, n)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    hwm_before = _vm_hwm_mb()
+    t0 = time.perf_counter()
+    out = predict_chunked(presets[PRESET], cars, track, dtype=dtype)
+    wall = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print(
+        json.dumps(
+            {
+                "n_cars": n,
+                "dtype": dtype,
+                "peak_rss_mb": peak,
+                "rss_before_prediction_mb": before,
+                "vm_hwm_mb": _vm_hwm_mb(),
+                "vm_hwm_before_prediction_mb": hwm_before,
+                "input_mb": cars.nbytes / 2**20,
+                "output_mb": out.nbytes / 2**20,
+                "wall_s_incl_compile": wall,
+            }
+        )
+    )
+
+
+def bench_memory(n: int, dtypes) -> list[dict]:
+    rows = []
+    for dtype in dtypes:
+        proc = subprocess.run(
+            [sys.executable, str(Path(__file__).resolve()), "--peak-memory-child", str(n), dtype],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(f"  memory {dtype} N={n}: peak {row['peak_rss_mb']:.0f} MB", flush=True)
+    return rows
+
+
+# ---- report ------------------------------------------------------------------------------------
+
+
+def summarize(results: dict) -> dict:
+    """The headline numbers against the issue's targets."""
+
+    def rate(rows, dtype, n, key="rate_per_s"):
+        for r in rows:
+            if r["dtype"] == dtype and r["n_cars"] == n:
+                return r[key]
+        return None
+
+    big = max(r["n_cars"] for r in results["batch"])
+    ref_n = 100_000 if any(r["n_cars"] == 100_000 for r in results["batch"]) else big
+    b32, c32 = rate(results["batch"], "float32", ref_n), rate(results["ceiling"], "float32", ref_n)
+    seed = results["seed_loop"]["rate_per_s"]
+    out = {
+        "reference_n_cars": ref_n,
+        "batch_float32_pred_per_s": b32,
+        "ceiling_float32_pred_per_s": c32,
+        "batch_over_ceiling": b32 / c32 if b32 and c32 else None,
+        "batch_over_seed_python_loop": b32 / seed if b32 and seed else None,
+        "target_2e6_pred_per_s_met": bool(b32 and b32 >= 2e6),
+        "target_40pct_of_ceiling_met": bool(b32 and c32 and b32 >= 0.4 * c32),
+    }
+    # per CPU second of this process: the same ratio, free of other processes' load and of how
+    # many threads XLA managed to use (the bare rollout spreads over both cores, ours does not)
+    b32c = rate(results["batch"], "float32", ref_n, "rate_per_cpu_s")
+    c32c = rate(results["ceiling"], "float32", ref_n, "rate_per_cpu_s")
+    out["batch_over_ceiling_per_cpu_s"] = b32c / c32c if b32c and c32c else None
+    prop = {r["variant"]: r for r in results.get("proposal") or []}
+    if prop:
+        ceil = prop["bare bicycle (ceiling)"]["rate_per_cpu_s"]
+        out["proposal_n_cars"] = prop["end to end, proposal"]["n_cars"]
+        out["proposal_core_over_ceiling_per_cpu_s"] = (
+            prop["A+B+C (+ unit heading)"]["rate_per_cpu_s"] / ceil
+        )
+        out["proposal_end_to_end_over_ceiling_per_cpu_s"] = (
+            prop["end to end, proposal"]["rate_per_cpu_s"] / ceil
+        )
+        out["proposal_end_to_end_speedup"] = (
+            prop["end to end, proposal"]["rate_per_cpu_s"]
+            / prop["end to end, core"]["rate_per_cpu_s"]
+        )
+    mem = [m for m in results["memory"] if m["dtype"] == "float32"]
+    if mem:
+        out["peak_memory_1e6_float32_mb"] = mem[0]["peak_rss_mb"]
+        out["target_2gb_met"] = mem[0]["peak_rss_mb"] <= 2048
+    return out
+
+
+def write_markdown(results: dict, path: Path) -> None:
+    m = results["machine"]
+    lines = [
+        "# fpe-jax benchmarks",
+        "",
+        f"Generated by `make bench` (experiments/benchmarks/run.py) on {m['date']}.",
+        "",
+        f"**GPU:** {m['gpu']}",
+        "",
+        f"Machine: {m['cpu']}, {m['logical_cores']} logical cores, "
+        f"devices {', '.join(m['devices'])}; "
+        f"Python {m['python']}, jax {m['jax']}, jaxlib {m['jaxlib']}, NumPy {m['numpy']}. "
+        f"Load average during the run: {results['load_avg_start']} at start, "
+        f"{results['load_avg_end']} at the end (the machine is shared; the CPU-time rates "
+        "count only this process's work).",
+        "",
+        "Rates are ten-step predictions (10 poses at 0.1 s ... 1.0 s) per second: medians over "
+        "5 runs after compilation. Track: Levine hallway loop (2720 raw waypoints, resampled to "
+        f"{results['track']['n_points']} points at {results['track']['ds_m']:.3f} m). "
+        f"Preset `{PRESET}` (position blend of linear and pure-pursuit rollouts).",
+        "",
+        "## Batch throughput",
+        "",
+        "| path | dtype | N cars | chunk | pred/s (wall) | pred/CPU-s | compile [s] |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in results["batch"] + results["core"] + results["ceiling"]:
+        lines.append(
+            f"| {r['path']} | {r['dtype']} | {r['n_cars']:,} | {r.get('chunk', '-')} | "
+            f"{r['rate_per_s']:.3g} | {r['rate_per_cpu_s']:.3g} | {r['compile_s']:.2f} |"
+        )
+    s = results["seed_loop"]
+    lines += [
+        f"| {s['path']} | float64 | {s['n_cars']} | - | {s['rate_per_s']:.3g} | "
+        f"{s['rate_per_cpu_s']:.3g} | - |",
+        "",
+        "The pure-Python loop reproduces the `seed` preset to "
+        f"{s['max_abs_diff_vs_seed_preset_m']:.1e} m "
+        f"(scan over {s['n_waypoints']} raw waypoints per step).",
+        "",
+        "## Headline (targets from issue 6)",
+        "",
+        "| quantity | value | target |",
+        "| --- | ---: | --- |",
+    ]
+    h = results["summary"]
+    n_ref = f"{h['reference_n_cars']:,}"
+    lines += [
+        f"| batch float32 at N = {n_ref} | {h['batch_float32_pred_per_s']:.3g} pred/s | >= 2e6 "
+        f"({'met' if h['target_2e6_pred_per_s_met'] else 'not met'}) |",
+        f"| bare ceiling float32 at N = {n_ref} | "
+        f"{h['ceiling_float32_pred_per_s']:.3g} pred/s | - |",
+        f"| batch / ceiling | {h['batch_over_ceiling']:.0%} | >= 40 % "
+        f"({'met' if h['target_40pct_of_ceiling_met'] else 'not met'}) |",
+        f"| batch / ceiling, per CPU-second | {h['batch_over_ceiling_per_cpu_s']:.0%} | - |",
+        f"| batch / original Python loop | {h['batch_over_seed_python_loop']:.3g} x | - |",
+    ]
+    if "proposal_n_cars" in h:
+        lines += [
+            f"| with the proposed core change (N = {h['proposal_n_cars']:,}): end to end "
+            f"/ ceiling, per CPU-s | {h['proposal_end_to_end_over_ceiling_per_cpu_s']:.0%} | "
+            ">= 40 % |",
+            f"| proposed core change: core alone / ceiling, per CPU-s | "
+            f"{h['proposal_core_over_ceiling_per_cpu_s']:.0%} | - |",
+            f"| proposed core change: end-to-end speed-up | "
+            f"{h['proposal_end_to_end_speedup']:.1f} x | - |",
+        ]
+    if "peak_memory_1e6_float32_mb" in h:
+        lines.append(
+            f"| peak memory, N = 1e6, float32 | {h['peak_memory_1e6_float32_mb']:.0f} MB | "
+            f"<= 2 GB ({'met' if h['target_2gb_met'] else 'not met'}) |"
+        )
+    lines += ["", "## Peak memory (fresh process, whole run incl. JAX and compilation)", ""]
+    lines += [
+        "| N cars | dtype | peak RSS, ru_maxrss [MB] | peak RSS, VmHWM [MB] | "
+        "before predicting [MB] | output array [MB] |",
+        "| ---: | --- | ---: | ---: | ---: | ---: |",
+    ]
+    for r in results["memory"]:
+        hwm = "-" if r.get("vm_hwm_mb") is None else f"{r['vm_hwm_mb']:.0f}"
+        lines.append(
+            f"| {r['n_cars']:,} | {r['dtype']} | {r['peak_rss_mb']:.0f} | {hwm} | "
+            f"{r['rss_before_prediction_mb']:.0f} | {r['output_mb']:.0f} |"
+        )
+    lines += ["", "## NumPy runner (on-car) update latency", ""]
+    rr = results["runner"]
+    if "skipped" in rr:
+        lines.append(f"Skipped: {rr['skipped']}")
+    else:
+        lines.append(
+            f"median {rr['median_ms']:.3f} ms, p99 {rr['p99_ms']:.3f} ms "
+            "(2000 updates, Levine waypoints; target <= 0.2 ms)."
+        )
+    lines += ["", "## Fitting", ""]
+    fit = results["fit"]
+    if "skipped" in fit:
+        lines.append(f"Skipped: {fit['skipped']}")
+    else:
+        lines += fit_markdown(fit)
+    prop = results.get("proposal") or []
+    if prop:
+        lines += [
+            "",
+            "## Proposed core change (rollout_proposal.py; product code unchanged)",
+            "",
+            f"N = {prop[0]['n_cars']:,} cars, float32. A: segment (chord) Newton projection; "
+            "B: no atan/tan round trip; C: unit-vector heading.",
+            "",
+            "| variant | pred/s (wall) | pred/CPU-s | max deviation from core [m] |",
+            "| --- | ---: | ---: | ---: |",
+        ]
+        for r in prop:
+            dev = "-" if r["max_dev_m"] is None else f"{r['max_dev_m']:.1e}"
+            lines.append(
+                f"| {r['variant']} | {r['rate_per_s']:.3g} | {r['rate_per_cpu_s']:.3g} | {dev} |"
+            )
+    lines += ["", "![throughput](throughput.png)", ""]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def plot(results: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 5.0), dpi=120)
+    styles = {
+        ("batch", "float32"): ("BatchPredictor (end to end), float32", "C0", "-o"),
+        ("batch", "float64"): ("BatchPredictor (end to end), float64", "C0", "--s"),
+        ("core", "float32"): ("predict_batch (core, hinted, on device), float32", "C1", ":D"),
+        ("ceiling", "float32"): ("bare kinematic bicycle (ceiling), float32", "C2", "-^"),
+        ("ceiling", "float64"): ("bare kinematic bicycle (ceiling), float64", "C2", "--v"),
+    }
+    for (section, dtype), (label, color, fmt) in styles.items():
+        rows = sorted(
+            (r for r in results[section] if r["dtype"] == dtype), key=lambda r: r["n_cars"]
+        )
+        if rows:
+            ax.plot(
+                [r["n_cars"] for r in rows],
+                [r["rate_per_s"] for r in rows],
+                fmt,
+                color=color,
+                label=label,
+            )
+    prop = [r for r in results.get("proposal") or [] if r["variant"] == "end to end, proposal"]
+    if prop:
+        ax.plot(
+            [prop[0]["n_cars"]],
+            [prop[0]["rate_per_s"]],
+            "*",
+            color="C4",
+            ms=12,
+            label="proposed core change, end to end, float32",
+        )
+    seed = results["seed_loop"]["rate_per_s"]
+    ax.axhline(
+        seed, color="C3", ls=":", label=f"original algorithm, pure-Python loop ({seed:.3g}/s)"
+    )
+    ax.axhline(2e6, color="0.5", ls="-.", lw=1, label="target: 2e6 predictions/s")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("cars per batch N [cars]")
+    ax.set_ylabel("throughput [ten-step predictions / s]")
+    ax.set_title(
+        f"Batch prediction throughput, Levine track, {results['machine']['cpu']} "
+        f"({results['machine']['logical_cores']} cores, CPU only)",
+        fontsize=9,
+    )
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes (a smoke test, ~1 min)")
+    ap.add_argument("--out-dir", default=str(HERE), help="where results.* and the plot go")
+    ap.add_argument("--peak-memory-child", nargs=2, metavar=("N", "DTYPE"), help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--report-only",
+        action="store_true",
+        help="rewrite results.md and the plot from results.json",
+    )
+    ap.add_argument("--fit-child", type=float, metavar="MINUTES", help=argparse.SUPPRESS)
+    ap.add_argument("--with-scipy", action="store_true", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.peak_memory_child:
+        peak_memory_child(int(args.peak_memory_child[0]), args.peak_memory_child[1])
+        return
+    if args.fit_child is not None:
+        fit_child(args.fit_child, args.with_scipy)
+        return
+    out_dir = Path(args.out_dir)
+    if args.report_only:
+        results = json.loads((out_dir / "results.json").read_text())
+        results["summary"] = summarize(results)
+        (out_dir / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+        write_markdown(results, out_dir / "results.md")
+        plot(results, out_dir / "throughput.png")
+        return
+
+    t_start = time.perf_counter()
+    # first, while this process is still small (ru_maxrss can carry over into children)
+    print("peak memory", flush=True)
+    memory = bench_memory(100_000 if args.quick else 1_000_000, ["float32", "float64"])
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # float64 available; float32 runs under a context
+    from fpe_jax.track import Track
+
+    sizes = [1, 1_000, 10_000] if args.quick else [1, 1_000, 100_000, 1_000_000]
+    core_sizes = [1_000, 10_000] if args.quick else [1_000, 100_000]
+    dtypes = ["float32", "float64"]
+    waypoints = load_levine()
+    track = Track.from_waypoints(waypoints)
+    results = {"machine": machine(), "load_avg_start": load_average(), "preset": PRESET}
+    results["track"] = {
+        "source": str(LEVINE),
+        "n_raw_waypoints": int(len(waypoints)),
+        "n_points": int(track.n_points),
+        "ds_m": float(track.ds_m),
+        "length_m": float(track.length_m),
+    }
+    print("batch prediction", flush=True)
+    results["batch"] = bench_batch(track, sizes, dtypes)
+    print("core predict_batch", flush=True)
+    results["core"] = bench_core(track, core_sizes, dtypes)
+    print("ceiling", flush=True)
+    results["ceiling"] = bench_ceiling(sizes, dtypes)
+    print("original algorithm (pure Python)", flush=True)
+    results["seed_loop"] = bench_seed_loop(track, waypoints, 20 if args.quick else 200)
+    print("core rollout proposal", flush=True)
+    results["proposal"] = bench_proposal(16_384)
+    print("fit", flush=True)
+    results["fit"] = bench_fit(args.quick)
+    print("runner", flush=True)
+    results["runner"] = bench_runner(waypoints)
+    results["memory"] = memory
+    results["load_avg_end"] = load_average()
+    results["summary"] = summarize(results)
+    results["total_wall_s"] = time.perf_counter() - t_start
+
+    (out_dir / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+    write_markdown(results, out_dir / "results.md")
+    plot(results, out_dir / "throughput.png")
+    print(
+        f"wrote {out_dir}/results.json, results.md, throughput.png "
+        f"in {results['total_wall_s']:.0f} s",
+        flush=True,
+    )
+
+
+if __name__ == "__main__":
+    main()
