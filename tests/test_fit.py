@@ -2,6 +2,8 @@
 
 import dataclasses
 import json
+import subprocess
+import sys
 
 import equinox as eqx
 import jax
@@ -9,14 +11,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
+from test_export import FRESH  # the fresh-process loader script of the export tests
 
 from fpe_jax import fit as F
 from fpe_jax import io
 from fpe_jax.cli import main
 from fpe_jax.config import config_to_params, params_to_config, read_config
 from fpe_jax.drive import Drive
+from fpe_jax.export import INPUTS
 from fpe_jax.metrics import coverage, summarize
 from fpe_jax.params import Settings, presets
+from fpe_jax.predict import predict_batch, states_from_drive
 from fpe_jax.runner import Runner
 from fpe_jax.sim import simulate
 from fpe_jax.track import Track
@@ -200,6 +205,26 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
     )
     jax_xy = np.column_stack([rows["x"], rows["y"]]).reshape(len(drive.t_s), -1, 2)
     assert np.max(np.abs(got[..., :2] - jax_xy)) <= 1e-6
+    # (b) the StableHLO artifact of the fitted config, loaded in a fresh process: 1, 7, 1000 cars
+    params = config_to_params(cfg)
+    track = Track.from_waypoints(io.load_waypoints(wp).xy_m)
+    states = states_from_drive(params, drive, track)
+    states = jax.tree.map(lambda a: a[np.arange(1000) % len(drive.t_s)], states)
+    names = [n for n, _ in INPUTS]
+    np.savez(tmp_path / "in.npz", **{n: np.asarray(getattr(states, n)) for n in names})
+    proc = subprocess.run(
+        [sys.executable, "-c", FRESH, str(exp / "predictor.stablehlo")]
+        + [str(tmp_path / "in.npz"), str(tmp_path / "out.npz")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    want = np.asarray(predict_batch(params, states, track))
+    artifact = np.load(tmp_path / "out.npz")
+    for b in (1, 7, 1000):
+        assert np.max(np.abs(artifact[f"b{b}"] - want[:b])) <= 1e-6
+
     ros = yaml.safe_load((exp / "params.yaml").read_text())
     node = ros["future_pose_estimator"]["ros__parameters"]
     assert node["blend_weights"] == pytest.approx(cfg["params"]["weights"], abs=0)
