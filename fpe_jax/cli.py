@@ -28,6 +28,14 @@ def _add_log_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tf-child", default="other_base_link", help="TF child frame")
 
 
+def _add_predictor_flags(p: argparse.ArgumentParser, *, required: bool) -> None:
+    """--waypoints and exactly one of --preset / --config (optional: the 'default' preset)."""
+    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
+    src = p.add_mutually_exclusive_group(required=required)
+    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
+    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+
+
 def _load_drive_from_args(args):
     from fpe_jax import io
 
@@ -50,10 +58,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("predict", help="predict every observation of a drive log")
     p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
-    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
-    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    _add_predictor_flags(p, required=False)
     p.add_argument("--out", required=True, help="PRED.csv or PRED.mcap")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
@@ -75,10 +80,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="metrics of a config or preset on a drive log")
     p.add_argument("log", help="drive log (any supported format)")
-    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
-    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    _add_predictor_flags(p, required=True)
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _add_log_flags(p)
     p.set_defaults(func=cmd_evaluate)
@@ -110,10 +112,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("batch", help="predict many cars at once (chunked, compiled once)")
     p.add_argument("states", help="cars: CSV with header x,y,yaw,v[,yaw_rate], or .npy (N, 4|5)")
-    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
-    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
+    _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="OUT.npy (N, H, 3) or OUT.csv")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     p.add_argument("--chunk", type=int, default=1 << 14, metavar="N", help="cars per call")
@@ -149,10 +148,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("plot", help="draw a drive with its 1 s predictions (trajectory overlay)")
     p.add_argument("log", help="drive log (any supported format)")
-    p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
-    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
+    _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="FIG.png (or .pdf, .svg)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
@@ -289,21 +285,13 @@ def cmd_evaluate(args) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from fpe_jax import io
-    from fpe_jax.config import config_to_params, read_config
+    from fpe_jax.config import load_params, read_config
     from fpe_jax.fit import Dataset, evaluate, format_table, make_targets
-    from fpe_jax.params import presets
     from fpe_jax.track import Track
 
-    cov = None
-    if args.config:
-        cfg = read_config(args.config)
-        params = config_to_params(cfg)
-        cov = (cfg.get("uncertainty") or {}).get("cov_m2")
-        name = args.config
-    else:
-        if args.preset not in presets:
-            raise InputError("--preset", f"unknown {args.preset!r}", ", ".join(presets))
-        params, name = presets[args.preset], args.preset
+    params = load_params(preset=args.preset, config=args.config)
+    cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2") if args.config else None
+    name = args.config or args.preset
     drive = _load_drive_from_args(args)
     track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
     data = Dataset(drive, track, make_targets(drive, params.settings))
