@@ -108,11 +108,19 @@ class Dataset:
     drive: Drive
     track: Track
     targets: Targets
+    _states: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     def states(self, params: Params) -> State:
-        """The model's states at the target rows (the seed model uses raw rows)."""
-        all_states = states_from_drive(params, self.drive, self.track)
-        return jax.tree.map(lambda x: x[self.targets.rows], all_states)
+        """The model's states at the target rows (the seed model uses raw rows).
+
+        Cached: states depend only on the estimator window and on whether the model is the
+        seed's, and a fit asks for them once per solve, for the uncertainty and per preset.
+        """
+        key = (params.settings.history, params.settings.model == "seed")
+        if key not in self._states:
+            all_states = states_from_drive(params, self.drive, self.track)
+            self._states[key] = jax.tree.map(lambda x: x[self.targets.rows], all_states)
+        return self._states[key]
 
 
 def _huber_scale(err_m, delta_m):

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
+from test_runner import NO_JAX as BLOCK_JAX  # blocks importing JAX
 
 from fpe_jax import Params, Settings, State, Track, predict_batch, predict_drive
 from fpe_jax.cli import main
@@ -202,18 +203,15 @@ def test_single_formats_and_node_name(case):
     assert not (tmp / "half").exists()
 
 
-NO_JAX = """
-import sys
-class NoJax:
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in ("jax", "jaxlib", "equinox", "optimistix"):
-            raise ImportError(f"{name} is blocked: this process has no JAX")
-sys.meta_path.insert(0, NoJax())
+NO_JAX = (
+    BLOCK_JAX
+    + """
 from fpe_jax.cli import main
 rc = main(sys.argv[1:])
 assert "jax" not in sys.modules
 sys.exit(rc)
 """
+)
 
 
 @pytest.mark.parametrize("fmt", ["json", "ros2"])

@@ -232,6 +232,13 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
     assert node["lookahead_distance_m"] == cfg["params"]["lookahead_m"]
 
 
+def test_cli_fit_names_match_the_fit_groups():
+    """The CLI keeps its own copy (so `fpe --help` imports no JAX); it must not drift."""
+    from fpe_jax.cli import FIT_NAMES
+
+    assert set(FIT_NAMES) == set(F.FIT_GROUPS)
+
+
 def test_cli_fit_rejects_unknown_fit_names(tmp_path, capsys):
     rc = main(
         [
