@@ -48,8 +48,8 @@ _TWO_PI = 2 * math.pi
 
 
 def _wrap(a: float) -> float:
-    """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.path.wrap_angle."""
-    return (a + _PI) % _TWO_PI - _PI
+    """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.track.wrap_angle."""
+    return a - _TWO_PI * math.floor((a + _PI) * (0.5 / _PI))
 
 
 def _median(values: list[float]) -> float:
@@ -80,13 +80,13 @@ class RunnerPath:
         self.length_m: float = float(p["length_m"])
         self.raw_xy_m: np.ndarray = np.ascontiguousarray(p["raw_xy_m"], dtype=np.float64)
         self._m = m
-        # Python lists: scalar indexing of a list is ~10x faster than of an ndarray
-        self._xs = xy[:, 0].tolist()
-        self._ys = xy[:, 1].tolist()
-        self._hs = p["heading_rad"].tolist()
         # per segment start i: a_x, a_y, (b - a)_x, (b - a)_y, max(|b - a|^2, 1e-12) as rows (5, M)
         nxt = (np.arange(m) + 1) % m if self.closed else np.minimum(np.arange(m) + 1, m - 1)
         ab = xy[nxt] - xy
+        # Track.seg_m as Python tuples: scalar indexing of a list is ~10x faster than of an ndarray
+        tangent = np.stack([np.cos(p["heading_rad"]), np.sin(p["heading_rad"])], axis=1)
+        rows = np.concatenate([xy, ab, tangent, tangent[nxt]], axis=1)
+        self._rows = [tuple(row) for row in rows.tolist()]
         ab2 = np.maximum(ab[:, 0] * ab[:, 0] + ab[:, 1] * ab[:, 1], 1e-12)
         self._seg = np.stack([xy[:, 0], xy[:, 1], ab[:, 0], ab[:, 1], ab2])
         self._all_segments = np.arange(m if self.closed else m - 1)
@@ -94,40 +94,36 @@ class RunnerPath:
         n_ahead = int(np.ceil(WINDOW_AHEAD_M / self.ds_m))
         self._window = np.arange(-n_back, n_ahead + 1)
 
-    def locate(self, s_m: float) -> tuple[int, int, float]:
-        """Segment index i, next index j and fraction f in [0, 1] for arc length s [m]."""
+    def locate(self, s_m: float) -> tuple[int, float]:
+        """Segment index i and fraction f in [0, 1] for arc length s [m] (Track._locate)."""
         if self.closed:
-            u = (s_m % self.length_m) / self.ds_m
-            i = int(u)  # u >= 0: int() is floor()
-            if i >= self._m - 1:  # the closing segment (or u rounded up to M)
-                i = self._m - 1
-                return i, 0, u - i
-            return i, i + 1, u - i
+            u = s_m / self.ds_m
+            u_floor = math.floor(u)
+            return u_floor % self._m, u - u_floor
         u = (0.0 if s_m < 0.0 else self.length_m if s_m > self.length_m else s_m) / self.ds_m
         i = int(u)
         if i > self._m - 2:
             i = self._m - 2
-        return i, i + 1, u - i
+        return i, u - i
 
     def point_at(self, s_m: float) -> tuple[float, float]:
         """Position x [m], y [m] at arc length s [m]."""
-        i, j, f = self.locate(s_m)
-        g = 1.0 - f
-        return self._xs[i] * g + self._xs[j] * f, self._ys[i] * g + self._ys[j] * f
+        i, f = self.locate(s_m)
+        ax, ay, abx, aby = self._rows[i][:4]
+        return ax + f * abx, ay + f * aby
 
     def project_local(self, x_m: float, y_m: float, s_hint_m: float) -> float:
-        """Arc length [m] near s_hint by Newton steps along the tangent (Track.project_local)."""
+        """Arc length [m] near s_hint by Newton steps along the interpolated path tangent
+        (Track.project_local)."""
         s = s_hint_m
-        xs, ys, hs = self._xs, self._ys, self._hs
         for _ in range(LOCAL_PROJECTION_ITERS):
-            i, j, f = self.locate(s)
-            h0 = hs[i]
-            # heading_at: h0 + f * wrap(h1 - h0), wrapped (wrap inlined: this is the hot path)
-            h = (h0 + f * ((hs[j] - h0 + _PI) % _TWO_PI - _PI) + _PI) % _TWO_PI - _PI
+            i, f = self.locate(s)
+            ax, ay, abx, aby, t0x, t0y, t1x, t1y = self._rows[i]
             g = 1.0 - f
-            s = s + (
-                (x_m - (xs[i] * g + xs[j] * f)) * math.cos(h)
-                + (y_m - (ys[i] * g + ys[j] * f)) * math.sin(h)
+            s = (
+                s
+                + (x_m - ax - f * abx) * (g * t0x + f * t1x)
+                + (y_m - ay - f * aby) * (g * t0y + f * t1y)
             )
         return s
 
@@ -387,20 +383,22 @@ class Runner:
         path = self.path
         x, y, yaw = est[0], est[1], est[2]
         v = self._speed(est[3])
-        wb, lim = self._wheelbase_m, self._max_steer_rad
+        wb, tan_lim = self._wheelbase_m, math.tan(self._max_steer_rad)
         reach = self._gain_s * v
         s = path.project_local(x, y, s_m)
+        cy, sy = math.cos(yaw), math.sin(yaw)  # the heading as a unit vector, as the JAX step
         rows = []
         for k, dt in enumerate(self._times()):
             s = path.project_local(x, y, s)
             gx, gy = path.point_at(s + self._lookahead_m + reach)
             dx, dy = gx - x, gy - y
-            d = math.sqrt(dx * dx + dy * dy + 1e-12)
-            sin_alpha = (math.cos(yaw) * dy - math.sin(yaw) * dx) / d
-            steer = min(max(math.atan(2.0 * wb * sin_alpha / d), -lim), lim)
-            dyaw = turn_scale[k] * v / wb * math.tan(steer) * dt
-            mid = yaw + 0.5 * dyaw
-            x, y, yaw = x + v * dt * math.cos(mid), y + v * dt * math.sin(mid), yaw + dyaw
+            tan_steer = 2.0 * wb * (cy * dy - sy * dx) / (dx * dx + dy * dy + 1e-12)
+            tan_steer = min(max(tan_steer, -tan_lim), tan_lim)
+            dyaw = turn_scale[k] * v / wb * tan_steer * dt
+            ch, sh = math.cos(0.5 * dyaw), math.sin(0.5 * dyaw)
+            cm, sm = cy * ch - sy * sh, sy * ch + cy * sh  # midpoint heading: the move's direction
+            cy, sy = cm * ch - sm * sh, sm * ch + cm * sh
+            x, y, yaw = x + v * dt * cm, y + v * dt * sm, yaw + dyaw
             if k:
                 rows.append([x, y, _wrap(yaw)])
         return rows

@@ -12,6 +12,7 @@ import pytest
 from fpe_jax import Params, Settings, State, Track
 from fpe_jax.path import wrap_angle
 from fpe_jax.rollout import (
+    _sincos,
     pure_pursuit_steer,
     rollout,
     rollout_blend,
@@ -148,6 +149,20 @@ def test_ctrv_lands_on_its_circle(yaw_rate_rps):
 
 
 # ---- pure pursuit ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dtype, tol", [("float32", 1e-7), ("float64", 3e-14)])
+def test_shared_sincos_matches_numpy(dtype, tol):
+    """The rollout's one-reduction sin/cos (its docstring quotes these bounds)."""
+    x = np.concatenate([np.linspace(-1e4, 1e4, 200_001), np.arange(-8, 9) * np.pi / 4])
+    with jax.enable_x64(dtype == "float64"):
+        s, c = jax.jit(_sincos)(jnp.asarray(x.astype(dtype)))
+        assert s.dtype == c.dtype == dtype
+        slope = jax.grad(lambda a: _sincos(a)[0])(jnp.asarray(1.3, dtype=dtype))
+    xd = x.astype(dtype).astype(np.float64)  # the argument as the function saw it
+    assert np.max(np.abs(np.asarray(s, np.float64) - np.sin(xd))) < tol
+    assert np.max(np.abs(np.asarray(c, np.float64) - np.cos(xd))) < tol
+    assert float(slope) == pytest.approx(np.cos(1.3), abs=10 * tol)
 
 
 def test_pure_pursuit_steering_law():

@@ -260,6 +260,19 @@ def test_project_local_converges_near_the_hint(stadium, straight):
     np.testing.assert_allclose(np.asarray(got), np.asarray(s), atol=1e-3)
 
 
+def test_project_local_is_continuous_in_the_hint(stadium):
+    """A car well off the path, hints just either side of every point of the curve: the result
+    must not depend on which segment the hint falls in (4 cm apart with chord directions)."""
+    ds = float(stadium.ds_m)
+    k = np.arange(int(10.0 / ds) + 2, int((10.0 + 3.0 * np.pi) / ds) - 2)  # the right-hand bend
+    p = points_at(stadium, jnp.asarray(k * ds))
+    inward = np.asarray(p) - np.array([10.0, 3.0])
+    p = np.asarray(p) - 0.8 * inward / np.linalg.norm(inward, axis=1, keepdims=True)
+    below = projects_local(stadium, jnp.asarray(p), jnp.asarray(k * ds - 1e-9))
+    above = projects_local(stadium, jnp.asarray(p), jnp.asarray(k * ds + 1e-9))
+    np.testing.assert_allclose(np.asarray(below), np.asarray(above), rtol=0, atol=1e-7)
+
+
 def test_arclength_along_levine_is_monotone_across_the_seam(levine):
     xy = np.asarray(levine.xy_m)
     m, ds, length = levine.n_points, float(levine.ds_m), float(levine.length_m)

@@ -40,36 +40,36 @@ class NumpyTrack:
     """`fpe_jax.track.Track`'s arc-length queries on NumPy arrays (vectorised over cars)."""
 
     def __init__(self, track):
-        self.xy = np.asarray(track.xy_m, dtype=np.float64)
-        self.heading = np.asarray(track.heading_rad, dtype=np.float64)
+        self.seg = np.asarray(track.seg_m, dtype=np.float64)  # (M, 8), see Track.seg_m
         self.ds = float(track.ds_m)
         self.length = float(track.length_m)
         self.closed = bool(track.closed)
-        self.m = len(self.xy)
+        self.m = len(self.seg)
 
     def locate(self, s):
         if self.closed:
-            u = np.mod(s, self.length) / self.ds
-            i = np.clip(np.floor(u).astype(np.int64), 0, self.m - 1)
-            return i, (i + 1) % self.m, u - i
+            u = s / self.ds
+            u_floor = np.floor(u)
+            return u_floor.astype(np.int64) % self.m, u - u_floor
         u = np.clip(s, 0.0, self.length) / self.ds
         i = np.clip(np.floor(u).astype(np.int64), 0, self.m - 2)
-        return i, i + 1, u - i
+        return i, u - i
 
     def point_at(self, s):
-        i, j, f = self.locate(s)
-        return self.xy[i] * (1.0 - f)[:, None] + self.xy[j] * f[:, None]
-
-    def heading_at(self, s):
-        i, j, f = self.locate(s)
-        h0 = self.heading[i]
-        return _wrap(h0 + f * _wrap(self.heading[j] - h0))
+        i, f = self.locate(s)
+        row = self.seg[i]
+        return row[:, :2] + f[:, None] * row[:, 2:4]
 
     def project_local(self, x, y, s, iters=2):
         for _ in range(iters):
-            h = self.heading_at(s)
-            q = self.point_at(s)
-            s = s + (x - q[:, 0]) * np.cos(h) + (y - q[:, 1]) * np.sin(h)
+            i, f = self.locate(s)
+            r = self.seg[i].T
+            g = 1.0 - f
+            s = (
+                s
+                + (x - r[0] - f * r[2]) * (g * r[4] + f * r[6])
+                + (y - r[1] - f * r[3]) * (g * r[5] + f * r[7])
+            )
         return s
 
 
@@ -87,12 +87,9 @@ def predict_blend(phys: dict, states: dict, track: NumpyTrack, settings) -> np.n
         s = track.project_local(x, y, s)
         goal = track.point_at(s + ahead)
         dx, dy = goal[:, 0] - x, goal[:, 1] - y
-        d = np.sqrt(dx * dx + dy * dy + 1e-12)
-        sin_alpha = (np.cos(yaw) * dy - np.sin(yaw) * dx) / d
-        steer = np.clip(
-            np.arctan(2.0 * wb * sin_alpha / d), -settings.max_steer_rad, settings.max_steer_rad
-        )
-        dyaw = v / wb * np.tan(steer) * step
+        tan_steer = 2.0 * wb * (np.cos(yaw) * dy - np.sin(yaw) * dx) / (dx * dx + dy * dy + 1e-12)
+        lim = np.tan(settings.max_steer_rad)
+        dyaw = v / wb * np.clip(tan_steer, -lim, lim) * step
         mid = yaw + 0.5 * dyaw
         x = x + v * step * np.cos(mid)
         y = y + v * step * np.sin(mid)

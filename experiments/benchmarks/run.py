@@ -44,7 +44,7 @@ NO_GPU = (
 )
 
 sys.path.insert(0, str(ROOT))  # run from a checkout without installing
-sys.path.insert(0, str(HERE))  # numpy_loss, rollout_proposal
+sys.path.insert(0, str(HERE))  # numpy_loss
 
 
 # ---- helpers -----------------------------------------------------------------------------------
@@ -536,18 +536,6 @@ def fit_markdown(fit: dict) -> list[str]:
     return lines
 
 
-# ---- 4b. core rollout proposal (see rollout_proposal.py) ---------------------------------------
-
-
-def bench_proposal(n: int) -> list[dict]:
-    from rollout_proposal import measure
-
-    rows = measure(n)
-    for r in rows:
-        print(f"  {r['variant']:26s} {r['rate_per_cpu_s']:.3g} per CPU-s", flush=True)
-    return rows
-
-
 # ---- 5. runner latency ------------------------------------------------------------------------
 
 
@@ -661,20 +649,6 @@ def summarize(results: dict) -> dict:
     b32c = rate(results["batch"], "float32", ref_n, "rate_per_cpu_s")
     c32c = rate(results["ceiling"], "float32", ref_n, "rate_per_cpu_s")
     out["batch_over_ceiling_per_cpu_s"] = b32c / c32c if b32c and c32c else None
-    prop = {r["variant"]: r for r in results.get("proposal") or []}
-    if prop:
-        ceil = prop["bare bicycle (ceiling)"]["rate_per_cpu_s"]
-        out["proposal_n_cars"] = prop["end to end, proposal"]["n_cars"]
-        out["proposal_core_over_ceiling_per_cpu_s"] = (
-            prop["A+B+C (+ unit heading)"]["rate_per_cpu_s"] / ceil
-        )
-        out["proposal_end_to_end_over_ceiling_per_cpu_s"] = (
-            prop["end to end, proposal"]["rate_per_cpu_s"] / ceil
-        )
-        out["proposal_end_to_end_speedup"] = (
-            prop["end to end, proposal"]["rate_per_cpu_s"]
-            / prop["end to end, core"]["rate_per_cpu_s"]
-        )
     mem = [m for m in results["memory"] if m["dtype"] == "float32"]
     if mem:
         out["peak_memory_1e6_float32_mb"] = mem[0]["peak_rss_mb"]
@@ -739,16 +713,6 @@ def write_markdown(results: dict, path: Path) -> None:
         f"| batch / ceiling, per CPU-second | {h['batch_over_ceiling_per_cpu_s']:.0%} | - |",
         f"| batch / original Python loop | {h['batch_over_seed_python_loop']:.3g} x | - |",
     ]
-    if "proposal_n_cars" in h:
-        lines += [
-            f"| with the proposed core change (N = {h['proposal_n_cars']:,}): end to end "
-            f"/ ceiling, per CPU-s | {h['proposal_end_to_end_over_ceiling_per_cpu_s']:.0%} | "
-            ">= 40 % |",
-            f"| proposed core change: core alone / ceiling, per CPU-s | "
-            f"{h['proposal_core_over_ceiling_per_cpu_s']:.0%} | - |",
-            f"| proposed core change: end-to-end speed-up | "
-            f"{h['proposal_end_to_end_speedup']:.1f} x | - |",
-        ]
     if "peak_memory_1e6_float32_mb" in h:
         lines.append(
             f"| peak memory, N = 1e6, float32 | {h['peak_memory_1e6_float32_mb']:.0f} MB | "
@@ -781,23 +745,6 @@ def write_markdown(results: dict, path: Path) -> None:
         lines.append(f"Skipped: {fit['skipped']}")
     else:
         lines += fit_markdown(fit)
-    prop = results.get("proposal") or []
-    if prop:
-        lines += [
-            "",
-            "## Proposed core change (rollout_proposal.py; product code unchanged)",
-            "",
-            f"N = {prop[0]['n_cars']:,} cars, float32. A: segment (chord) Newton projection; "
-            "B: no atan/tan round trip; C: unit-vector heading.",
-            "",
-            "| variant | pred/s (wall) | pred/CPU-s | max deviation from core [m] |",
-            "| --- | ---: | ---: | ---: |",
-        ]
-        for r in prop:
-            dev = "-" if r["max_dev_m"] is None else f"{r['max_dev_m']:.1e}"
-            lines.append(
-                f"| {r['variant']} | {r['rate_per_s']:.3g} | {r['rate_per_cpu_s']:.3g} | {dev} |"
-            )
     lines += ["", "![throughput](throughput.png)", ""]
     path.write_text("\n".join(lines) + "\n")
 
@@ -828,16 +775,6 @@ def plot(results: dict, path: Path) -> None:
                 color=color,
                 label=label,
             )
-    prop = [r for r in results.get("proposal") or [] if r["variant"] == "end to end, proposal"]
-    if prop:
-        ax.plot(
-            [prop[0]["n_cars"]],
-            [prop[0]["rate_per_s"]],
-            "*",
-            color="C4",
-            ms=12,
-            label="proposed core change, end to end, float32",
-        )
     seed = results["seed_loop"]["rate_per_s"]
     ax.axhline(
         seed, color="C3", ls=":", label=f"original algorithm, pure-Python loop ({seed:.3g}/s)"
@@ -918,8 +855,6 @@ def main() -> None:
     results["ceiling"] = bench_ceiling(sizes, dtypes)
     print("original algorithm (pure Python)", flush=True)
     results["seed_loop"] = bench_seed_loop(track, waypoints, 20 if args.quick else 200)
-    print("core rollout proposal", flush=True)
-    results["proposal"] = bench_proposal(16_384)
     print("fit", flush=True)
     results["fit"] = bench_fit(args.quick)
     print("runner", flush=True)
