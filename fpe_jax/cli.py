@@ -12,8 +12,10 @@ from pathlib import Path
 
 from fpe_jax.errors import InputError
 
-# names `--fit` accepts (kept here so `fpe --help` does not import JAX)
+# names `--fit` and `--solver` accept (fpe_jax.fit's, kept here so `fpe --help` does not import
+# JAX; a test checks they agree)
 FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed")
+SOLVERS = ("bfgs", "lm")
 
 
 def _add_log_flags(p: argparse.ArgumentParser) -> None:
@@ -74,6 +76,11 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--test", nargs="+", metavar="LOG", help="separate held-out drives instead")
     p.add_argument("--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: all but split)")
     p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
+    p.add_argument(
+        "--solver",
+        choices=SOLVERS,
+        help="optimistix solver: bfgs on the robust loss (default) or lm on the residuals",
+    )
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
     p.set_defaults(func=cmd_fit)
@@ -194,7 +201,12 @@ def _fit_inputs(args):
     if len(args.logs) == 1 and args.logs[0].endswith(".toml"):
         r = load_recipe(args.logs[0])
         out = args.out or r.out
-        opts = dict(holdout=args.holdout or r.holdout, fit=r.fit, blend=args.blend or r.blend)
+        opts = dict(
+            holdout=args.holdout or r.holdout,
+            fit=r.fit,
+            blend=args.blend or r.blend,
+            solver=args.solver or r.solver,
+        )
         return r.drives, r.test_drives, out, opts
     if not args.waypoints:
         raise InputError("--waypoints", "missing", "a waypoint file for the drives")
@@ -207,7 +219,9 @@ def _fit_inputs(args):
     for log in args.test or []:
         args.log = log
         tests.append((_load_drive_from_args(args), wp, log))
-    opts = dict(holdout=args.holdout or 0.3, fit=None, blend=args.blend or "auto")
+    opts = dict(
+        holdout=args.holdout or 0.3, fit=None, blend=args.blend or "auto", solver=args.solver
+    )
     return drives, tests, args.out, opts
 
 
@@ -234,7 +248,7 @@ def cmd_fit(args) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-        from fpe_jax.fit import DEFAULT_FIT, fit, format_table, provenance
+        from fpe_jax.fit import DEFAULT_FIT, fit, format_fitted, format_table, provenance
         from fpe_jax.track import Track
 
         tracks = [Track.from_waypoints(wp) for _, wp, _ in drives]
@@ -247,6 +261,7 @@ def cmd_fit(args) -> int:
             holdout=opts["holdout"],
             test_drives=[d for d, _, _ in tests] or None,
             test_tracks=test_tracks,
+            solver=opts["solver"] or SOLVERS[0],
             progress=say,
         )
     topics = {
@@ -260,14 +275,7 @@ def cmd_fit(args) -> int:
         provenance=provenance(result, sources, topics),
     )
     write_config(out, cfg, force=args.force)
-    p = result.params.physical()
-    print(
-        f"fitted ({result.info['blend']} blend, {result.info['steps']} solver steps): "
-        f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
-        f"delay {p['delay_s']:.3f} s, speed {p['speed_weight']:.2f} * measured + "
-        f"{1 - p['speed_weight']:.2f} * {p['speed_mps']:.2f} m/s"
-    )
-    print("weights " + " ".join(f"{w:.3f}" for w in p["weights"]))
+    print(format_fitted(result))
     print("\nheld-out:\n" + format_table(result.report))
     cov = result.report["fitted"]
     print(
@@ -431,7 +439,7 @@ def cmd_demo(args) -> int:
     from pathlib import Path
 
     from fpe_jax.demo import run_demo
-    from fpe_jax.fit import format_table
+    from fpe_jax.fit import format_fitted, format_table
     from fpe_jax.progress import Progress
 
     out = Path(args.out)
@@ -442,13 +450,7 @@ def cmd_demo(args) -> int:
     case, result = res.case, res.result
     p = result.params.physical()
     print(f"demo: {case.description}")
-    print(
-        f"fitted ({result.info['blend']} blend, {result.info['steps']} solver steps): "
-        f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
-        f"delay {p['delay_s']:.3f} s, speed {p['speed_weight']:.2f} * measured + "
-        f"{1 - p['speed_weight']:.2f} * {p['speed_mps']:.2f} m/s"
-    )
-    print("weights " + " ".join(f"{w:.3f}" for w in p["weights"]))
+    print(format_fitted(result))
     print("\nheld-out (the separate test drive; seed = the 2019 node as written):")
     print(format_table(result.report))
     print(

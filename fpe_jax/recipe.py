@@ -5,6 +5,7 @@ waypoints = "../../shared/data/levine/levine-waypoints.csv"
 holdout = 0.4                  # or [[test_drives]] for separate held-out drives
 fit = ["lookahead", "weights", "delay", "speed"]
 blend = "auto"
+solver = "bfgs"                # or "lm"
 
 [[drives]]
 path = "../../shared/data/levine/actual-poses.csv"
@@ -24,7 +25,7 @@ from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 
 DRIVE_KEYS = {"path", "rate_hz", "pose_topic", "truth_topic", "waypoints", "log_time", "simulate"}
-TOP_KEYS = {"out", "waypoints", "holdout", "fit", "blend", "drives", "test_drives"}
+TOP_KEYS = {"out", "waypoints", "holdout", "fit", "blend", "solver", "drives", "test_drives"}
 
 
 @dataclasses.dataclass
@@ -38,6 +39,7 @@ class Recipe:
     holdout: float
     fit: tuple[str, ...] | None
     blend: str
+    solver: str | None
 
 
 def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
@@ -88,6 +90,10 @@ def load_recipe(path) -> Recipe:
     drives = [_load_entry(e, base, wp, path) for e in spec["drives"]]
     tests = [_load_entry(e, base, wp, path) for e in spec.get("test_drives", [])]
     fit = spec.get("fit")
+    from fpe_jax.cli import SOLVERS
+
+    if spec.get("solver", SOLVERS[0]) not in SOLVERS:
+        raise InputError(path, f"solver = {spec['solver']!r}", f"one of {', '.join(SOLVERS)}")
     return Recipe(
         source=path,
         out=base / spec["out"] if "out" in spec else None,
@@ -96,4 +102,5 @@ def load_recipe(path) -> Recipe:
         holdout=float(spec.get("holdout", 0.3)),
         fit=tuple(fit) if fit is not None else None,
         blend=spec.get("blend", "auto"),
+        solver=spec.get("solver"),
     )

@@ -18,6 +18,7 @@ from fpe_jax import io
 from fpe_jax.cli import main
 from fpe_jax.config import config_to_params, params_to_config, read_config
 from fpe_jax.drive import Drive
+from fpe_jax.errors import InputError
 from fpe_jax.export import INPUTS
 from fpe_jax.metrics import coverage, summarize
 from fpe_jax.params import Settings, presets
@@ -102,6 +103,21 @@ def test_fit_subset_keeps_the_rest_fixed(oval_drives):
     np.testing.assert_allclose(np.asarray(p.weights), np.asarray(init.weights), atol=1e-9)
     assert float(p.delay_s) != pytest.approx(float(init.delay_s), abs=1e-3)
     assert info["steps"] >= 1
+
+
+def test_both_solvers_reach_the_same_fit(oval_drives):
+    """BFGS on the scalar loss and LM on the residuals: one objective, one minimum."""
+    fit_d, _, track = oval_drives
+    init = presets["default"]
+    data = F._datasets([fit_d.drive.slice_time(0, 30)], [track], init.settings, "training")
+    fits = {s: F.fit_params(data, init, fit=("delay", "speed"), solver=s) for s in F.SOLVERS}
+    (p_bfgs, i_bfgs), (p_lm, i_lm) = fits["bfgs"], fits["lm"]
+    assert i_bfgs["converged"] and i_lm["converged"]
+    assert i_bfgs["loss"] == pytest.approx(i_lm["loss"], rel=1e-4)
+    assert float(p_bfgs.delay_s) == pytest.approx(float(p_lm.delay_s), abs=0.01)
+    assert float(p_bfgs.speed_mps) == pytest.approx(float(p_lm.speed_mps), abs=0.05)
+    with pytest.raises(InputError, match="solver"):
+        F.fit_params(data, init, solver="adam")
 
 
 def test_residual_gradient_matches_finite_differences(oval_drives):
@@ -234,9 +250,10 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
 
 def test_cli_fit_names_match_the_fit_groups():
     """The CLI keeps its own copy (so `fpe --help` imports no JAX); it must not drift."""
-    from fpe_jax.cli import FIT_NAMES
+    from fpe_jax.cli import FIT_NAMES, SOLVERS
 
     assert set(FIT_NAMES) == set(F.FIT_GROUPS)
+    assert SOLVERS == F.SOLVERS and SOLVERS[0] == F.DEFAULT_SOLVER
 
 
 def test_cli_fit_rejects_unknown_fit_names(tmp_path, capsys):
