@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import functools
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -164,7 +166,9 @@ def _loss(raw_free, args):
     return 0.5 * jnp.sum(r * r)
 
 
-@eqx.filter_jit
+# plain jax.jit (every argument is a pytree of arrays): it can be compiled ahead of the call from
+# shapes alone, while the states are still being estimated (see fit_params)
+@functools.partial(jax.jit, static_argnames=("max_steps", "solver"))
 def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: str):
     """Run the optimistix solver; returns (raw values, steps, converged, loss)."""
     args = (raw_fixed, groups, huber_m)
@@ -222,13 +226,21 @@ def fit_params(
         raise ValueError("fit_params: only the blend model is fitted (presets are baselines)")
     raw = unconstrain(init)
     free, fixed = eqx.partition(raw, _free_mask(raw, fit))
-    groups = [
-        (d.states(init), d.track, jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask))
-        for d in datasets
-    ]
+    targets = [(jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask)) for d in datasets]
+
+    def shape_of(xy):  # every State field is (N,) in the default float dtype
+        leaf = jax.ShapeDtypeStruct(xy.shape[:1], xy.dtype)
+        return State(**{f.name: leaf for f in dataclasses.fields(State)})
+
     t0 = time.perf_counter()
-    steps_cap = MAX_STEPS[solver] if max_steps is None else max_steps
-    value, steps, ok, loss = _solve(free, fixed, groups, huber_m, steps_cap, solver)
+    static = dict(max_steps=MAX_STEPS[solver] if max_steps is None else max_steps, solver=solver)
+    abstract = [(shape_of(xy), d.track, xy, m) for d, (xy, m) in zip(datasets, targets)]
+    # XLA compiles the solver (seconds) on a second thread while this one estimates the states
+    with ThreadPoolExecutor(1) as pool:
+        lowered = _solve.lower(free, fixed, abstract, huber_m, **static)
+        compiled = pool.submit(lowered.compile)
+        groups = [(d.states(init), d.track, *tm) for d, tm in zip(datasets, targets)]
+        value, steps, ok, loss = compiled.result()(free, fixed, groups, huber_m)
     fitted = constrain(eqx.combine(value, fixed))
     info = {
         "solver": solver,
