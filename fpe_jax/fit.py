@@ -167,7 +167,11 @@ def _loss(raw_free, args):
 
 
 # plain jax.jit (every argument is a pytree of arrays): it can be compiled ahead of the call from
-# shapes alone, while the states are still being estimated (see fit_params)
+# shapes alone, while the states are still being estimated (see fit_params). Compiled solvers
+# are kept by argument structure, shapes and static settings (as jit's own cache would).
+_COMPILED: dict = {}
+
+
 @functools.partial(jax.jit, static_argnames=("max_steps", "solver"))
 def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: str):
     """Run the optimistix solver; returns (raw values, steps, converged, loss)."""
@@ -235,12 +239,15 @@ def fit_params(
     t0 = time.perf_counter()
     static = dict(max_steps=MAX_STEPS[solver] if max_steps is None else max_steps, solver=solver)
     abstract = [(shape_of(xy), d.track, xy, m) for d, (xy, m) in zip(datasets, targets)]
+    leaves, treedef = jax.tree.flatten((free, fixed, abstract, huber_m))
+    key = (treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves), str(static))
     # XLA compiles the solver (seconds) on a second thread while this one estimates the states
     with ThreadPoolExecutor(1) as pool:
-        lowered = _solve.lower(free, fixed, abstract, huber_m, **static)
-        compiled = pool.submit(lowered.compile)
+        if key not in _COMPILED:
+            lowered = _solve.lower(free, fixed, abstract, huber_m, **static)
+            _COMPILED[key] = pool.submit(lowered.compile)
         groups = [(d.states(init), d.track, *tm) for d, tm in zip(datasets, targets)]
-        value, steps, ok, loss = compiled.result()(free, fixed, groups, huber_m)
+        value, steps, ok, loss = _COMPILED[key].result()(free, fixed, groups, huber_m)
     fitted = constrain(eqx.combine(value, fixed))
     info = {
         "solver": solver,
@@ -320,6 +327,21 @@ def _datasets(drives: Sequence[Drive], tracks: Sequence[Track], settings: Settin
     return out
 
 
+def _before(d: Dataset, t_cut_s: float, dt_s: float) -> Dataset:
+    """d with only the targets due before t_cut_s [s]; rows, shapes and cached states unchanged.
+
+    Half a step of margin: a target near the cut may be made from data after it.
+    """
+    steps = np.arange(1, d.targets.mask.shape[1] + 1) * dt_s
+    due = d.drive.t_s[d.targets.rows, None] + steps[None, :]
+    mask = d.targets.mask & (due + 0.5 * dt_s < t_cut_s)
+    if not mask.any():
+        src = d.drive.meta.get("source", "drive")
+        raise InputError(src, "no usable predictions before the inner split", "a longer drive")
+    targets = dataclasses.replace(d.targets, mask=mask)
+    return dataclasses.replace(d, targets=targets, _states=d._states)
+
+
 @dataclasses.dataclass
 class FitResult:
     """What `fit` returns: the fitted params, their uncertainty and the held-out report."""
@@ -378,8 +400,10 @@ def fit(
     selection = {}
     if len(modes) > 1:
         inner = [split_drive(d, 0.25) for d in train_d]
-        inner_fit = _datasets([p[0] for p in inner], tracks, settings, "training")
+        # the inner fit masks the training targets after the inner split instead of slicing the
+        # drives: the same shapes as the final fit, so the chosen mode's solver compiles once
         inner_val = _datasets([p[1] for p in inner], tracks, settings, "validation")
+        inner_fit = [_before(d, v.drive.t_s[0], settings.dt_s) for d, v in zip(train, inner_val)]
         for mode in modes:
             progress(f"choosing the blend mode: fitting '{mode}' on the inner split")
             p0 = dataclasses.replace(init, settings=dataclasses.replace(settings, blend=mode))

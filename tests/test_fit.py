@@ -120,6 +120,25 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
         F.fit_params(data, init, solver="adam")
 
 
+def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
+    fit_d, _, track = oval_drives
+    init = presets["default"]
+    (d,) = F._datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
+    cut = 15.0
+    inner = F._before(d, cut, init.settings.dt_s)
+    assert inner.targets.mask.shape == d.targets.mask.shape  # same shapes as the final fit
+    due = d.drive.t_s[d.targets.rows, None] + 0.1 * np.arange(1, 11)[None, :]
+    assert not np.any(inner.targets.mask & (due >= cut - 0.05))  # nothing from after the cut
+    np.testing.assert_array_equal(inner.targets.mask, d.targets.mask & (due < cut - 0.05))
+    a, _ = F.fit_params([inner], init, fit=("delay",))
+    n_compiled = len(F._COMPILED)
+    b, _ = F.fit_params([d], init, fit=("delay",))  # other mask, same shapes: no new compile
+    assert len(F._COMPILED) == n_compiled
+    assert float(a.delay_s) != float(b.delay_s)  # and the masks did make a difference
+    with pytest.raises(InputError, match="inner split"):
+        F._before(d, 0.0, init.settings.dt_s)
+
+
 def test_residual_gradient_matches_finite_differences(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
