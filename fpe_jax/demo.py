@@ -142,6 +142,35 @@ def levine_case(data_dir: str | Path, *, holdout: float = 0.4) -> Case:
     )
 
 
+# the comparison studies' drives: a 60 s fit drive and a separate 40 s test drive per track
+STUDY_FIT_S, STUDY_TEST_S, STUDY_FIT_SEED, STUDY_TEST_SEED = 60.0, 40.0, 1, 2
+
+
+def study_cases(data_dir: str | Path, say: Callable[[str], None] = lambda msg: None) -> list[Case]:
+    """The cases the comparison studies share: the real Levine lap (fit 60 %, test 40 %) when
+    `data_dir` has it, the built-in oval and hairpin, and the F1TENTH tracks when present. The
+    simulated drives have LATENCY_S of detection latency; `say` is told what is left out."""
+    data = Path(data_dir)
+    out = []
+    if (data / "levine").is_dir():
+        out.append(levine_case(data, holdout=0.4))
+    else:
+        say(f"note: {data / 'levine'} not found; the real-data part is left out")
+    kw = dict(
+        fit_s=STUDY_FIT_S,
+        test_s=STUDY_TEST_S,
+        latency_s=LATENCY_S,
+        fit_seed=STUDY_FIT_SEED,
+        test_seed=STUDY_TEST_SEED,
+    )
+    out += [simulated_case(track, **kw) for track in ("oval", "hairpin")]
+    if (data / "tracks").is_dir():
+        out += f1tenth_cases(data / "tracks", **kw)
+    else:
+        say(f"note: {data / 'tracks'} not found; the F1TENTH tracks are left out")
+    return out
+
+
 def fit_case(
     case: Case,
     *,

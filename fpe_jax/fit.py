@@ -180,23 +180,12 @@ def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: str):
     # the ~1e5 residuals and every raw value has settled, which a saturating weight or a gain
     # creeping toward its bound never does (it ran to max_steps on every drive measured)
     if solver == "lm":
-        sol = optx.least_squares(
-            _residuals,
-            optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5, norm=optx.rms_norm),
-            raw_free,
-            args=args,
-            max_steps=max_steps,
-            throw=False,
-        )
+        run, fn = optx.least_squares, _residuals
+        method = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5, norm=optx.rms_norm)
     else:
-        sol = optx.minimise(
-            _loss,
-            optx.BFGS(rtol=1e-6, atol=1e-8, norm=optx.rms_norm),
-            raw_free,
-            args=args,
-            max_steps=max_steps,
-            throw=False,
-        )
+        run, fn = optx.minimise, _loss
+        method = optx.BFGS(rtol=1e-6, atol=1e-8, norm=optx.rms_norm)
+    sol = run(fn, method, raw_free, args=args, max_steps=max_steps, throw=False)
     ok = sol.result == optx.RESULTS.successful
     return sol.value, sol.stats["num_steps"], ok, _loss(sol.value, args)
 

@@ -26,19 +26,20 @@ import jax
 from fpe_jax import plots
 from fpe_jax.demo import (
     LATENCY_S,
-    f1tenth_cases,
+    STUDY_FIT_S,
+    STUDY_FIT_SEED,
+    STUDY_TEST_S,
+    STUDY_TEST_SEED,
     fde_ratio,
     fit_case,
-    levine_case,
     presets_beating_fitted,
-    simulated_case,
+    study_cases,
 )
 from fpe_jax.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "experiments" / "results"
-FIT_S, TEST_S, FIT_SEED, TEST_SEED = 60.0, 40.0, 1, 2
 # Levine is small (one lap) and real: let the fit choose the blend mode (3 solves). The simulated
 # tracks use the position blend (1 solve each) to keep the whole run within a few minutes.
 LEVINE_BLEND, SIM_BLEND = "auto", "position"
@@ -48,20 +49,7 @@ ORDER += ("ctrv",)
 
 def cases(say):
     """(case, blend) pairs: Levine when the shared data is there, then the simulated tracks."""
-    out = []
-    if (DATA / "levine").is_dir():
-        out.append((levine_case(DATA, holdout=0.4), LEVINE_BLEND))
-    else:
-        say(f"note: {DATA / 'levine'} not found; the real-data part is left out")
-    kw = dict(fit_s=FIT_S, test_s=TEST_S, latency_s=LATENCY_S, fit_seed=FIT_SEED)
-    kw["test_seed"] = TEST_SEED
-    for track in ("oval", "hairpin"):
-        out.append((simulated_case(track, **kw), SIM_BLEND))
-    if (DATA / "tracks").is_dir():
-        out += [(c, SIM_BLEND) for c in f1tenth_cases(DATA / "tracks", **kw)]
-    else:
-        say(f"note: {DATA / 'tracks'} not found; the F1TENTH tracks are left out")
-    return out
+    return [(c, LEVINE_BLEND if c.latency_s is None else SIM_BLEND) for c in study_cases(DATA, say)]
 
 
 def per_step_table(report: dict, dt_s: float) -> str:
@@ -128,8 +116,9 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
         "hard-coded to 1 m/s) and `seed-measured-speed` (same rules, measured speed); `ctrv` "
         "(constant turn rate and velocity) is an extra baseline. Errors are on data the fit did "
         "not see. Simulated drives: a "
-        f"{FIT_S:g} s fit drive (seed {FIT_SEED}) and a separate {TEST_S:g} s test drive (seed "
-        f"{TEST_SEED}) per track, detection latency {LATENCY_S} s, targets = the true positions; "
+        f"{STUDY_FIT_S:g} s fit drive (seed {STUDY_FIT_SEED}) and a separate {STUDY_TEST_S:g} s "
+        f"test drive (seed {STUDY_TEST_SEED}) per track, detection latency {LATENCY_S} s, "
+        "targets = the true positions; "
         "on the F1TENTH tracks the driver follows the raceline and the predictors get the "
         f"centerline. Fits: Levine with blend `{LEVINE_BLEND}`, simulated tracks with blend "
         f"`{SIM_BLEND}` (one solve each, for run time). Miss: final (1.0 s) error > 0.5 m. "

@@ -19,7 +19,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from fpe_jax.demo import LATENCY_S, f1tenth_cases, levine_case, simulated_case  # noqa: E402
+from fpe_jax.demo import study_cases  # noqa: E402
 from fpe_jax.fit import (  # noqa: E402
     SOLVERS,
     _datasets,
@@ -33,22 +33,11 @@ DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "experiments" / "results"
 
 
-def cases():
-    out = []
-    if (DATA / "levine").is_dir():
-        out.append(levine_case(DATA, holdout=0.4))
-    kw = dict(fit_s=60.0, test_s=40.0, latency_s=LATENCY_S, fit_seed=1, test_seed=2)
-    out += [simulated_case(t, **kw) for t in ("oval", "hairpin")]
-    if (DATA / "tracks").is_dir():
-        out += f1tenth_cases(DATA / "tracks", **kw)
-    return out
-
-
 def main() -> None:
     t_start = time.perf_counter()
     init = presets["default"]
     rows = []
-    for case in cases():
+    for case in study_cases(DATA, print):
         track = case.track()
         train = _datasets([case.fit_drive], [track], init.settings, "training")
         test = _datasets([case.test_drive], [track], init.settings, "held-out")
