@@ -58,9 +58,9 @@ RAW_RIDGE = 1e-3  # light pull of raw values toward 0: stops saturated weights f
 # place), so without a prior the fit can alternate 0/1 between steps. The penalty costs a jump of
 # 1 between neighbours as much as 1 % of the data's squared error budget at 1 m^2 per target.
 WEIGHT_SMOOTHING_M2 = 0.01
-# Both solvers are optimistix's. On a 10-minute simulated drive (15 free values, 6e4
-# predictions) BFGS reached a lower loss in a third of LM's time: an LM step needs the
-# (6e4*10*2, 15) Jacobian, ~18 forward passes, a BFGS step one gradient (see README, Fitting).
+# Both solvers are optimistix's. BFGS is the default: in experiments/results/solvers.md it ends
+# at an equal or lower loss on every drive (LM up to 2e-5 relative higher) in about the same
+# time. An LM step needs the full Jacobian (~18 forward passes), a BFGS step one gradient.
 SOLVERS = ("bfgs", "lm")
 DEFAULT_SOLVER = "bfgs"
 MAX_STEPS = {"bfgs": 1000, "lm": 200}  # BFGS counts line-search trials too
