@@ -125,6 +125,7 @@ def test_chunked_equals_predict_batch_float64(loop, loop_grid, preset):
     )
     assert out.shape == (N_CARS, params.settings.horizon, 3) and out.dtype == np.float64
     assert info["chunk"] == CHUNK and info["n_chunks"] == 3 and info["n_off_grid"] == 0
+    assert info["tail_chunk"] == 8  # the last 6 cars run in the next power of two, not in 32
     np.testing.assert_allclose(out, ref, atol=1e-9)
 
 
@@ -217,6 +218,20 @@ def test_one_worker_equals_several(loop, loop_grid):
     one = BatchPredictor(presets["default"], loop, workers=1, **kw)(cars)
     many = BatchPredictor(presets["default"], loop, workers=3, **kw)(cars)
     np.testing.assert_array_equal(one, many)
+
+
+def test_repeated_calls_run_all_chunks_at_once_with_the_same_result(loop, loop_grid):
+    """The first call runs its first chunk alone (it compiles); later calls put every chunk on
+    the threads at once, a smaller last chunk included."""
+    cars = _cars(loop, N_CARS, seed=11)
+    predictor = BatchPredictor(presets["default"], loop, grid=loop_grid, chunk=CHUNK, workers=3)
+    first = predictor(cars)
+    names = ("x_m", "y_m", "yaw_rad", "v_mps", "yaw_rate_rps", "s_m")
+    assert predictor._compiled == {(names, CHUNK)}
+    np.testing.assert_array_equal(predictor(cars), first)
+    info = {}
+    np.testing.assert_array_equal(predictor(cars[:CHUNK], info=info), first[:CHUNK])
+    assert info["tail_chunk"] == 0
 
 
 def test_chunk_size_rules():
