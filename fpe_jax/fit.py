@@ -64,6 +64,12 @@ WEIGHT_SMOOTHING_M2 = 0.01
 SOLVERS = ("bfgs", "lm")
 DEFAULT_SOLVER = "bfgs"
 MAX_STEPS = {"bfgs": 1000, "lm": 200}  # BFGS counts line-search trials too
+# BFGS minimises loss / (target points x BFGS_LOSS_UNIT_M2). Its first inverse Hessian is the
+# identity, so this unit sets the first steps' length: on the raw sum (~1e4 on a 10-minute
+# drive) most line-search trials were rejected. Measured over the solver study's drives plus a
+# 60-minute one (units 1e-3, 1/300, 1e-2, 3e-2 m^2): 1/300 took the fewest steps overall
+# (10-minute oval 234 -> 85, Levine 124 -> 108), at the same loss to 1e-8 but on Monza (5e-6).
+BFGS_LOSS_UNIT_M2 = 1.0 / 300
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,6 +172,23 @@ def _loss(raw_free, args):
     return 0.5 * jnp.sum(r * r)
 
 
+@jax.custom_jvp
+def _objective(raw_free, args):
+    """`_loss` with a hand-written derivative for the BFGS solver (which asks for it via
+    jax.linearize): one value-and-gradient pass, the directional derivative <grad, tangent>.
+    Only the raw values are differentiated (the solver holds args fixed). Linearizing the
+    rollout's scan instead took most of the solver's tracing and compile time."""
+    return _loss(raw_free, args)
+
+
+@_objective.defjvp
+def _objective_jvp(primals, tangents):
+    raw_free, args = primals
+    value, grad = jax.value_and_grad(_loss)(raw_free, args)
+    pairs = zip(jax.tree.leaves(grad), jax.tree.leaves(tangents[0]))
+    return value, sum(jnp.vdot(g, t) for g, t in pairs)
+
+
 # plain jax.jit (every argument is a pytree of arrays): it can be compiled ahead of the call from
 # shapes alone, while the states are still being estimated (see fit_params). Compiled solvers
 # are kept by argument structure, shapes and static settings (as jit's own cache would).
@@ -183,11 +206,17 @@ def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: str):
         run, fn = optx.least_squares, _residuals
         method = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5, norm=optx.rms_norm)
     else:
-        run, fn = optx.minimise, _loss
+        n_points = sum(jnp.sum(mask) for _, _, _, mask in groups)
+        scale = BFGS_LOSS_UNIT_M2 * jnp.maximum(n_points, 1)
+        run, fn = optx.minimise, lambda y, a: _objective(y, a) / scale  # see BFGS_LOSS_UNIT_M2
         method = optx.BFGS(rtol=1e-6, atol=1e-8, norm=optx.rms_norm)
     sol = run(fn, method, raw_free, args=args, max_steps=max_steps, throw=False)
     ok = sol.result == optx.RESULTS.successful
-    return sol.value, sol.stats["num_steps"], ok, _loss(sol.value, args)
+    # the solver's own evaluation at its last accepted point (sol.value): no further rollout
+    # to trace and compile (the first step is always accepted, so this is never its zero init)
+    info = sol.state.f_info
+    loss = info.f * scale if solver == "bfgs" else 0.5 * jnp.sum(info.residual * info.residual)
+    return sol.value, sol.stats["num_steps"], ok, loss
 
 
 def fit_params(
@@ -231,6 +260,8 @@ def fit_params(
     leaves, treedef = jax.tree.flatten((free, fixed, abstract, huber_m))
     key = (treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves), str(static))
     # XLA compiles the solver (seconds) on a second thread while this one estimates the states
+    # (measured against estimating them on the second thread while this one traces, and against
+    # no thread: 6.2 s vs 6.4 s and 6.7 s, medians of 6 fits of a 10-minute drive)
     with ThreadPoolExecutor(1) as pool:
         if key not in _COMPILED:
             lowered = _solve.lower(free, fixed, abstract, huber_m, **static)

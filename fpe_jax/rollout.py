@@ -182,7 +182,11 @@ def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> 
 
     yaw0 = state.yaw_rad
     init = (state.x_m, state.y_m, yaw0, jnp.cos(yaw0), jnp.sin(yaw0), s0)
-    # a rolled loop: scan(unroll=True) measured 2-4x slower here on CPU (larger fusions)
+    # a rolled loop: scan(unroll=True) measured 2-4x slower here on CPU (larger fusions).
+    # checkpoint: under reverse-mode (the fit) each step is recomputed from its carry rather
+    # than ~60 intermediates per step being stored; a 10-minute fit traced, compiled and ran
+    # 1.5x faster (medians of 5). Forward-only calls run the same code as without it.
+    step = jax.checkpoint(step, prevent_cse=False)  # scan already keeps steps apart
     _, (xs, ys, yaws) = jax.lax.scan(step, init, (_step_times(params), turn_scale))
     return _emit(xs, ys, wrap_angle(yaws))
 

@@ -114,6 +114,14 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
     (p_bfgs, i_bfgs), (p_lm, i_lm) = fits["bfgs"], fits["lm"]
     assert i_bfgs["converged"] and i_lm["converged"]
     assert i_bfgs["loss"] == pytest.approx(i_lm["loss"], rel=1e-4)
+    (d,) = data
+    groups = [(d.states(init), track, jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask))]
+    for params, info in fits.values():  # the reported loss is the loss at the returned values
+        raw = F.unconstrain(params)
+        free, fixed = eqx.partition(raw, F._free_mask(raw, ("delay", "speed")))
+        assert info["loss"] == pytest.approx(
+            float(F._loss(free, (fixed, groups, F.HUBER_M))), rel=1e-9
+        )
     assert float(p_bfgs.delay_s) == pytest.approx(float(p_lm.delay_s), abs=0.01)
     assert float(p_bfgs.speed_mps) == pytest.approx(float(p_lm.speed_mps), abs=0.05)
     with pytest.raises(InputError, match="solver"):
@@ -157,6 +165,28 @@ def test_residual_gradient_matches_finite_differences(oval_drives):
     fd = (loss(x0 + h) - loss(x0 - h)) / (2 * h)
     assert float(g) == pytest.approx(float(fd), rel=1e-5)
     assert abs(float(g)) > 1e-3
+
+
+def test_bfgs_objective_derivative_equals_autodiff_of_the_loss(oval_drives):
+    """`_objective`'s hand-written JVP (what BFGS linearizes) and the gradient taken through it
+    equal plain autodiff of `_loss`."""
+    fit_d, _, track = oval_drives
+    init = presets["default"]
+    data = F._datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
+    raw = F.unconstrain(init)
+    free, fixed = eqx.partition(raw, F._free_mask(raw, F.DEFAULT_FIT))
+    xy, mask = jnp.asarray(data.targets.xy_m), jnp.asarray(data.targets.mask)
+    args = (fixed, [(data.states(init), track, xy, mask)], F.HUBER_M)
+    tangent = jax.tree.map(lambda x: jnp.linspace(-1.0, 1.0, x.size).reshape(x.shape), free)
+    f_auto, d_auto = jax.jvp(lambda y: F._loss(y, args), (free,), (tangent,))
+    f_hand, lin = jax.linearize(lambda y: F._objective(y, args), free)
+    assert float(f_hand) == pytest.approx(float(f_auto), rel=1e-14)
+    assert float(lin(tangent)) == pytest.approx(float(d_auto), rel=1e-10)
+    assert abs(float(d_auto)) > 1e-3
+    g_auto = jax.grad(lambda y: F._loss(y, args))(free)
+    g_hand = jax.jit(jax.grad(lambda y: F._objective(y, args)))(free)
+    for a, b in zip(jax.tree.leaves(g_hand), jax.tree.leaves(g_auto)):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
 
 
 def test_summarize_and_coverage_exact():

@@ -158,6 +158,7 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
                 dtype=dtype,
                 n_cars=n,
                 chunk=info["chunk"],
+                tail_chunk=info["tail_chunk"],
                 n_chunks=info["n_chunks"],
                 n_off_grid=info["n_off_grid"],
                 first_call_s=first,
@@ -383,8 +384,7 @@ def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
 # ---- 4. FIT: fitting time and the SciPy baseline -----------------------------------------------
 # Drives are simulated (fpe_jax.sim) on its default track (the 30 m x 12 m oval; 0.3 s latency)
 # with a 10 Hz detector (noise and outliers on, no dropouts); targets come from the 50 Hz truth.
-# Each fit runs in a fresh process
-# so its time includes compilation. Timed: targets + state estimation + Levenberg-Marquardt
+# Each fit runs in a fresh process, so its time includes compilation. Timed: targets + state estimation + the solve
 # (`fpe_jax.fit.fit_params`, the default preset as start, the default fitted values). The SciPy
 # baseline minimises the same objective ported to NumPy (numpy_loss.py) with L-BFGS-B and
 # finite-difference gradients from the same start, on the 10-minute drive.
@@ -683,6 +683,14 @@ def _met(ok: bool) -> str:
     return "met" if ok else "not met"
 
 
+def _chunks(row: dict) -> str:
+    """The chunk column: the chunk shape, and the last chunk's when it is smaller."""
+    if "chunk" not in row:
+        return "-"
+    tail = row.get("tail_chunk", 0)
+    return f"{row['chunk']}" + (f" + {tail}" if tail else "")
+
+
 def write_markdown(results: dict, path: Path) -> None:
     m = results["machine"]
     lines = [
@@ -711,7 +719,7 @@ def write_markdown(results: dict, path: Path) -> None:
     ]
     for r in results["batch"] + results["core"] + results["ceiling"]:
         lines.append(
-            f"| {r['path']} | {r['dtype']} | {r['n_cars']:,} | {r.get('chunk', '-')} | "
+            f"| {r['path']} | {r['dtype']} | {r['n_cars']:,} | {_chunks(r)} | "
             f"{r['rate_per_s']:.3g} | {r['rate_per_cpu_s']:.3g} | {r['compile_s']:.2f} |"
         )
     s = results["seed_loop"]
