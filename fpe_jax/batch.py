@@ -345,7 +345,7 @@ class ChunkPlan:
     n_chunks: int
     dtype: str
     n_off_grid: int = 0
-    tail_chunk: int = 0  # shape of the last, partial chunk (0: every chunk is full)
+    tail_chunk: int = 0  # shape of a smaller last chunk (0: none, every chunk has `chunk` rows)
 
 
 def chunk_size(n_cars: int, chunk: int = DEFAULT_CHUNK, multiple: int = 1) -> int:
@@ -439,8 +439,8 @@ class BatchPredictor:
             raise InputError("out", f"array of shape {out.shape}", f"shape {out_shape}")
         c = chunk_size(n, self.max_chunk, self._n_devices)
         plan = ChunkPlan(n, c, math.ceil(n / c), np.dtype(self.dtype).name)
-        if n % c:
-            plan.tail_chunk = chunk_size(n % c, c, self._n_devices)
+        tail = chunk_size(n % c or c, c, self._n_devices)
+        plan.tail_chunk = tail if tail < c else 0
         with self._precision():
             ok = np.ones(n, dtype=bool)
             for start, stop, poses, good in self._run(names, table, c, progress):
@@ -465,10 +465,10 @@ class BatchPredictor:
         """Yield (start, stop, poses, ok) per chunk, as NumPy, in order.
 
         Chunks run on `workers` threads: XLA runs one chunk's step loop on one core, so two
-        chunks in flight use two (1.4x the rate on this 2-core machine); only the first chunk of
-        a shape not yet compiled runs alone, so that it compiles once (and a single chunk
-        runs on the calling thread: a pool costs ~0.4 ms). At most 2 x workers
-        results wait to be consumed, keeping memory bounded.
+        chunks in flight use two (1.4x the rate on this 2-core machine). The first chunk of a
+        shape not yet compiled runs alone, so that it compiles once, and a single chunk runs on
+        the calling thread (a pool costs ~0.4 ms). At most 2 x workers results wait to be
+        consumed, keeping memory bounded.
         """
         from fpe_jax import shard
 
@@ -476,7 +476,7 @@ class BatchPredictor:
 
         def work(start):
             stop = min(start + c, n)
-            rows = c if stop - start == c else chunk_size(stop - start, c, self._n_devices)
+            rows = chunk_size(stop - start, c, self._n_devices)  # c, or smaller for a tail
             with self._precision():  # config contexts are per thread
                 block = _pad_rows(table[start:stop], rows)
                 if self.mesh is not None:

@@ -59,7 +59,7 @@ RAW_RIDGE = 1e-3  # light pull of raw values toward 0: stops saturated weights f
 # 1 between neighbours as much as 1 % of the data's squared error budget at 1 m^2 per target.
 WEIGHT_SMOOTHING_M2 = 0.01
 # Both solvers are optimistix's. BFGS is the default: in experiments/results/solvers.md it ends
-# at an equal or lower loss on every drive (LM up to 2e-5 relative higher) in about the same
+# at an equal or lower loss on every drive (LM up to 2e-5 relative higher) in comparable
 # time. An LM step needs the full Jacobian (~18 forward passes), a BFGS step one gradient.
 SOLVERS = ("bfgs", "lm")
 DEFAULT_SOLVER = "bfgs"
@@ -67,8 +67,9 @@ MAX_STEPS = {"bfgs": 1000, "lm": 200}  # BFGS counts line-search trials too
 # BFGS minimises loss / (target points x BFGS_LOSS_UNIT_M2). Its first inverse Hessian is the
 # identity, so this unit sets the first steps' length: on the raw sum (~1e4 on a 10-minute
 # drive) most line-search trials were rejected. Measured over the solver study's drives plus a
-# 60-minute one (units 1e-3, 1/300, 1e-2, 3e-2 m^2): 1/300 took the fewest steps overall
-# (10-minute oval 234 -> 85, Levine 124 -> 108), at the same loss to 1e-8 but on Monza (5e-6).
+# 60-minute one (units 1e-3, 1/300, 1e-2, 3e-2 m^2): 1/300 took the fewest steps overall, at the
+# same loss to 1e-8 but on Monza (another local minimum, 5e-6 apart). Steps against the raw sum:
+# 10-minute oval 234 -> 85, Levine 124 -> 93 (experiments/results/solvers.md).
 BFGS_LOSS_UNIT_M2 = 1.0 / 300
 
 

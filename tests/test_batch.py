@@ -232,6 +232,8 @@ def test_repeated_calls_run_all_chunks_at_once_with_the_same_result(loop, loop_g
     info = {}
     np.testing.assert_array_equal(predictor(cars[:CHUNK], info=info), first[:CHUNK])
     assert info["tail_chunk"] == 0
+    np.testing.assert_array_equal(predictor(cars[:20], info=info), first[:20])
+    assert info["chunk"] == CHUNK and info["tail_chunk"] == 0  # one chunk: no separate tail
 
 
 def test_chunk_size_rules():

@@ -384,10 +384,11 @@ def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
 # ---- 4. FIT: fitting time and the SciPy baseline -----------------------------------------------
 # Drives are simulated (fpe_jax.sim) on its default track (the 30 m x 12 m oval; 0.3 s latency)
 # with a 10 Hz detector (noise and outliers on, no dropouts); targets come from the 50 Hz truth.
-# Each fit runs in a fresh process, so its time includes compilation. Timed: targets + state estimation + the solve
-# (`fpe_jax.fit.fit_params`, the default preset as start, the default fitted values). The SciPy
-# baseline minimises the same objective ported to NumPy (numpy_loss.py) with L-BFGS-B and
-# finite-difference gradients from the same start, on the 10-minute drive.
+# Each fit runs in a fresh process, so its time includes compilation. Timed: targets, state
+# estimation and the solve (`fpe_jax.fit.fit_params`, the default preset as start, the default
+# fitted values). The SciPy baseline minimises the same objective ported to NumPy
+# (numpy_loss.py) with L-BFGS-B and finite-difference gradients from the same start, on the
+# 10-minute drive.
 
 FIT_MINUTES = (1, 10, 60)
 SCIPY_MINUTES = 10
@@ -688,7 +689,7 @@ def _chunks(row: dict) -> str:
     if "chunk" not in row:
         return "-"
     tail = row.get("tail_chunk", 0)
-    return f"{row['chunk']}" + (f" + {tail}" if tail else "")
+    return f"{row['chunk']}" + (f" + {tail}" if 0 < tail < row["chunk"] else "")
 
 
 def write_markdown(results: dict, path: Path) -> None:
