@@ -140,8 +140,10 @@ def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     np.testing.assert_array_equal(inner.targets.mask, d.targets.mask & (due < cut - 0.05))
     a, _ = F.fit_params([inner], init, fit=("delay",))
     n_compiled = len(F._COMPILED)
-    b, _ = F.fit_params([d], init, fit=("delay",))  # other mask, same shapes: no new compile
+    b, info = F.fit_params([d], init, fit=("delay",))  # other mask, same shapes: no new compile
     assert len(F._COMPILED) == n_compiled
+    assert info["trace_s"] == info["compile_s"] == 0.0  # and the timing says so
+    assert 0.0 < info["solve_s"] <= info["seconds"]
     assert float(a.delay_s) != float(b.delay_s)  # and the masks did make a difference
     with pytest.raises(InputError, match="inner split"):
         F._before(d, 0.0, init.settings.dt_s)

@@ -431,6 +431,7 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         "n_samples": int(len(data.targets.rows)),
         "wall_s_incl_compile": total,
         "solve_s_incl_compile": info["seconds"],
+        **{k: info[k] for k in ("trace_s", "compile_s", "solve_s")},
         "solver": info["solver"],
         "steps": info["steps"],
         "converged": info["converged"],
@@ -495,6 +496,8 @@ def bench_fit(quick: bool) -> dict:
         row = next((r for r in runs if "scipy" in r), runs[0])
         row["wall_s_runs"] = [r["wall_s_incl_compile"] for r in runs]
         row["wall_s_incl_compile"] = float(np.median(row["wall_s_runs"]))
+        for k in ("trace_s", "compile_s", "solve_s"):  # where the time goes, medians
+            row[k] = float(np.median([r[k] for r in runs]))
         rows.append(row)
         print(
             f"  fit {m:g} min ({row['n_samples']} samples): median {row['wall_s_incl_compile']:.2f}"
@@ -512,17 +515,20 @@ def fit_markdown(fit: dict, summary: dict) -> list[str]:
         f"Simulated drives on the {fit['track']}, detections at 10 Hz (noise and outliers on), "
         "targets from the 50 Hz truth. JAX: `fpe_jax.fit.fit_params` (default solver: "
         "optimistix BFGS, float64), each run in a fresh process, so the time includes "
-        "compilation; it covers targets, state estimation and the solve. Median of the runs.",
+        "compilation; it covers targets, state estimation and the solve. Median of the runs; "
+        "of the wall time, the medians of tracing the solver, its XLA compilation (on a second "
+        "thread while the states are estimated) and the solve itself.",
         "",
-        "| drive | samples | fit wall [s] (incl. compile), median | runs [s] | solver steps "
-        "| final loss |",
-        "| ---: | ---: | ---: | --- | ---: | ---: |",
+        "| drive | samples | fit wall [s] (incl. compile), median | runs [s] | trace / compile / "
+        "solve [s] | solver steps | final loss |",
+        "| ---: | ---: | ---: | --- | --- | ---: | ---: |",
     ]
     for r in fit["drives"]:
         runs = ", ".join(f"{w:.1f}" for w in r.get("wall_s_runs", [r["wall_s_incl_compile"]]))
         lines.append(
             f"| {r['minutes']:g} min | {r['n_samples']:,} | {r['wall_s_incl_compile']:.2f} | "
-            f"{runs} | {r['steps']} ({r.get('solver', 'lm')}) | {r['loss']:.5g} |"
+            f"{runs} | {r['trace_s']:.2f} / {r['compile_s']:.2f} / {r['solve_s']:.2f} | "
+            f"{r['steps']} ({r['solver']}) | {r['loss']:.5g} |"
         )
     sp_rows = [r for r in fit["drives"] if "scipy" in r]
     if sp_rows:
@@ -688,8 +694,7 @@ def _chunks(row: dict) -> str:
     """The chunk column: the chunk shape, and the last chunk's when it is smaller."""
     if "chunk" not in row:
         return "-"
-    tail = row.get("tail_chunk", 0)
-    return f"{row['chunk']}" + (f" + {tail}" if 0 < tail < row["chunk"] else "")
+    return f"{row['chunk']}" + (f" + {row['tail_chunk']}" if row.get("tail_chunk") else "")
 
 
 def write_markdown(results: dict, path: Path) -> None:
