@@ -535,11 +535,14 @@ def run_stream(runner: Runner, lines, out, err) -> int:
     {"stamp": t, "poses": [[x, y, yaw] x H]}, flushed at once (a car's process pipes into it).
 
     Input lines: CSV `t,x,y[,yaw]` (an optional header as the first line names the columns) or
-    JSON objects {"t", "x", "y"[, "yaw"]}; blank and `#` lines are skipped. A malformed line is
-    reported on `err` with its line number and skipped. Returns 0 at the end of the input.
+    JSON objects {"t", "x", "y"[, "yaw"]}; blank and `#` lines are skipped, and so is a byte-order
+    mark before the first line. A malformed line is reported on `err` with its line number and
+    skipped. Returns 0 at the end of the input.
     """
     columns, first = None, True
     for lineno, line in enumerate(lines, 1):
+        if lineno == 1:  # a byte-order mark would hide the first header name
+            line = line.removeprefix("\ufeff")
         text = line.strip()
         if not text or text.startswith("#"):
             continue

@@ -4,7 +4,8 @@ One parser for every table format we meet:
 - comma, semicolon or whitespace separated (judged from the first data line);
 - `#` comment lines anywhere; a header either as the first non-comment line or as the last
   comment line before the data (the F1TENTH centerline/raceline style `# x_m, y_m, ...`);
-- no header at all (the 2019 project's files).
+- no header at all (the 2019 project's files);
+- a UTF-8 byte-order mark at the start of the file (ignored).
 Malformed input raises InputError naming the file and the line.
 """
 
@@ -77,7 +78,9 @@ def read_table(path) -> Table:
     if not p.is_file():
         raise InputError(p, "does not exist" if not p.exists() else "is not a file")
     try:
-        lines = p.read_text(encoding="utf-8").splitlines()
+        # utf-8-sig drops a leading byte-order mark ("CSV UTF-8" from spreadsheets), which
+        # would otherwise become part of the first header name.
+        lines = p.read_text(encoding="utf-8-sig").splitlines()
     except UnicodeDecodeError as e:
         raise InputError(p, f"is not a text file ({e.reason} at byte {e.start})", "a CSV") from e
 
