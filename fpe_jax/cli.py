@@ -95,8 +95,16 @@ def _build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("presets", help="list the built-in presets")
     p.set_defaults(func=cmd_presets)
 
-    p = sub.add_parser("info", help="topics, rates and the pose/truth topics a drive log would use")
-    p.add_argument("log", help="drive log: .mcap, rosbag2 folder, .bag or CSV")
+    p = sub.add_parser(
+        "info", help="topics, rates and the pose/truth topics of a log; a waypoint file's path"
+    )
+    p.add_argument(
+        "log", nargs="?", help="drive log: .mcap, rosbag2 folder, .bag or CSV (or --waypoints)"
+    )
+    p.add_argument(
+        "--waypoints",
+        help="describe this waypoint file too: loop or open, length, what cleaning removed",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_log_flags(p)
     p.set_defaults(func=cmd_info)
@@ -355,29 +363,85 @@ def cmd_predict(args) -> int:
     return 0
 
 
+def _describe_waypoints(path) -> dict:
+    """JSON-ready summary of a waypoint file and of the path the predictors build from it."""
+    from fpe_jax import io
+    from fpe_jax.path import build_path
+
+    wp = io.load_waypoints(path)
+    p = build_path(wp.xy_m, source=str(path))
+    return {
+        "source": str(path),
+        "format": wp.format,
+        "n_waypoints": len(wp.xy_m),
+        "closed": p["closed"],
+        "length_m": p["length_m"],
+        "n_points": len(p["xy_m"]),
+        "ds_m": p["ds_m"],
+        "min_step_m": p["min_step_m"],
+        "removed": {
+            "near_duplicate_idx": p["removed_close_idx"].tolist(),
+            "backtracking_idx": p["removed_backtrack_idx"].tolist(),
+        },
+    }
+
+
+def _index_ranges(idx: list[int]) -> str:
+    """[3, 4, 5, 9] -> '3-5, 9'."""
+    runs: list[list[int]] = []
+    for i in idx:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1][1] = i
+        else:
+            runs.append([i, i])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs)
+
+
 def cmd_info(args) -> int:
     import json
 
     from fpe_jax import io
 
-    info = io.describe_log(
-        args.log,
-        pose_topic=args.pose_topic,
-        truth_topic=args.truth_topic,
-        rate_hz=args.rate,
-        tf_parent=args.tf_parent,
-        tf_child=args.tf_child,
-    )
+    if args.log is None and args.waypoints is None:
+        raise InputError("LOG", "missing", "a drive log, or --waypoints W to describe waypoints")
+    info = {}
+    if args.log is not None:
+        info = io.describe_log(
+            args.log,
+            pose_topic=args.pose_topic,
+            truth_topic=args.truth_topic,
+            rate_hz=args.rate,
+            tf_parent=args.tf_parent,
+            tf_child=args.tf_child,
+        )
+    if args.waypoints is not None:
+        info["waypoints"] = _describe_waypoints(args.waypoints)
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
-    print(f"{info['source']}  ({info['format']}, {info['duration_s']:.3f} s)")
-    for t in info["topics"]:
-        rate = f"{t['rate_hz']:8.2f} Hz" if t["rate_hz"] is not None else "        - Hz"
-        print(f"  {t['name']:32s} {t['type']:40s} {t['count']:8d} msgs {rate}")
-    if info["pose_topic"] or "pose_error" in info:
-        print(f"pose:  {info['pose_topic'] or '(none: ' + info['pose_error'] + ')'}")
-        print(f"truth: {info['truth_topic'] or '(none)'}")
+    if args.log is not None:
+        print(f"{info['source']}  ({info['format']}, {info['duration_s']:.3f} s)")
+        for t in info["topics"]:
+            rate = f"{t['rate_hz']:8.2f} Hz" if t["rate_hz"] is not None else "        - Hz"
+            print(f"  {t['name']:32s} {t['type']:40s} {t['count']:8d} msgs {rate}")
+        if info["pose_topic"] or "pose_error" in info:
+            print(f"pose:  {info['pose_topic'] or '(none: ' + info['pose_error'] + ')'}")
+            print(f"truth: {info['truth_topic'] or '(none)'}")
+    if args.waypoints is not None:
+        w = info["waypoints"]
+        near, back = w["removed"]["near_duplicate_idx"], w["removed"]["backtracking_idx"]
+        print(f"{w['source']}  ({w['format']}, {w['n_waypoints']} waypoints)")
+        kind = "closed loop" if w["closed"] else "open path"
+        print(
+            f"  path: {kind}, {w['length_m']:.3f} m, {w['n_points']} points every {w['ds_m']:.4f} m"
+        )
+        where = (
+            f": {'index' if len(back) == 1 else 'indices'} {_index_ranges(back)}" if back else ""
+        )
+        print(
+            f"  removed: {len(near)} within {w['min_step_m']:g} m of the previous kept waypoint, "
+            f"{len(back)} back-tracking{where} (0-based)"
+        )
     return 0
 
 

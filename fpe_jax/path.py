@@ -6,6 +6,8 @@ so the two see exactly the same resampled points.
 
 from __future__ import annotations
 
+import bisect
+
 import numpy as np
 
 from fpe_jax.errors import InputError
@@ -16,18 +18,54 @@ def wrap_angle(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def _clean_polyline(xy: np.ndarray, min_step_m: float) -> np.ndarray:
-    """Drop jitter and backtracking: keep a point only if it is `min_step_m` from the last kept one
-    and does not reverse the direction of travel (hand-driven waypoints wobble and back up)."""
-    kept = [xy[0]]
-    for p in xy[1:]:
-        step = p - kept[-1]
-        if np.hypot(*step) < min_step_m:
+# How far back along the kept path a reversing point is compared with: backing up further than
+# this is not recording noise but a path that really turns back.
+_BACKTRACK_WINDOW_M = 10.0
+
+
+def _distance_to_polyline(p: np.ndarray, pts: np.ndarray) -> float:
+    """Distance [m] from point p (2,) to the polyline through pts (J, 2), J >= 2."""
+    a, ab = pts[:-1], np.diff(pts, axis=0)
+    t = np.clip(
+        np.einsum("jd,jd->j", p - a, ab) / np.maximum(np.einsum("jd,jd->j", ab, ab), 1e-300),
+        0.0,
+        1.0,
+    )
+    return float(np.min(np.hypot(*(a + t[:, None] * ab - p).T)))
+
+
+def _clean_polyline(
+    xy: np.ndarray, min_step_m: float, backtrack_tol_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drop jitter and back-tracking from hand-driven waypoints, keep every real corner.
+
+    A point is dropped when it is closer than `min_step_m` to the last kept one, or when its step
+    turns by 90 degrees or more *and* it lies within `backtrack_tol_m` of the last
+    `_BACKTRACK_WINDOW_M` of kept path: the recording went back over covered ground. A sharp
+    turn onto new ground (a square's corner, a hairpin drawn with few points) is kept.
+
+    Returns the kept points (J, 2) and the input indices dropped as too close (R1,) and as
+    back-tracking (R2,), both int64.
+    """
+    kept = [0]
+    s_m = [0.0]  # arc length at each kept point
+    close, back = [], []
+    for i in range(1, len(xy)):
+        p, last = xy[i], xy[kept[-1]]
+        step = p - last
+        step_m = float(np.hypot(*step))
+        if step_m < min_step_m:
+            close.append(i)
             continue
-        if len(kept) >= 2 and np.dot(step, kept[-1] - kept[-2]) <= 0.0:
-            continue
-        kept.append(p)
-    return np.asarray(kept)
+        if len(kept) >= 2 and np.dot(step, last - xy[kept[-2]]) <= 0.0:
+            first = bisect.bisect_left(s_m, s_m[-1] - _BACKTRACK_WINDOW_M)
+            recent = xy[kept[max(first - 1, 0) :]]
+            if _distance_to_polyline(p, recent) <= backtrack_tol_m:
+                back.append(i)
+                continue
+        kept.append(i)
+        s_m.append(s_m[-1] + step_m)
+    return xy[kept], np.array(close, dtype=np.int64), np.array(back, dtype=np.int64)
 
 
 def _resample(xy: np.ndarray, closed: bool, ds_m: float) -> np.ndarray:
@@ -60,6 +98,7 @@ def build_path(
     closed: bool | None = None,
     smooth_m: float = 0.3,
     min_step_m: float = 0.15,
+    backtrack_tol_m: float = 0.1,
     source: str = "waypoints",
 ) -> dict:
     """Resample waypoints (K, 2) [m] into a uniform path.
@@ -70,10 +109,16 @@ def build_path(
             within max(3 steps, 5 % of the length) of the start.
         smooth_m: half-width of the moving-average smoothing [m] (removes hand-driven jitter).
         min_step_m: waypoints closer than this to the previous kept one are dropped.
+        backtrack_tol_m: a waypoint whose step turns by 90 degrees or more is dropped as
+            back-tracking (a recording that backs up) when it lies within this distance [m] of
+            the path already kept; farther away it is a corner and stays.
         source: name used in error messages.
 
     Returns:
-        dict with xy_m (M, 2), heading_rad (M,), ds_m, length_m (floats), raw_xy_m (K, 2), closed.
+        dict with xy_m (M, 2), heading_rad (M,), ds_m, length_m (floats), raw_xy_m (K, 2), closed,
+        and what cleaning removed: removed_close_idx (R1,) (closer than min_step_m, the step used,
+        to the previous kept waypoint) and removed_backtrack_idx (R2,), int64 indices into the
+        waypoints as given.
     """
     xy = np.asarray(waypoints_xy_m, dtype=np.float64)
     if xy.ndim != 2 or xy.shape[1] != 2:
@@ -81,7 +126,7 @@ def build_path(
     if not np.all(np.isfinite(xy)):
         raise InputError(source, "waypoints contain NaN or inf", "finite x, y")
     step = min(min_step_m, ds_m * 1.5)
-    clean = _clean_polyline(xy, step)
+    clean, removed_close, removed_back = _clean_polyline(xy, step, backtrack_tol_m)
     if len(clean) < 3:
         raise InputError(source, f"only {len(clean)} distinct waypoints", "at least 3")
     seg = np.hypot(*np.diff(clean, axis=0).T)
@@ -108,4 +153,7 @@ def build_path(
         "length_m": float(length),
         "raw_xy_m": xy,
         "closed": bool(closed),
+        "min_step_m": float(step),
+        "removed_close_idx": removed_close,
+        "removed_backtrack_idx": removed_back,
     }

@@ -44,7 +44,7 @@ class Track(eqx.Module):
     @classmethod
     def from_waypoints(cls, waypoints_xy_m, **kwargs) -> Track:
         """Build a track from waypoints (K, 2) x [m], y [m]; keyword options as in
-        `fpe_jax.path.build_path` (ds_m, closed, smooth_m, min_step_m, source)."""
+        `fpe_jax.path.build_path` (ds_m, closed, smooth_m, min_step_m, backtrack_tol_m, source)."""
         p = build_path(waypoints_xy_m, **kwargs)
         xy = p["xy_m"]
         tangent = np.stack([np.cos(p["heading_rad"]), np.sin(p["heading_rad"])], axis=1)
