@@ -1,7 +1,9 @@
-"""Built-in race tracks, generated procedurally (no data files), and closed-loop polyline helpers.
+"""Built-in race tracks and closed-loop polyline helpers.
 
 Every track is a closed loop, counter-clockwise, given as its centerline sampled every ~0.1 m
-(the first point is not repeated at the end) plus the track's half-width.
+(the first point is not repeated at the end) plus the track's half-width. `oval` and `hairpin`
+are files shipped with the package (fpe_jax/builtin_tracks/, copies of data/tracks/, designed
+as straights and arcs by data/make_samples.py); `random:SEED` is generated from its seed.
 
 - ``oval``: a 30 m x 12 m stadium (two 18 m straights, two 6 m radius turns), half-width 1.1 m.
 - ``hairpin``: a ~71 m loop with a right-hand 1.5 m radius hairpin between two 2 m turns,
@@ -43,13 +45,23 @@ def builtin_track(name: str) -> tuple[np.ndarray, float]:
             first point not repeated.
         half_width_m: distance from the centerline to either edge [m].
     """
-    if name == "oval":
-        return _oval(), 1.1
-    if name == "hairpin":
-        return _hairpin(), 0.9
+    if name in ("oval", "hairpin"):
+        return _read_builtin(name)
     if is_builtin(name):
         return _random_loop(int(name.partition(":")[2]), half_width_m=1.1), 1.1
     raise InputError(name, "unknown built-in track", "oval, hairpin or random:SEED")
+
+
+def _read_builtin(name: str) -> tuple[np.ndarray, float]:
+    """A shipped track: fpe_jax/builtin_tracks/NAME.csv, the package's copy of data/tracks/."""
+    from importlib.resources import as_file, files
+
+    from fpe_jax.io.tables import read_table  # the one CSV parser (exact: Python's float())
+
+    with as_file(files("fpe_jax") / "builtin_tracks" / f"{name}.csv") as path:
+        table = read_table(path)
+    xy = np.column_stack([table.column(("x_m",), "x"), table.column(("y_m",), "y")])
+    return xy, float(table.column(("w_tr_left_m",), "half-width")[0])
 
 
 def loop_arclength(xy_m: np.ndarray) -> np.ndarray:
@@ -85,74 +97,6 @@ def resample_loop(
         return out, None
     v = np.asarray(values, dtype=float)
     return out, np.interp(s_new, s, np.append(v, v[0]))
-
-
-def _turtle(segments: list[tuple[float, float]], step_m: float = 0.01) -> np.ndarray:
-    """Trace straight/arc segments (length [m], curvature [1/m]) from the origin heading +x.
-
-    Positions are exact per arc (no integration drift), so a closed design closes exactly.
-    Returns (N, 2) points every `step_m`, closing point dropped.
-    """
-    x = y = th = 0.0
-    pts = []
-    for length_m, kappa in segments:
-        n = max(int(round(length_m / step_m)), 1)
-        s = np.arange(n) * (length_m / n)
-        if kappa == 0.0:
-            px, py = x + s * math.cos(th), y + s * math.sin(th)
-        else:
-            px = x + (np.sin(th + kappa * s) - math.sin(th)) / kappa
-            py = y - (np.cos(th + kappa * s) - math.cos(th)) / kappa
-        pts.append(np.stack([px, py], axis=1))
-        if kappa == 0.0:
-            x, y = x + length_m * math.cos(th), y + length_m * math.sin(th)
-        else:
-            x += (math.sin(th + kappa * length_m) - math.sin(th)) / kappa
-            y -= (math.cos(th + kappa * length_m) - math.cos(th)) / kappa
-        th += kappa * length_m
-    assert math.hypot(x, y) < 1e-9, "track design does not close"
-    return np.concatenate(pts)
-
-
-def _arc(radius_m: float, angle_rad: float) -> tuple[float, float]:
-    """A turn as a turtle segment: positive angle turns left, negative turns right."""
-    return radius_m * abs(angle_rad), math.copysign(1.0 / radius_m, angle_rad)
-
-
-def _oval() -> np.ndarray:
-    pi = math.pi
-    dense = _turtle([(18.0, 0.0), _arc(6.0, pi), (18.0, 0.0), _arc(6.0, pi)])
-    return resample_loop(_smooth_loop(dense, 2.0), SPACING_M)[0]
-
-
-def _hairpin() -> np.ndarray:
-    # East 20 m, wide left turn, then a left-right-left "S" whose middle is a 1.5 m radius
-    # hairpin (its two legs 3 m apart: 1.2 m of wall between the track edges), back west, and
-    # a wide left turn home. The x-displacements sum to zero, so the loop closes exactly.
-    pi = math.pi
-    design = [
-        (20.0, 0.0),
-        _arc(4.0, pi),
-        (5.0, 0.0),
-        _arc(2.0, pi / 2),
-        (1.0, 0.0),
-        _arc(1.5, -pi),
-        (1.0, 0.0),
-        _arc(2.0, pi / 2),
-        (8.0, 0.0),
-        _arc(4.0, pi),
-    ]
-    return resample_loop(_smooth_loop(_turtle(design), 1.0), SPACING_M)[0]
-
-
-def _smooth_loop(xy_m: np.ndarray, window_m: float, step_m: float = 0.01) -> np.ndarray:
-    """Moving average over `window_m` of a closed loop sampled every `step_m`: turns in and out
-    of arcs get gradual curvature (as on real tracks) instead of a jump."""
-    n = int(round(window_m / step_m))
-    pad = np.concatenate([xy_m[-n:], xy_m, xy_m[:n]])
-    kernel = np.ones(n) / n
-    smooth = [np.convolve(pad[:, c], kernel, mode="same")[n:-n] for c in (0, 1)]
-    return np.stack(smooth, axis=1)
 
 
 def _random_loop(seed: int, half_width_m: float) -> np.ndarray:
