@@ -10,12 +10,20 @@ to iterate decoded messages of chosen topics. Two back ends hide behind it:
 Decoded messages from both expose the same attribute names (`msg.header.stamp.sec`, ...), so the
 extraction code (`pose_rows`) is shared. Every error the libraries raise on a broken file -- which
 varies wildly and includes MemoryError for truncated MCAP -- becomes an `InputError`.
+
+MCAP chunks are read with their CRCs checked (the `mcap` reader skips that by default; rosbags
+checks them itself), so a damaged chunk is an error, not different poses: `corrupt_chunk` then
+finds which one, and the error names the file and the chunk's byte offset. The summary section
+(schemas, channels, chunk index) is checked against the footer's CRC before reading
+(`damaged_summary`). A chunk or summary written without a CRC (stored as 0) cannot be checked.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import struct
+import zlib
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -50,14 +58,113 @@ class TopicInfo:
         return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
 
 
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+_OP_FOOTER, _OP_CHUNK = 0x02, 0x06
+
+
+def _decompress(data: bytes, compression: str, size: int) -> bytes:
+    if compression == "":
+        return data
+    if compression == "zstd":
+        import zstandard
+
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(data)
+    raise ValueError(f"unknown chunk compression {compression!r}")
+
+
+def corrupt_chunk(path) -> str | None:
+    """What is wrong with the first damaged chunk of an MCAP file, found by walking its records.
+
+    Returns a description naming the byte offset of the first chunk that cannot be decompressed,
+    has the wrong size or fails its CRC, or of a record that runs past the end of the file; None
+    when every chunk is intact (or the file is not an MCAP at all).
+    """
+    with open(path, "rb") as f:
+        if f.read(8) != _MCAP_MAGIC:
+            return None
+        end = f.seek(0, 2)
+        offset = f.seek(8)
+        while offset + 9 <= end:
+            opcode, length = struct.unpack("<BQ", f.read(9))
+            if offset + 9 + length > end:
+                return (
+                    f"the record at byte offset {offset} runs past the end of the file "
+                    f"({length} bytes, {end - offset - 9} left: truncated?)"
+                )
+            if opcode == _OP_FOOTER:
+                return None
+            if opcode != _OP_CHUNK:
+                offset = f.seek(length, 1)
+                continue
+            # chunk: start, end time (2 x u64), records size (u64), CRC (u32), compression
+            # (u32-prefixed string), compressed records (u64-prefixed)
+            body = f.read(length)
+            size, crc, n = struct.unpack_from("<QII", body, 16)
+            compression = body[32 : 32 + n].decode("utf-8", "replace")
+            (n_data,) = struct.unpack_from("<Q", body, 32 + n)
+            chunk = f"the chunk at byte offset {offset}"
+            try:
+                records = _decompress(body[40 + n : 40 + n + n_data], compression, size)
+            except Exception as e:  # noqa: BLE001 -- any failure means the chunk is damaged
+                return f"{chunk} cannot be decompressed ({compression}: {type(e).__name__})"
+            if len(records) != size:
+                return f"{chunk} holds {len(records)} bytes, its header says {size}"
+            computed = zlib.crc32(records)
+            if crc != 0 and computed != crc:
+                return f"{chunk} fails its CRC (stored {crc:#010x}, computed {computed:#010x})"
+            offset += 9 + length
+    return None
+
+
+def damaged_summary(path) -> str | None:
+    """What the footer's CRC says is wrong with an MCAP file's summary section, or None.
+
+    The summary holds the schemas and channels the reader decodes with and the index of the
+    chunks; readers do not check its CRC, and one flipped bit in a schema can rename a field.
+    None also when the file has no summary or no summary CRC (stored as 0).
+    """
+    with open(path, "rb") as f:
+        size = f.seek(0, 2)
+        footer_at = size - 8 - 29  # the footer record (29 bytes) sits before the closing magic
+        if footer_at < 8:
+            return None
+        f.seek(footer_at)
+        opcode, length, start, _, crc = struct.unpack("<BQQQI", f.read(29))
+        if opcode != _OP_FOOTER or length != 20 or start == 0 or crc == 0:
+            return None
+        if start >= footer_at:
+            return f"is corrupt: its footer points to a summary at byte {start}, past the footer"
+        f.seek(start)
+        # The CRC covers the summary and the footer up to (not including) the CRC field.
+        computed = zlib.crc32(f.read(size - 8 - 4 - start))
+    if computed != crc:
+        return (
+            f"is corrupt: the summary section at byte offset {start} fails its CRC "
+            f"(stored {crc:#010x}, computed {computed:#010x})"
+        )
+    return None
+
+
 @contextlib.contextmanager
-def _library_errors(source: Path, fmt: str):
-    """Turn whatever a reader library raises on a broken file into one clear InputError."""
+def _library_errors(source: Path, fmt: str, mcap_files: tuple[Path, ...] = ()):
+    """Turn whatever a reader library raises on a broken file into one clear InputError; when an
+    MCAP file behind it has a damaged chunk, name that file and the chunk's byte offset."""
     try:
         yield
     except InputError:
         raise
     except Exception as e:  # the libraries raise anything, MemoryError included
+        for f in mcap_files:
+            try:
+                found = corrupt_chunk(f)
+            except Exception:  # noqa: BLE001 -- a file too broken to walk: report the original
+                found = None
+            if found is not None:
+                raise InputError(f, f"is corrupt: {found}", "an intact copy") from e
         detail = f"{type(e).__name__}: {e}"
         if len(detail) > 200:
             detail = detail[:200] + "..."
@@ -73,7 +180,16 @@ class Log:
         self.source = source  # what the user named
         self.format = fmt  # "mcap", "rosbag2" or "rosbag1"
         self._target = target  # the file or folder the back end opens
-        with _library_errors(source, fmt):
+        self._mcap_files: tuple[Path, ...] = ()  # checked for damaged chunks when reading fails
+        if fmt == "mcap":
+            self._mcap_files = (target,)
+        elif fmt == "rosbag2":
+            self._mcap_files = tuple(sorted(target.glob("*.mcap")))
+        for f in self._mcap_files:
+            problem = damaged_summary(f)
+            if problem is not None:
+                raise InputError(f, problem, "an intact copy")
+        with _library_errors(source, fmt, self._mcap_files):
             self.topics: dict[str, TopicInfo] = self._index()
 
     def _index(self) -> dict[str, TopicInfo]:
@@ -95,7 +211,7 @@ class Log:
 
     def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, str, int, Any]]:
         """Decoded (topic, short msgtype, log time [ns], message) of `topics`, in log-time order."""
-        with _library_errors(self.source, self.format):
+        with _library_errors(self.source, self.format, self._mcap_files):
             yield from self._raw(list(topics), decode=True)
 
     def _declared_topics(self) -> list[tuple[str, str]]:
@@ -103,7 +219,7 @@ class Log:
             from mcap.reader import make_reader
 
             with open(self._target, "rb") as f:
-                summary = make_reader(f).get_summary()
+                summary = make_reader(f, validate_crcs=True).get_summary()
             if summary is None:
                 return []
             return [
@@ -120,7 +236,8 @@ class Log:
 
             factory, decoders = DecoderFactory(), {}
             with open(self._target, "rb") as f:
-                for schema, channel, message in make_reader(f).iter_messages(topics):
+                reader = make_reader(f, validate_crcs=True)
+                for schema, channel, message in reader.iter_messages(topics):
                     name = rm.short_type(schema.name) if schema is not None else ""
                     msg = None
                     if decode:
