@@ -28,6 +28,21 @@ def _add_log_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-time", action="store_true", help="use recording time, not header.stamp")
     p.add_argument("--tf-parent", default="map", help="TF parent frame (default: map)")
     p.add_argument("--tf-child", default="other_base_link", help="TF child frame")
+    p.add_argument(
+        "--tag-id", type=int, metavar="N", help="AprilTag id on a detection topic (default: 0)"
+    )
+    p.add_argument(
+        "--tag-to-base",
+        metavar="X,Y,Z,YAW",
+        help="the tag's mount on the leading car: centre [m] in its base frame, facing YAW [rad]; "
+        "write --tag-to-base=-0.2,0,0.2,3.14 when X is negative (default: a tag -> base "
+        "transform in the log)",
+    )
+    p.add_argument(
+        "--drop-outside-tf",
+        action="store_true",
+        help="drop detections stamped outside the TF buffer instead of failing",
+    )
 
 
 def _add_predictor_flags(p: argparse.ArgumentParser, *, required: bool) -> None:
@@ -49,6 +64,9 @@ def _load_drive_from_args(args):
         log_time=args.log_time,
         tf_parent=args.tf_parent,
         tf_child=args.tf_child,
+        tag_id=args.tag_id,
+        tag_to_base=args.tag_to_base,
+        drop_outside_tf=args.drop_outside_tf,
     )
 
 
@@ -96,7 +114,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_presets)
 
     p = sub.add_parser(
-        "info", help="topics, rates and the pose/truth topics of a log; a waypoint file's path"
+        "info",
+        help="topics, rates, the TF tree and the pose/truth topics of a log; a waypoint file's path",
     )
     p.add_argument(
         "log", nargs="?", help="drive log: .mcap, rosbag2 folder, .bag or CSV (or --waypoints)"
@@ -121,9 +140,23 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument("--half-width", type=float, metavar="M", help="track half-width in metres")
     p.add_argument("--stops-per-min", type=float, default=0.0, help="mean stops per minute")
+    p.add_argument(
+        "--sensor",
+        choices=("map", "apriltag"),
+        default="map",
+        help="map: map-frame detections on /opp/pose (default); apriltag: the thesis' "
+        "recording (camera-frame tag detections, the trailing car's TF, field-of-view dropouts)",
+    )
     p.add_argument("--out", required=True, help="folder for drive.mcap, waypoints.csv, scenario")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty folder")
     p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("convert", help="write a drive log's observed poses as CSV t,x,y,yaw")
+    p.add_argument("log", help="drive log: .mcap, rosbag2 folder, .bag or CSV")
+    p.add_argument("--out", required=True, help="DRIVE.csv (what `fpe run` reads on stdin)")
+    p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    _add_log_flags(p)
+    p.set_defaults(func=cmd_convert)
 
     p = sub.add_parser("batch", help="predict many cars at once (chunked, compiled once)")
     p.add_argument("states", help="cars: CSV with header x,y,yaw,v[,yaw_rate], or .npy (N, 4|5)")
@@ -413,6 +446,8 @@ def cmd_info(args) -> int:
             rate_hz=args.rate,
             tf_parent=args.tf_parent,
             tf_child=args.tf_child,
+            tag_id=args.tag_id,
+            tag_to_base=args.tag_to_base,
         )
     if args.waypoints is not None:
         info["waypoints"] = _describe_waypoints(args.waypoints)
@@ -424,6 +459,7 @@ def cmd_info(args) -> int:
         for t in info["topics"]:
             rate = f"{t['rate_hz']:8.2f} Hz" if t["rate_hz"] is not None else "        - Hz"
             print(f"  {t['name']:32s} {t['type']:40s} {t['count']:8d} msgs {rate}")
+        _print_tf(info)
         if info["pose_topic"] or "pose_error" in info:
             print(f"pose:  {info['pose_topic'] or '(none: ' + info['pose_error'] + ')'}")
             print(f"truth: {info['truth_topic'] or '(none)'}")
@@ -445,6 +481,43 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _print_tf(info: dict) -> None:
+    """The TF tree and each detection topic's chain, as `fpe info` shows them."""
+    if info.get("tf_tree") or info.get("tf_error"):
+        print("TF tree:" + (f" ({info['tf_error']})" if info.get("tf_error") else ""))
+    for e in info.get("tf_tree", []):
+        indent = "  " * (e["depth"] + 1)
+        link = f"{indent}{e['parent']} -> {e['child']}"
+        if e["static"]:
+            print(f"{link:48s} static")
+        else:
+            rate = f"{e['rate_hz']:8.2f} Hz" if e["rate_hz"] is not None else "        - Hz"
+            span = f"[{e['first_s']:.3f}, {e['last_s']:.3f}] s"
+            print(f"{link:48s} dynamic {e['count']:8d} transforms {rate}  {span}")
+    for d in info.get("detections", []):
+        print(f"detections {d['name']} (tag {d['tag_id']}):", end="")
+        if "error" in d:
+            print(f" cannot be composed: {d['error']}")
+            continue
+        n, empty = d["n_arrays"], d["n_empty_arrays"]
+        print(f" {d['n_tag_detections']} of {n} arrays ({empty} empty)")
+        print("  chain: " + " -> ".join(d["chain"]))
+        for link in d["links"]:
+            print(f"    {link['link']:40s} {link['from']}")
+
+
+def cmd_convert(args) -> int:
+    from fpe_jax import io
+
+    io.check_output_path(args.out, args.force)
+    if Path(args.out).suffix.lower() != ".csv":
+        raise InputError(args.out, "unknown output format", ".csv")
+    drive = _load_drive_from_args(args)
+    io.write_drive_csv(args.out, drive, force=args.force)
+    print(f"wrote {len(drive.t_s)} poses to {args.out}", file=sys.stderr)
+    return 0
+
+
 def cmd_simulate(args) -> int:
     import dataclasses
     from pathlib import Path
@@ -462,6 +535,7 @@ def cmd_simulate(args) -> int:
         raceline=args.raceline,
         half_width_m=args.half_width,
         driver=dataclasses.replace(sim.Driver(), stops_per_min=args.stops_per_min),
+        camera=sim.Camera() if args.sensor == "apriltag" else None,
     )
     sim.write_simulation(res, out, force=args.force)
     d = res.drive

@@ -12,6 +12,10 @@ path = "../../shared/data/levine/actual-poses.csv"
 rate_hz = 10                   # also: pose_topic, truth_topic, waypoints, log_time
 
 [[drives]]
+path = "drives/camera.bag"     # AprilTag detections + TF: also tag_id (0), drop_outside_tf,
+tag_to_base = [-0.2, 0.0, 0.2, 3.14159]  # and the tag's mount ("x,y,z,yaw" or 4 numbers)
+
+[[drives]]
 simulate = { track = "oval", duration_s = 120, latency_s = 0.3, seed = 1 }
 """
 
@@ -24,7 +28,18 @@ from pathlib import Path
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 
-DRIVE_KEYS = {"path", "rate_hz", "pose_topic", "truth_topic", "waypoints", "log_time", "simulate"}
+DRIVE_KEYS = {
+    "path",
+    "rate_hz",
+    "pose_topic",
+    "truth_topic",
+    "waypoints",
+    "log_time",
+    "simulate",
+    "tag_id",
+    "tag_to_base",
+    "drop_outside_tf",
+}
 TOP_KEYS = {"out", "waypoints", "holdout", "fit", "blend", "solver", "drives", "test_drives"}
 
 
@@ -44,6 +59,7 @@ class Recipe:
 
 def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
     from fpe_jax import io
+    from fpe_jax.io.apriltag import parse_tag_to_base
 
     unknown = set(entry) - DRIVE_KEYS
     if unknown:
@@ -67,6 +83,9 @@ def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
         truth_topic=entry.get("truth_topic"),
         rate_hz=entry.get("rate_hz"),
         log_time=entry.get("log_time", False),
+        tag_id=entry.get("tag_id"),
+        tag_to_base=parse_tag_to_base(entry.get("tag_to_base"), f"{source}: tag_to_base"),
+        drop_outside_tf=entry.get("drop_outside_tf", False),
     )
     return drive, io.load_waypoints(base / wp).xy_m, str(base / entry["path"])
 

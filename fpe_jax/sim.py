@@ -12,6 +12,9 @@ pursuit), so fitting to these drives is honest:
 - sensor (after the thesis' AprilTag setup): detections at ~11.5 Hz with random inter-arrival
   times, a fixed latency (a detection shows the car `latency_s` before its stamp), noise growing
   with the range to the trailing car, yaw noise, ~1 % outliers, more dropouts in fast turns.
+- camera (optional, `Camera`): the trailing car's own motion (on the centerline, the sensor's
+  gap behind), its camera's field of view and the leading car's tag: detections drop out when
+  the tag leaves the view, and `write_simulation` writes the thesis' AprilTag layout.
 
 Everything is NumPy + `math`, deterministic per seed. Time starts at 0 at the first truth sample.
 """
@@ -104,6 +107,27 @@ class Sensor:
 
 
 @dataclasses.dataclass(frozen=True)
+class Camera:
+    """The trailing car's camera and the tag on the leading car (the thesis' AprilTag setup).
+
+    Frames: the trailing car's base_link (x forward, z up), its laser, the camera's optical frame
+    on top of the laser; the tag on the leading car's base frame, upright, facing `tag_yaw_rad`.
+    A capture sees the tag when the camera's optical centre has it within half the horizontal
+    field of view, within range, and the tag faces the camera within `max_incidence_rad`.
+    """
+
+    laser_xyz_m: tuple[float, float, float] = (0.27, 0.0, 0.1)  # laser in base_link
+    camera_xyz_m: tuple[float, float, float] = (0.0, 0.0, 0.06)  # camera in laser (on top)
+    hfov_rad: float = 1.1  # horizontal field of view (~63 deg: a C910 webcam at 640x480)
+    max_range_m: float = 5.0  # the thesis: 0.1085 m tags are found up to ~5 m at 640x480
+    max_incidence_rad: float = 1.2  # tag normal vs the line to the camera (~69 deg)
+    tag_id: int = 0
+    tag_size_m: float = 0.1085
+    tag_xyz_m: tuple[float, float, float] = (-0.2, 0.0, 0.2)  # tag centre in the car's frame
+    tag_yaw_rad: float = math.pi  # the tag faces backwards, towards the trailing car
+
+
+@dataclasses.dataclass(frozen=True)
 class SimResult:
     """A simulated drive and what it was made from.
 
@@ -118,6 +142,9 @@ class SimResult:
         outlier: (N,) which detections are outliers.
         range_m: (N,) distance from the trailing car's camera to the car at capture [m].
         scenario: every setting, the seed, latency, track name and simulator version (JSON-able).
+        ego_t_s, ego_xy_m, ego_yaw_rad: with a `Camera`, the trailing car's pose at the 50 Hz
+            truth stamps (the last stretched to the last detection's stamp) [s], [m], [rad].
+        missed_t_s: with a `Camera`, the stamps [s] of captures that gave no detection.
     """
 
     drive: Drive
@@ -130,6 +157,10 @@ class SimResult:
     outlier: np.ndarray
     range_m: np.ndarray
     scenario: dict[str, Any]
+    ego_t_s: np.ndarray | None = None
+    ego_xy_m: np.ndarray | None = None
+    ego_yaw_rad: np.ndarray | None = None
+    missed_t_s: np.ndarray | None = None
 
 
 def simulate(
@@ -143,6 +174,7 @@ def simulate(
     vehicle: Vehicle = Vehicle(),
     driver: Driver = Driver(),
     sensor: Sensor = Sensor(),
+    camera: Camera | None = None,
 ) -> SimResult:
     """Simulate the leading car for `duration_s` and what the trailing car's detector reports.
 
@@ -157,6 +189,8 @@ def simulate(
             the centerline, at its (scaled, clipped) speeds.
         half_width_m: track half-width [m]; default: the built-in's, else 1.1 (F1TENTH tracks).
         vehicle, driver, sensor: model settings.
+        camera: the trailing car's camera and the leading car's tag: adds field-of-view dropouts
+            and the trailing car's motion (None: neither; every other number is the same).
 
     Returns:
         A `SimResult`; detections stamped after `duration_s` are not recorded.
@@ -182,7 +216,7 @@ def simulate(
 
     truth = states[::TRUTH_EVERY]
     truth_t = t_steps[::TRUTH_EVERY]
-    det = _detect(rng_sensor, t_steps, states, center, duration_s, latency_s, sensor)
+    det = _detect(rng_sensor, t_steps, states, center, duration_s, latency_s, sensor, camera)
 
     scenario = dict(
         sim_version=SIM_VERSION,
@@ -199,6 +233,16 @@ def simulate(
         driver=dataclasses.asdict(driver),
         sensor=dataclasses.asdict(sensor),
     )
+    extra: dict[str, Any] = {}
+    meta_extra: dict[str, Any] = {}
+    if camera is not None:
+        scenario["camera"] = dataclasses.asdict(camera)
+        ego_t = truth_t.copy()
+        ego_xy, ego_yaw = _ego_pose(truth[:, 0:2], det["gap_fn"](truth_t), center)
+        if len(det["stamp"]):  # lookups never extrapolate: the TF must reach the last stamp
+            ego_t[-1] = max(ego_t[-1], float(det["stamp"][-1]))
+        extra = dict(ego_t_s=ego_t, ego_xy_m=ego_xy, ego_yaw_rad=ego_yaw, missed_t_s=det["missed"])
+        meta_extra = dict(n_out_of_view=det["n_out_of_view"])
     drive = Drive(
         t_s=det["stamp"],
         xy_m=det["xy"],
@@ -216,6 +260,7 @@ def simulate(
             n_captured=det["n_captured"],
             n_dropped=det["n_captured"] - len(det["stamp"]),
             n_outliers=int(det["outlier"].sum()),
+            **meta_extra,
         ),
     )
     return SimResult(
@@ -229,6 +274,7 @@ def simulate(
         outlier=det["outlier"],
         range_m=det["range"],
         scenario=scenario,
+        **extra,
     )
 
 
@@ -329,11 +375,16 @@ def _nearest(points_m: np.ndarray, loop_m: np.ndarray) -> np.ndarray:
 
 def _smooth_random(rng, t_s: np.ndarray, amplitude: float, period_s, n: int = 3) -> np.ndarray:
     """A smooth random signal on `t_s`: n sinusoids of random period/phase, |value| <= amplitude."""
+    return _smooth_random_fn(rng, amplitude, period_s, n)(t_s)
+
+
+def _smooth_random_fn(rng, amplitude: float, period_s, n: int = 3):
+    """The signal of `_smooth_random` as a function of time (N,) [s] -> (N,), to sample anywhere."""
     periods = rng.uniform(*period_s, size=n)
     phases = rng.uniform(0.0, 2 * math.pi, size=n)
     weights = rng.uniform(0.5, 1.0, size=n)
     weights *= amplitude / weights.sum()
-    return np.sin(2 * math.pi * t_s[:, None] / periods + phases) @ weights
+    return lambda t_s: np.sin(2 * math.pi * t_s[:, None] / periods + phases) @ weights
 
 
 def _stop_schedule(rng, duration_s: float, driver: Driver) -> tuple[list[float], list[float]]:
@@ -506,11 +557,65 @@ def _make_dynamics(veh: Vehicle):
 # --- sensor -------------------------------------------------------------------------------------
 
 
-def _detect(rng, t_steps, states, center_xy_m, duration_s, latency_s, sen: Sensor) -> dict:
+def _project_s(points_m: np.ndarray, loop_m: np.ndarray) -> np.ndarray:
+    """(P,) arc length [m] of each point's (P, 2) orthogonal projection onto a closed loop (K, 2)
+    (onto one of the two segments at its nearest vertex)."""
+    s = loop_arclength(loop_m)
+    k = _nearest(points_m, loop_m)
+    best_s, best_d2 = np.zeros(len(points_m)), np.full(len(points_m), np.inf)
+    for a in (k - 1) % len(loop_m), k:
+        b = (a + 1) % len(loop_m)
+        seg = loop_m[b] - loop_m[a]
+        seg_len2 = np.maximum(np.sum(seg * seg, axis=1), 1e-18)
+        u = np.clip(np.sum((points_m - loop_m[a]) * seg, axis=1) / seg_len2, 0.0, 1.0)
+        d2 = np.sum((loop_m[a] + u[:, None] * seg - points_m) ** 2, axis=1)
+        better = d2 < best_d2
+        best_s = np.where(better, s[a] + u * np.sqrt(seg_len2), best_s)
+        best_d2 = np.minimum(d2, best_d2)
+    return best_s
+
+
+def _ego_pose(lead_xy_m: np.ndarray, gap_m: np.ndarray, center_xy_m: np.ndarray):
+    """The trailing car with a camera: on the centerline, gap_m (N,) [m] behind the leading car's
+    (lead_xy_m (N, 2)) projection onto it. Returns xy (N, 2) [m] and heading (N,) [rad] (the
+    centerline's, interpolated between vertex tangents)."""
+    s = loop_arclength(center_xy_m)
+    closed = np.vstack([center_xy_m, center_xy_m[:1]])
+    s_ego = np.mod(_project_s(lead_xy_m, center_xy_m) - gap_m, s[-1])
+    ego = np.stack([np.interp(s_ego, s, closed[:, 0]), np.interp(s_ego, s, closed[:, 1])], 1)
+    d = np.roll(center_xy_m, -1, axis=0) - np.roll(center_xy_m, 1, axis=0)
+    heading = np.unwrap(np.append(np.arctan2(d[:, 1], d[:, 0]), math.atan2(d[0, 1], d[0, 0])))
+    return ego, _wrap(np.interp(s_ego, s, heading))
+
+
+def _in_view(ego_xy, ego_yaw, lead_xy, lead_yaw, cam: Camera) -> np.ndarray:
+    """(N,) whether the trailing car's camera sees the leading car's tag (planar geometry)."""
+
+    def ahead(xy, yaw, offset):
+        c, s = np.cos(yaw), np.sin(yaw)
+        return xy + np.stack([c * offset[0] - s * offset[1], s * offset[0] + c * offset[1]], 1)
+
+    cam_xy = ahead(ego_xy, ego_yaw, np.add(cam.laser_xyz_m, cam.camera_xyz_m))
+    tag_xy = ahead(lead_xy, lead_yaw, cam.tag_xyz_m)
+    d = tag_xy - cam_xy
+    dist = np.linalg.norm(d, axis=1)
+    bearing = _wrap(np.arctan2(d[:, 1], d[:, 0]) - ego_yaw)
+    face = lead_yaw + cam.tag_yaw_rad
+    cos_incidence = -(np.cos(face) * d[:, 0] + np.sin(face) * d[:, 1]) / np.maximum(dist, 1e-9)
+    return (
+        (np.abs(bearing) <= cam.hfov_rad / 2)
+        & (dist <= cam.max_range_m)
+        & (cos_incidence >= math.cos(cam.max_incidence_rad))
+    )
+
+
+def _detect(
+    rng, t_steps, states, center_xy_m, duration_s, latency_s, sen: Sensor, cam: Camera | None
+) -> dict:
     """Detections of the car: capture times, what the detector reports, and when it arrives.
 
     Every random number is drawn for every capture whatever the settings, so a clean sensor sees
-    the same capture times as a noisy one with the same seed.
+    the same capture times as a noisy one with the same seed; a camera only removes detections.
     """
     period = 1.0 / sen.rate_hz
     n_max = int(duration_s * sen.rate_hz * 1.5) + 10
@@ -520,14 +625,15 @@ def _detect(rng, t_steps, states, center_xy_m, duration_s, latency_s, sen: Senso
     jump_m = rng.uniform(*sen.outlier_jump_m, size=n_max)
     jump_dir = rng.uniform(0.0, 2 * math.pi, size=n_max)
     z_along, z_across, z_yaw = rng.standard_normal((3, n_max))
-    gap_m = np.mean(sen.ego_gap_m) + _smooth_random(
-        rng, capture, 0.5 * (sen.ego_gap_m[1] - sen.ego_gap_m[0]), (5.0, 15.0)
-    )
+    wander = _smooth_random_fn(rng, 0.5 * (sen.ego_gap_m[1] - sen.ego_gap_m[0]), (5.0, 15.0))
+    gap_m = np.mean(sen.ego_gap_m) + wander(capture)
 
     keep = capture + latency_s <= duration_s + 1e-9
     capture = capture[keep]
     x, y, yaw, _, r = (np.interp(capture, t_steps, states[:, c]) for c in range(5))
-    # The trailing car drives on the centerline, gap_m behind the car's projection onto it.
+    yaw_true = yaw
+    # The trailing car drives on the centerline, gap_m behind the car's projection onto it
+    # (for the noise, the projection is the nearest centerline vertex).
     s = loop_arclength(center_xy_m)
     closed = np.vstack([center_xy_m, center_xy_m[:1]])
     s_ego = np.mod(s[:-1][_nearest(np.stack([x, y], 1), center_xy_m)] - gap_m[keep], s[-1])
@@ -545,6 +651,16 @@ def _detect(rng, t_steps, states, center_xy_m, duration_s, latency_s, sen: Senso
     yaw = _wrap(yaw + sen.yaw_sigma_rad * z_yaw[keep])
     fast = np.maximum(np.abs(r) - sen.miss_yaw_rate_rps, 0.0)
     seen = u_miss[keep] >= np.minimum(sen.miss_prob + sen.miss_per_radps * fast, 0.9)
+    extra = {}
+    if cam is not None:
+        ego_xy, ego_yaw = _ego_pose(np.stack([x, y], 1), gap_m[keep], center_xy_m)
+        visible = _in_view(ego_xy, ego_yaw, np.stack([x, y], 1), yaw_true, cam)
+        extra = dict(
+            n_out_of_view=int(np.sum(seen & ~visible)),
+            missed=capture[~(seen & visible)] + latency_s,
+            gap_fn=lambda t: np.mean(sen.ego_gap_m) + wander(t),
+        )
+        seen &= visible
     return dict(
         capture=capture[seen],
         stamp=capture[seen] + latency_s,
@@ -553,6 +669,7 @@ def _detect(rng, t_steps, states, center_xy_m, duration_s, latency_s, sen: Senso
         outlier=outlier[seen],
         range=range_m[seen],
         n_captured=int(len(capture)),
+        **extra,
     )
 
 
@@ -567,12 +684,21 @@ POSE_TOPIC, ODOM_TOPIC, TF_TOPIC = "/opp/pose", "/opp/odom", "/tf"
 MAP_FRAME, CAR_FRAME = "map", "other_base_link"
 
 
-def write_simulation(res: SimResult, out_dir: str | Path, *, force: bool = False) -> list[Path]:
+def write_simulation(
+    res: SimResult, out_dir: str | Path, *, force: bool = False, layout: str | None = None
+) -> list[Path]:
     """Write a simulated drive as DIR/drive.mcap, DIR/waypoints.csv and DIR/scenario.json.
 
-    drive.mcap holds `/opp/pose` (geometry_msgs/PoseStamped detections, stamped at arrival),
-    `/opp/odom` (nav_msgs/Odometry truth, 50 Hz) and `/tf` (map -> other_base_link truth, 50 Hz);
-    waypoints.csv the centerline (header ``x,y``, metres); scenario.json every setting.
+    layout "map" (the default without a camera): drive.mcap holds `/opp/pose`
+    (geometry_msgs/PoseStamped detections, stamped at arrival), `/opp/odom` (nav_msgs/Odometry
+    truth, 50 Hz) and `/tf` (map -> other_base_link truth, 50 Hz).
+    layout "apriltag" (the default with a camera; needs one): the thesis' recording instead --
+    `/tag_detections` (apriltag_ros/msg/AprilTagDetectionArray: the tag's pose in the camera
+    frame, an empty array for each capture without a detection), `/tf` (the trailing car's
+    map -> base_link, 50 Hz), `/tf_static` (base_link -> laser -> camera, tag_0 ->
+    other_base_link) and `/opp/odom`; each detection composes back to the map-frame pose the
+    "map" layout would hold (see `fpe_jax.io.apriltag`).
+    waypoints.csv holds the centerline (header ``x,y``, metres); scenario.json every setting.
 
     Raises InputError if `out_dir` is a file, or an existing non-empty folder and not `force`.
     Returns the written paths.
@@ -581,6 +707,11 @@ def write_simulation(res: SimResult, out_dir: str | Path, *, force: bool = False
 
     from fpe_jax.io import write_drive_mcap
 
+    layout = layout or ("map" if res.ego_t_s is None else "apriltag")
+    if layout not in ("map", "apriltag"):
+        raise InputError("layout", f"{layout!r}", "map or apriltag")
+    if layout == "apriltag" and res.ego_t_s is None:
+        raise InputError("layout", "apriltag needs a drive simulated with a camera", "camera=")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(out, "is a file", "a folder to write the simulated drive into")
@@ -589,25 +720,32 @@ def write_simulation(res: SimResult, out_dir: str | Path, *, force: bool = False
     out.mkdir(parents=True, exist_ok=True)
     d = res.drive
     truth = dict(t_s=d.truth_t_s, xy_m=d.truth_xy_m, yaw_rad=d.truth_yaw_rad)
-    mcap = write_drive_mcap(
-        out / "drive.mcap",
-        pose=dict(topic=POSE_TOPIC, t_s=d.t_s, xy_m=d.xy_m, yaw_rad=d.yaw_rad, frame_id=MAP_FRAME),
-        odom=dict(
-            truth,
-            topic=ODOM_TOPIC,
-            v_mps=d.truth_v_mps,
-            yaw_rate_rps=res.truth_yaw_rate_rps,
-            frame_id=MAP_FRAME,
-            child_frame_id=CAR_FRAME,
-        ),
-        tf=dict(truth, topic=TF_TOPIC, parent=MAP_FRAME, child=CAR_FRAME),
-        force=force,
+    odom = dict(
+        truth,
+        topic=ODOM_TOPIC,
+        v_mps=d.truth_v_mps,
+        yaw_rate_rps=res.truth_yaw_rate_rps,
+        frame_id=MAP_FRAME,
+        child_frame_id=CAR_FRAME,
     )
+    if layout == "map":
+        mcap = write_drive_mcap(
+            out / "drive.mcap",
+            pose=dict(
+                topic=POSE_TOPIC, t_s=d.t_s, xy_m=d.xy_m, yaw_rad=d.yaw_rad, frame_id=MAP_FRAME
+            ),
+            odom=odom,
+            tf=dict(truth, topic=TF_TOPIC, parent=MAP_FRAME, child=CAR_FRAME),
+            force=force,
+        )
+        topics = dict(pose=POSE_TOPIC, odom=ODOM_TOPIC, tf=TF_TOPIC, frames=[MAP_FRAME, CAR_FRAME])
+    else:
+        mcap, topics = _write_apriltag_layout(res, out / "drive.mcap", odom, force)
     waypoints = out / "waypoints.csv"
     np.savetxt(waypoints, res.centerline_xy_m, fmt="%.6f", delimiter=",", header="x,y", comments="")
     scenario = out / "scenario.json"
     summary = dict(
-        topics=dict(pose=POSE_TOPIC, odom=ODOM_TOPIC, tf=TF_TOPIC, frames=[MAP_FRAME, CAR_FRAME]),
+        topics=topics,
         n_detections=len(d.t_s),
         n_truth=len(d.truth_t_s),
         n_outliers=d.meta["n_outliers"],
@@ -615,3 +753,41 @@ def write_simulation(res: SimResult, out_dir: str | Path, *, force: bool = False
     )
     scenario.write_text(json.dumps(res.scenario | summary, indent=2) + "\n")
     return [mcap, waypoints, scenario]
+
+
+def apriltag_layout(res: SimResult) -> dict[str, Any]:
+    """The keyword arguments of `fpe_jax.io.apriltag.apriltag_events` for a drive simulated with
+    a `Camera`: its detections, the trailing car's motion, the mounts and the tag."""
+    from fpe_jax.io import apriltag as at
+    from fpe_jax.io.tf import Rigid
+
+    if res.ego_t_s is None:
+        raise InputError("layout", "apriltag needs a drive simulated with a camera", "camera=")
+    cam = Camera(**res.scenario["camera"])
+    d = res.drive
+    return dict(
+        detections=dict(t_s=d.t_s, xy_m=d.xy_m, yaw_rad=d.yaw_rad),
+        ego=dict(t_s=res.ego_t_s, xy_m=res.ego_xy_m, yaw_rad=res.ego_yaw_rad),
+        laser_in_base=Rigid.make(cam.laser_xyz_m, [0.0, 0.0, 0.0, 1.0]),
+        camera_in_laser=Rigid.make(cam.camera_xyz_m, at.OPTICAL_IN_BODY.q[0]),
+        tag_in_car=at.tag_mount(*cam.tag_xyz_m, cam.tag_yaw_rad),
+        empty_t_s=res.missed_t_s,
+        tag_id=cam.tag_id,
+        tag_size_m=cam.tag_size_m,
+    )
+
+
+def _write_apriltag_layout(res: SimResult, path: Path, odom: dict, force: bool):
+    """The "apriltag" layout of `write_simulation`: (written path, scenario topics)."""
+    from fpe_jax.io import apriltag as at
+
+    layout = apriltag_layout(res)
+    written = at.write_apriltag_mcap(path, odom=odom, force=force, **layout)
+    f = at.FRAMES
+    tag = at.tag_frame_name(layout["tag_id"], "apriltag_ros")
+    topics = dict(
+        detections=at.DETECTION_TOPIC, odom=ODOM_TOPIC, tf=TF_TOPIC, tf_static="/tf_static"
+    )
+    return written, dict(
+        topics, frames=[f["map"], f["base"], f["laser"], f["camera"], tag, f["car"]]
+    )

@@ -3,12 +3,19 @@
 Readers: `load_drive` (ROS 2 MCAP, rosbag2 folders, ROS 1 bags, CSV) -> `Drive`;
 `load_waypoints` (CSV variants, nav_msgs/Path in a log) -> `Waypoints`; `describe_log`.
 Writers: `write_predictions` (CSV / MCAP), `write_drive_mcap` (simulated drives),
-`check_output_path`. Every bad input raises `fpe_jax.errors.InputError`.
+`write_drive_csv` (a drive's observations), `check_output_path`. AprilTag detections plus the
+log's TF are composed into map-frame poses by `fpe_jax.io.apriltag` (TF math: `fpe_jax.io.tf`).
+Every bad input raises `fpe_jax.errors.InputError`.
 """
 
 from fpe_jax.io.drives import describe_log, load_drive
 from fpe_jax.io.waypoints import Waypoints, load_waypoints
-from fpe_jax.io.writers import check_output_path, write_drive_mcap, write_predictions
+from fpe_jax.io.writers import (
+    check_output_path,
+    write_drive_csv,
+    write_drive_mcap,
+    write_predictions,
+)
 
 __all__ = [
     "Waypoints",
@@ -16,6 +23,7 @@ __all__ = [
     "describe_log",
     "load_drive",
     "load_waypoints",
+    "write_drive_csv",
     "write_drive_mcap",
     "write_predictions",
 ]

@@ -2,8 +2,10 @@
 
 Topic choice when the caller names none (documented in `load_drive`):
   pose:  the only PoseStamped / PoseWithCovarianceStamped topic; else the only TFMessage topic
-         carrying the tf_parent -> tf_child transform; else the only Odometry topic. Two or more
-         candidates at the first level that has any is an error listing them.
+         carrying the tf_parent -> tf_child transform; else the only AprilTagDetectionArray
+         topic (composed into the map through the log's TF, see `fpe_jax.io.apriltag`); else the
+         only Odometry topic. Two or more candidates at the first level that has any is an error
+         listing them.
   truth: the only Odometry topic other than the pose topic, if exactly one has messages.
 So a simulated drive (/opp/pose PoseStamped, /opp/odom Odometry, /tf) reads as
 pose=/opp/pose, truth=/opp/odom.
@@ -18,8 +20,9 @@ import numpy as np
 
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
+from fpe_jax.io import apriltag, tables
 from fpe_jax.io import ros_msgs as rm
-from fpe_jax.io import tables
+from fpe_jax.io.apriltag import DETECTION_TYPES
 from fpe_jax.io.logs import (
     ODOMETRY_TYPES,
     POSE_TYPES,
@@ -30,8 +33,11 @@ from fpe_jax.io.logs import (
     open_log,
     pose_rows,
 )
+from fpe_jax.io.tf import TfBuffer
 
-_POSE_EXPECTED = "PoseStamped, PoseWithCovarianceStamped, Odometry or TFMessage"
+_POSE_EXPECTED = (
+    "PoseStamped, PoseWithCovarianceStamped, Odometry, TFMessage or AprilTagDetectionArray"
+)
 
 
 def _topic_list(topics) -> str:
@@ -54,13 +60,13 @@ def _check_topic(log: Log, topic: str, role: str, tf_pair: tuple[str, str]) -> N
     """InputError unless `topic` exists, has a pose type, has messages (and the TF pair)."""
     info = log.topics.get(topic)
     if info is None:
-        candidates = [t for t, i in log.topics.items() if i.msgtype in POSE_TYPES]
+        candidates = [t for t, i in log.topics.items() if i.msgtype in POSE_TYPES + DETECTION_TYPES]
         raise InputError(
             log.source,
             f"no {role} topic {topic!r}; topics of a usable type: {_topic_list(candidates)}",
             f"one of {_topic_list(list(log.topics))}" if not candidates else None,
         )
-    if info.msgtype not in POSE_TYPES:
+    if info.msgtype not in POSE_TYPES + DETECTION_TYPES:
         raise InputError(
             log.source,
             f"{role} topic {topic!r} has type {info.msgtype or 'unknown'}",
@@ -81,7 +87,7 @@ def choose_topics(
 ) -> tuple[str, str | None]:
     """(pose topic, truth topic or None) by the rules in the module docstring."""
     if pose_topic is None:
-        for kind in (STAMPED_POSE_TYPES, TF_TYPES, ODOMETRY_TYPES):
+        for kind in (STAMPED_POSE_TYPES, TF_TYPES, DETECTION_TYPES, ODOMETRY_TYPES):
             found = [t for t, i in log.topics.items() if i.msgtype in kind and i.count]
             if kind is TF_TYPES:  # only decoded when no stamped pose topic exists
                 found = [t for t in found if tf_pair in _tf_pairs(log, t, tf_pair)]
@@ -154,23 +160,59 @@ def _clean(source, what: str, t_ns: np.ndarray, cols: dict[str, np.ndarray], fin
     return t_s[last], {k: v[keep] for k, v in cols.items()}, counts
 
 
-def _log_series(log: Log, topic: str, tf_pair, log_time: bool):
-    """Cleaned (t_s, cols, counts) of one pose-like topic; cols has xy_m, yaw_rad, v_mps."""
-    rows = []
-    for _, msgtype, log_ns, msg in log.messages([topic]):
-        rows.extend(pose_rows(msgtype, msg, log_ns, tf_pair))
+def _log_series(log: Log, topic: str, tf_pair, log_time: bool, tags: dict):
+    """Cleaned (t_s, cols, counts) of one pose-like topic; cols has xy_m, yaw_rad, v_mps.
+
+    A detection topic's counts also hold "detection": `apriltag.detection_rows`' meta.
+    """
+    rows, extra = [], {}
+    if log.topics[topic].msgtype in DETECTION_TYPES:
+        tag_id = 0 if tags.get("tag_id") is None else tags["tag_id"]
+        rows, extra["detection"] = apriltag.detection_rows(
+            log,
+            topic,
+            tag_id=tag_id,
+            tag_to_base=tags.get("tag_to_base"),
+            map_frame=tf_pair[0],
+            car_frame=tf_pair[1],
+            drop_outside_tf=tags.get("drop_outside_tf", False),
+        )
+    else:
+        for _, msgtype, log_ns, msg in log.messages([topic]):
+            rows.extend(pose_rows(msgtype, msg, log_ns, tf_pair))
     a = np.array(rows, dtype=np.float64)
     t_ns = np.array([r[1] if log_time else r[0] for r in rows], dtype=np.int64)
     cols = {"xy_m": a[:, 2:4], "quat": a[:, 4:8], "v_mps": a[:, 8]}
     t_s, cols, counts = _clean(log.source, topic, t_ns, cols, ["xy_m", "quat"])
     cols["yaw_rad"] = rm.quaternion_to_yaw(*cols.pop("quat").T)
-    return t_s, cols, counts
+    return t_s, cols, counts | extra
 
 
-def _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair) -> Drive:
+def _refuse_tag_options(source, topic: str, tags: dict) -> None:
+    """InputError if an AprilTag option was given for a log or topic that has no detections."""
+    given = [
+        flag
+        for flag, key in (
+            ("--tag-id", "tag_id"),
+            ("--tag-to-base", "tag_to_base"),
+            ("--drop-outside-tf", "drop_outside_tf"),
+        )
+        if tags.get(key) is not None and tags.get(key) is not False  # a tag id 0 counts
+    ]
+    if given:
+        raise InputError(
+            source,
+            f"{', '.join(given)} applies to AprilTag detection topics, not {topic}",
+            f"no {', '.join(given)}",
+        )
+
+
+def _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair, tags: dict) -> Drive:
     log = open_log(path)
     pose_topic, truth_topic = choose_topics(log, pose_topic, truth_topic, tf_pair)
-    t_s, cols, counts = _log_series(log, pose_topic, tf_pair, log_time)
+    t_s, cols, counts = _log_series(log, pose_topic, tf_pair, log_time, tags)
+    if log.topics[pose_topic].msgtype not in DETECTION_TYPES:
+        _refuse_tag_options(log.source, pose_topic, tags)
     meta: dict[str, Any] = {
         "source": str(path),
         "format": log.format,
@@ -183,7 +225,7 @@ def _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair) -> Drive:
     }
     truth = {}
     if truth_topic is not None:
-        tt, tc, tcounts = _log_series(log, truth_topic, tf_pair, log_time)
+        tt, tc, tcounts = _log_series(log, truth_topic, tf_pair, log_time, tags)
         truth = dict(
             truth_t_s=tt,
             truth_xy_m=tc["xy_m"],
@@ -257,6 +299,9 @@ def load_drive(
     log_time: bool = False,
     tf_parent: str = "map",
     tf_child: str = "other_base_link",
+    tag_id: int | None = None,
+    tag_to_base=None,
+    drop_outside_tf: bool = False,
 ) -> Drive:
     """Read one drive of the leading car from a log or a CSV.
 
@@ -270,7 +315,12 @@ def load_drive(
             default: the only Odometry topic other than the pose topic, if there is one.
         rate_hz: sample rate [Hz] of a CSV without a time column (required there, refused else).
         log_time: stamp by recording time instead of header.stamp (logs only).
-        tf_parent, tf_child: the transform to read from a TFMessage topic (leading '/' ignored).
+        tf_parent, tf_child: the transform to read from a TFMessage topic (leading '/' ignored);
+            for a detection topic, the map frame and the leading car's frame of the composition.
+        tag_id: the AprilTag id to follow on a detection topic (None: 0).
+        tag_to_base: the tag's mount on the leading car, "x,y,z,yaw" or 4 numbers ([m], [rad],
+            see `fpe_jax.io.apriltag`); None: a transform tag -> tf_child in the log.
+        drop_outside_tf: drop detections stamped outside the TF buffer instead of failing.
 
     Returns a `Drive` with absolute stamps [s] (float64, computed from integer nanoseconds).
     Rows with a non-finite position or orientation are dropped, out-of-order stamps are sorted,
@@ -283,7 +333,8 @@ def load_drive(
         if rate_hz is not None:
             raise InputError(path, "--rate applies to header-less CSVs only", "no --rate for logs")
         tf_pair = (tf_parent.lstrip("/"), tf_child.lstrip("/"))
-        return _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair)
+        tags = dict(tag_id=tag_id, tag_to_base=tag_to_base, drop_outside_tf=drop_outside_tf)
+        return _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair, tags)
     if Path(path).suffix.lower() not in tables.TABLE_SUFFIXES:
         if not Path(path).exists():
             raise InputError(path, "does not exist")
@@ -297,6 +348,8 @@ def load_drive(
             raise InputError(path, f"{flag} applies to ROS logs, not CSV", f"no {flag}")
     if log_time:
         raise InputError(path, "--log-time applies to ROS logs, not CSV", "no --log-time")
+    tags = dict(tag_id=tag_id, tag_to_base=tag_to_base, drop_outside_tf=drop_outside_tf)
+    _refuse_tag_options(path, "a CSV", tags)
     return _drive_from_table(path, rate_hz)
 
 
@@ -308,6 +361,8 @@ def describe_log(
     rate_hz: float | None = None,
     tf_parent: str = "map",
     tf_child: str = "other_base_link",
+    tag_id: int | None = None,
+    tag_to_base=None,
 ) -> dict[str, Any]:
     """Summary of a drive file, for `fpe info`.
 
@@ -316,9 +371,13 @@ def describe_log(
     pose_topic and truth_topic as `load_drive` would choose them (None plus `pose_error` when the
     automatic choice fails; an InputError when a topic named here is unusable). A CSV is read
     as a drive and described as one pseudo-topic "(csv)".
+    Logs with TF topics add tf_tree (`TfBuffer.describe()`: parent, child, static, count,
+    rate_hz, first_s, last_s, topics, depth per transform), and logs with AprilTag detection
+    topics add detections (per topic: name, type and `apriltag.describe_detections`: the frame
+    chain tf_parent <- camera <- tag <- tf_child and what each link comes from, or error).
     """
     if not is_log_path(path):
-        drive = load_drive(path, rate_hz=rate_hz)
+        drive = load_drive(path, rate_hz=rate_hz, tag_id=tag_id, tag_to_base=tag_to_base)
         n = len(drive.t_s)
         rate = (n - 1) / drive.duration_s if n > 1 and drive.duration_s > 0 else None
         return {
@@ -349,8 +408,29 @@ def describe_log(
             for i in log.topics.values()
         ],
     }
+    tf_pair = (tf_parent.lstrip("/"), tf_child.lstrip("/"))
+    if any(i.msgtype in TF_TYPES and i.count for i in log.topics.values()):
+        try:
+            out["tf_tree"] = TfBuffer.from_log(log).describe()
+        except InputError as e:
+            out["tf_tree"], out["tf_error"] = [], e.problem
+    out["detections"] = [
+        {
+            "name": t,
+            "type": rm.full_type(i.msgtype),
+            **apriltag.describe_detections(
+                log,
+                t,
+                tag_id=0 if tag_id is None else tag_id,
+                tag_to_base=tag_to_base,
+                map_frame=tf_pair[0],
+                car_frame=tf_pair[1],
+            ),
+        }
+        for t, i in log.topics.items()
+        if i.msgtype in DETECTION_TYPES and i.count
+    ]
     try:
-        tf_pair = (tf_parent.lstrip("/"), tf_child.lstrip("/"))
         out["pose_topic"], out["truth_topic"] = choose_topics(log, pose_topic, truth_topic, tf_pair)
     except InputError as e:
         if pose_topic is not None or truth_topic is not None:

@@ -4,8 +4,11 @@
 to iterate decoded messages of chosen topics. Two back ends hide behind it:
 
 - plain `.mcap` files: the `mcap` reader, decoding with mcap_ros2's decoder factory, which builds
-  CDR decoders from the schemas embedded in the file;
-- rosbag2 folders (any storage plugin) and ROS 1 `.bag` files: rosbags' `AnyReader`.
+  CDR decoders from the schemas embedded in the file (a channel whose schema is empty -- rosbag2
+  writes that when it lacks a type's definition -- is decoded with the definition `ros_msgs`
+  holds for that type, if it holds one);
+- rosbag2 folders (any storage plugin) and ROS 1 `.bag` files: rosbags' `AnyReader`, whose
+  fallback typestore (for recordings without definitions) also has the shipped message types.
 
 Decoded messages from both expose the same attribute names (`msg.header.stamp.sec`, ...), so the
 extraction code (`pose_rows`) is shared. Every error the libraries raise on a broken file -- which
@@ -243,7 +246,7 @@ class Log:
                     if decode:
                         if channel.id not in decoders:
                             decoders[channel.id] = factory.decoder_for(
-                                channel.message_encoding, schema
+                                channel.message_encoding, _with_definition(schema)
                             )
                         if decoders[channel.id] is None:  # e.g. protobuf, JSON or ROS 1 MCAP
                             raise InputError(
@@ -263,11 +266,27 @@ class Log:
 
     def _anyreader(self):
         from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         # Fallback types for (old) recordings that embed no message definitions.
-        store = Stores.ROS1_NOETIC if self.format == "rosbag1" else Stores.ROS2_HUMBLE
-        return AnyReader([self._target], default_typestore=get_typestore(store))
+        store = get_typestore(
+            Stores.ROS1_NOETIC if self.format == "rosbag1" else Stores.ROS2_HUMBLE
+        )
+        shipped = {}
+        for name, fields in rm.shipped_definitions().items():
+            shipped.update(get_types_from_msg(fields, rm.full_type(name)))
+        store.register(shipped)
+        return AnyReader([self._target], default_typestore=store)
+
+
+def _with_definition(schema):
+    """`schema`, or a copy holding our definition of its type when the file's is empty."""
+    if schema is None or schema.data.strip() or not rm.known_type(schema.name):
+        return schema
+    from mcap.records import Schema
+
+    text = rm.definition(schema.name).encode()
+    return Schema(id=schema.id, name=schema.name, encoding="ros2msg", data=text)
 
 
 def open_log(path) -> Log:

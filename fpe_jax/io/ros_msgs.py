@@ -7,12 +7,18 @@ two schemas. Field references are always fully qualified (`pkg/Type`) so the ass
 ROS package-resolution rules. Field lists follow ROS 2 Humble/Jazzy, so the files can be played
 back into a real ROS 2 system.
 
+Message types outside the common ROS packages (the AprilTag detectors') are shipped as .msg files
+under `fpe_jax/io/msgs/PKG/TYPE.msg` and loaded into the same table (`shipped_definitions`), so
+the writers, the mcap_ros2 fallback for schema-less channels and the rosbags typestore all use one
+text per type.
+
 Also here: the stamp and quaternion conversions every reader and writer shares.
 """
 
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 
@@ -76,6 +82,44 @@ _FIELDS: dict[str, str] = {
     ),
     "visualization_msgs/MarkerArray": "visualization_msgs/Marker[] markers",
 }
+
+_MSG_DIR = Path(__file__).with_name("msgs")
+_PRIMITIVES = {
+    "bool", "byte", "char", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64",
+    "uint64", "float32", "float64", "string", "wstring", "time", "duration",
+}  # fmt: skip
+
+
+def _qualified_fields(pkg: str, text: str) -> str:
+    """A .msg file's field lines without comments or blank lines, every type as `pkg/Type`."""
+    lines = []
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        ftype, rest = line.split(None, 1)
+        base, array = re.match(r"([^\[]+)(.*)", ftype).groups()
+        if "/" not in base and base not in _PRIMITIVES:
+            base = "std_msgs/Header" if base == "Header" else f"{pkg}/{base}"
+        lines.append(f"{base}{array} {rest}")
+    return "\n".join(lines)
+
+
+def shipped_definitions() -> dict[str, str]:
+    """{`pkg/Type`: field lines} of every .msg file shipped under fpe_jax/io/msgs."""
+    return {
+        f"{f.parent.name}/{f.stem}": _qualified_fields(f.parent.name, f.read_text())
+        for f in sorted(_MSG_DIR.glob("*/*.msg"))
+    }
+
+
+_FIELDS.update(shipped_definitions())
+
+
+def known_type(msgtype: str) -> bool:
+    """Whether a full definition of `msgtype` (either spelling) can be assembled here."""
+    return short_type(msgtype) in _FIELDS
+
 
 # Marker.type values we write.
 MARKER_LINE_STRIP = 4

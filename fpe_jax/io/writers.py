@@ -269,3 +269,20 @@ def write_predictions(
     with _atomic_output(path, force) as tmp:
         _write_ros2_mcap(tmp, events)
     return Path(path)
+
+
+def write_drive_csv(path, drive, *, force: bool = False) -> Path:
+    """Write a `Drive`'s observations as CSV `t,x,y,yaw` (t [s], x/y [m], yaw [rad], 9 decimals):
+    what `load_drive` reads back and `fpe run` reads on stdin.
+
+    The yaw column is left out when some yaw is unknown (NaN), so every row still reads back.
+    Truth is not written. Returns the path.
+    """
+    t = np.asarray(drive.t_s, dtype=np.float64)
+    cols, header = [t, drive.xy_m[:, 0], drive.xy_m[:, 1]], "t,x,y"
+    if np.isfinite(drive.yaw_rad).all():
+        cols.append(drive.yaw_rad)
+        header += ",yaw"
+    with _atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
+        np.savetxt(f, np.column_stack(cols), fmt="%.9f", delimiter=",", header=header, comments="")
+    return Path(path)
