@@ -115,7 +115,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "info",
-        help="topics, rates, the TF tree and the pose/truth topics of a log; a waypoint file's path",
+        help="topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path",
     )
     p.add_argument(
         "log", nargs="?", help="drive log: .mcap, rosbag2 folder, .bag or CSV (or --waypoints)"
