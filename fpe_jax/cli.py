@@ -53,6 +53,35 @@ def _add_predictor_flags(p: argparse.ArgumentParser, *, required: bool) -> None:
     src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
 
 
+def _add_run_flags(p: argparse.ArgumentParser) -> None:
+    """Flags of every command that compiles with JAX."""
+    p.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="do not read or write the compilation cache (also FPE_NO_CACHE=1; see `fpe cache`)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def _start_jax(args, x64: bool = True):
+    """Import JAX for a command: float64 unless told, the compilation cache unless --no-cache."""
+    import jax
+
+    if x64:
+        jax.config.update("jax_enable_x64", True)
+    if not getattr(args, "no_cache", False):
+        from fpe_jax import cache
+
+        cache.enable()
+    return jax
+
+
+def _progress(args):
+    from fpe_jax.progress import Progress
+
+    return Progress(quiet=getattr(args, "quiet", False))
+
+
 def _load_drive_from_args(args):
     from fpe_jax import io
 
@@ -82,6 +111,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="PRED.csv or PRED.mcap")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
+    _add_run_flags(p)
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser(
@@ -101,6 +131,7 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
+    _add_run_flags(p)
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("evaluate", help="metrics of a config or preset on a drive log")
@@ -108,7 +139,13 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_predictor_flags(p, required=True)
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _add_log_flags(p)
+    _add_run_flags(p)
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("cache", help="the compilation cache: its path, size and entries; clear it")
+    p.add_argument("action", choices=("info", "clear"), help="info: path, size; clear: empty it")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=cmd_cache)
 
     p = sub.add_parser("presets", help="list the built-in presets")
     p.set_defaults(func=cmd_presets)
@@ -165,6 +202,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
     p.add_argument("--chunk", type=int, default=1 << 14, metavar="N", help="cars per call")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    _add_run_flags(p)
     p.set_defaults(func=cmd_batch)
 
     p = sub.add_parser("export", help="export a tuned config for the car: JSON, ROS 2, StableHLO")
@@ -192,6 +230,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "demo", help="simulate, fit, compare with every preset, plot and export (~1 min)"
     )
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
+    _add_run_flags(p)
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("plot", help="draw a drive with its 1 s predictions (trajectory overlay)")
@@ -200,6 +239,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="FIG.png (or .pdf, .svg)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
+    _add_run_flags(p)
     p.set_defaults(func=cmd_plot)
     return parser
 
@@ -269,7 +309,6 @@ def _fit_inputs(args):
 def cmd_fit(args) -> int:
     from fpe_jax import io
     from fpe_jax.config import params_to_config, write_config
-    from fpe_jax.progress import Progress
 
     fit_names = tuple(f.strip() for f in args.fit.split(",") if f.strip()) if args.fit else None
     if fit_names:
@@ -280,15 +319,14 @@ def cmd_fit(args) -> int:
         raise InputError("--out", "missing", "CONFIG.json to write")
     if args.out:
         io.check_output_path(args.out, args.force)
-    with Progress() as say:
+    with _progress(args) as say:
         say("reading drives")
         drives, tests, out, opts = _fit_inputs(args)
         if out is None:
             raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
         io.check_output_path(out, args.force)
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
+        say("loading JAX")
+        _start_jax(args)
         from fpe_jax.fit import DEFAULT_FIT, fit, format_fitted, format_table, provenance
         from fpe_jax.track import Track
 
@@ -330,23 +368,30 @@ def cmd_fit(args) -> int:
 def cmd_evaluate(args) -> int:
     import json
 
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
     from fpe_jax import io
-    from fpe_jax.config import load_params, read_config
-    from fpe_jax.fit import Dataset, evaluate, format_table, make_targets
-    from fpe_jax.track import Track
+    from fpe_jax.config import read_config
 
-    params = load_params(preset=args.preset, config=args.config)
-    cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2") if args.config else None
+    with _progress(args) as say:
+        say("loading JAX")
+        _start_jax(args)
+        from fpe_jax.config import load_params
+        from fpe_jax.fit import Dataset, evaluate, make_targets
+        from fpe_jax.track import Track
+
+        say("reading the drive and waypoints")
+        params = load_params(preset=args.preset, config=args.config)
+        cfg = read_config(args.config) if args.config else {}
+        cov = (cfg.get("uncertainty") or {}).get("cov_m2")
+        drive = _load_drive_from_args(args)
+        track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+        data = Dataset(drive, track, make_targets(drive, params.settings))
+        if len(data.targets.rows) == 0:
+            raise InputError(args.log, "no prediction has a target", "a longer drive")
+        say(f"predicting {len(data.targets.rows)} observations and scoring them")
+        metrics = evaluate(params, [data], cov)
+    from fpe_jax.fit import format_table
+
     name = args.config or args.preset
-    drive = _load_drive_from_args(args)
-    track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
-    data = Dataset(drive, track, make_targets(drive, params.settings))
-    if len(data.targets.rows) == 0:
-        raise InputError(args.log, "no prediction has a target", "a longer drive")
-    metrics = evaluate(params, [data], cov)
     if args.json:
         print(json.dumps(metrics, indent=2))
     else:
@@ -359,8 +404,27 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def cmd_cache(args) -> int:
+    import json
+
+    from fpe_jax import cache  # JAX-free
+
+    summary = cache.clear() if args.action == "clear" else cache.info()
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    verb = "removed" if args.action == "clear" else "holds"
+    mb = summary["bytes"] / 1e6
+    print(f"{summary['path']}: {verb} {summary['entries']} entries, {mb:.1f} MB")
+    for name, sub in summary["subfolders"].items():
+        print(f"  {name:60s} {sub['entries']:6d} entries {sub['bytes'] / 1e6:8.1f} MB")
+    if cache.disabled():
+        print("(off in this shell: FPE_NO_CACHE is set)")
+    return 0
+
+
 def cmd_presets(args) -> int:
-    from fpe_jax.params import PRESET_DOCS
+    from fpe_jax.config import PRESET_DOCS  # JAX-free
 
     for name, doc in PRESET_DOCS.items():
         print(f"{name:22s} {doc}")
@@ -369,27 +433,41 @@ def cmd_presets(args) -> int:
 
 def cmd_predict(args) -> int:
     from fpe_jax import io
-    from fpe_jax.config import load_params, read_config
-    from fpe_jax.fit import covariance_map, path_heading
-    from fpe_jax.predict import predict_drive
-    from fpe_jax.track import Track
+    from fpe_jax.config import read_config
 
     io.check_output_path(args.out, args.force)
     if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
         raise InputError(args.out, "unknown output format", ".csv or .mcap")
-    params = load_params(preset=args.preset, config=args.config)
-    cov = None
-    if args.config:
-        cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
-    waypoints = io.load_waypoints(args.waypoints)
-    drive = _load_drive_from_args(args)
-    track = Track.from_waypoints(waypoints.xy_m)
-    stamps_s, poses = predict_drive(params, drive, track)
-    if cov is not None:  # the config's per-step ellipses, turned into the map frame
-        cov = covariance_map(cov, path_heading(track, poses[..., :2]))
-    io.write_predictions(
-        args.out, stamps_s, poses, params.settings.dt_s, drive=drive, cov_m2=cov, force=args.force
-    )
+    with _progress(args) as say:
+        say("loading JAX")
+        _start_jax(args)
+        from fpe_jax.config import load_params
+        from fpe_jax.fit import covariance_map, path_heading
+        from fpe_jax.predict import predict_drive
+        from fpe_jax.track import Track
+
+        say("reading the drive and waypoints")
+        params = load_params(preset=args.preset, config=args.config)
+        cov = None
+        if args.config:
+            cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
+        waypoints = io.load_waypoints(args.waypoints)
+        drive = _load_drive_from_args(args)
+        track = Track.from_waypoints(waypoints.xy_m)
+        say(f"predicting {len(drive.t_s)} observations")
+        stamps_s, poses = predict_drive(params, drive, track)
+        if cov is not None:  # the config's per-step ellipses, turned into the map frame
+            cov = covariance_map(cov, path_heading(track, poses[..., :2]))
+        say(f"writing {args.out}")
+        io.write_predictions(
+            args.out,
+            stamps_s,
+            poses,
+            params.settings.dt_s,
+            drive=drive,
+            cov_m2=cov,
+            force=args.force,
+        )
     print(
         f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr
     )
@@ -551,20 +629,34 @@ def cmd_batch(args) -> int:
     import time
 
     from fpe_jax import io
-    from fpe_jax.batch import predict_chunked, read_cars, write_poses
-    from fpe_jax.config import load_params
-    from fpe_jax.track import Track
 
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in (".npy", ".csv"):
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
-    params = load_params(preset=args.preset, config=args.config)
-    track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
-    cars = read_cars(args.states)
-    t0 = time.perf_counter()
-    poses = predict_chunked(params, cars, track, dtype=args.dtype, chunk=args.chunk)
-    wall_s = time.perf_counter() - t0
-    write_poses(out, poses, params.settings.dt_s, force=args.force)
+    with _progress(args) as say:
+        say("loading JAX")
+        _start_jax(args, x64=False)  # the predictor runs in --dtype (batch.py pins it)
+        from fpe_jax.batch import predict_chunked, read_cars, write_poses
+        from fpe_jax.config import load_params
+        from fpe_jax.track import Track
+
+        say("reading the cars and waypoints")
+        params = load_params(preset=args.preset, config=args.config)
+        track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+        cars = read_cars(args.states)
+        say(f"predicting {len(cars)} cars")
+        t0 = time.perf_counter()
+        poses = predict_chunked(
+            params,
+            cars,
+            track,
+            dtype=args.dtype,
+            chunk=args.chunk,
+            progress=lambda done, n: say.count("predicting cars", done, n),
+        )
+        wall_s = time.perf_counter() - t0
+        say(f"writing {out}")
+        write_poses(out, poses, params.settings.dt_s, force=args.force)
     print(
         f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
         f"({args.dtype}, {wall_s:.2f} s incl. compilation)",
@@ -576,14 +668,15 @@ def cmd_batch(args) -> int:
 def cmd_demo(args) -> int:
     from pathlib import Path
 
-    from fpe_jax.demo import run_demo
-    from fpe_jax.fit import format_fitted, format_table
-    from fpe_jax.progress import Progress
-
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
-    with Progress() as say:
+    with _progress(args) as say:
+        say("loading JAX")
+        _start_jax(args)
+        from fpe_jax.demo import run_demo
+        from fpe_jax.fit import format_fitted, format_table
+
         res = run_demo(out, progress=say)
     case, result = res.case, res.result
     p = result.params.physical()
@@ -607,21 +700,24 @@ def cmd_demo(args) -> int:
 def cmd_plot(args) -> int:
     from pathlib import Path
 
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
     from fpe_jax import io
-    from fpe_jax.config import load_params
-    from fpe_jax.plots import FIGURE_SUFFIXES, plot_drive
+    from fpe_jax.plots import FIGURE_SUFFIXES
 
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in FIGURE_SUFFIXES:
         raise InputError(out, f"unknown figure type {out.suffix!r}", " or ".join(FIGURE_SUFFIXES))
-    params = load_params(preset=args.preset, config=args.config)
-    name = args.preset or f"config {Path(args.config).name}"
-    waypoints = io.load_waypoints(args.waypoints)
-    drive = _load_drive_from_args(args)
-    m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log)
+    with _progress(args) as say:
+        say("loading JAX")
+        _start_jax(args)
+        from fpe_jax.config import load_params
+        from fpe_jax.plots import plot_drive
+
+        say("reading the drive and waypoints")
+        params = load_params(preset=args.preset, config=args.config)
+        name = args.preset or f"config {Path(args.config).name}"
+        waypoints = io.load_waypoints(args.waypoints)
+        drive = _load_drive_from_args(args)
+        m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log, progress=say)
     print(
         f"wrote {out}: {m['n_predictions']} predictions, ADE {m['ade_m']:.3f} m, "
         f"FDE {m['fde_m']:.3f} m",

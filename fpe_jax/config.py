@@ -22,6 +22,18 @@ from typing import Any
 
 from fpe_jax.errors import InputError
 
+# built-in presets (fpe_jax.params builds them) and their one-line docs: kept here, JAX-free,
+# so that `fpe presets` answers without importing JAX
+PRESET_DOCS = {
+    "seed": "the original 2019 node exactly: 1 m/s, 2 m lookahead, reverse goal scan, 0.7^i",
+    "seed-measured-speed": "the original node's rules with the measured speed",
+    "linear": "constant speed along the current heading (thesis approach 2)",
+    "pure-pursuit": "kinematic bicycle following the path, 2 m lookahead (approach 3)",
+    "constant-velocity": "constant velocity vector from the recent history (approach 1)",
+    "ctrv": "constant turn rate and velocity",
+    "default": "the differentiable position blend; the fitter's starting point",
+}
+
 SCHEMA_VERSION = 1
 PARAM_KEYS = ("lookahead_m", "lookahead_gain_s", "weights", "delay_s", "speed_weight", "speed_mps")
 SETTING_KEYS = (

@@ -201,16 +201,6 @@ _PRESET_BUILDERS = {
     ),
 }
 
-PRESET_DOCS = {
-    "seed": "the original 2019 node exactly: 1 m/s, 2 m lookahead, reverse goal scan, 0.7^i",
-    "seed-measured-speed": "the original node's rules with the measured speed",
-    "linear": "constant speed along the current heading (thesis approach 2)",
-    "pure-pursuit": "kinematic bicycle following the path, 2 m lookahead (approach 3)",
-    "constant-velocity": "constant velocity vector from the recent history (approach 1)",
-    "ctrv": "constant turn rate and velocity",
-    "default": "the differentiable position blend; the fitter's starting point",
-}
-
 
 class _Presets(Mapping):
     """Read-only mapping name -> Params, built on access (so arrays get the current dtype)."""

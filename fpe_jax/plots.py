@@ -411,7 +411,16 @@ def weights_figure(params_by_label: Mapping[str, object], *, title: str, latency
 FIGURE_SUFFIXES = (".png", ".pdf", ".svg")
 
 
-def plot_drive(drive, waypoints_xy_m: np.ndarray, params, name: str, out, *, source: str) -> dict:
+def plot_drive(
+    drive,
+    waypoints_xy_m: np.ndarray,
+    params,
+    name: str,
+    out,
+    *,
+    source: str,
+    progress=lambda msg: None,
+) -> dict:
     """`fpe plot`: a user's drive with one predictor's 1 s predictions, whole and zoomed on the
     stretch where it misses most; writes `out` and returns the metrics of those predictions.
 
@@ -421,6 +430,7 @@ def plot_drive(drive, waypoints_xy_m: np.ndarray, params, name: str, out, *, sou
         params: the predictor (`Params`); name: its label.
         out: figure path (.png, .pdf or .svg).
         source: what the drive is (for the title and errors).
+        progress: called with a short message at each phase.
     """
     from fpe_jax.demo import heldout_predictions
     from fpe_jax.errors import InputError
@@ -428,10 +438,12 @@ def plot_drive(drive, waypoints_xy_m: np.ndarray, params, name: str, out, *, sou
     from fpe_jax.track import Track
 
     track = Track.from_waypoints(waypoints_xy_m)
+    progress(f"predicting {len(drive.t_s)} observations")
     held = heldout_predictions(drive, track, {name: params})
     if len(held.rows) == 0:
         raise InputError(source, "no observation has a later one to compare with", "a longer drive")
     m = summarize(errors_m(held.pred_xy_m[name], held.target_xy_m, held.mask))
+    progress(f"drawing {out}")
     fig = trajectory_figure(
         waypoints_xy_m,
         drive,

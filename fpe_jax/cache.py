@@ -1,0 +1,116 @@
+"""The persistent XLA compilation cache: on by default, so a second run skips the compiler.
+
+Where: `$FPE_CACHE_DIR`, else `${XDG_CACHE_HOME:-~/.cache}/fpe-jax/`. Entries live in a subfolder
+named by jax + jaxlib version, backend and x64 mode, so a different installation or dtype never
+reads an entry written by another (JAX's own key covers the program itself). `--no-cache` or
+`FPE_NO_CACHE=1` turns it off. Everything but `enable` is JAX-free (`fpe cache info|clear`).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import warnings
+from pathlib import Path
+
+# the start of JAX's warnings for an unreadable or unwritable entry (jax._src.compiler)
+_JAX_CACHE_WARNINGS = (
+    "Error reading persistent compilation cache entry",
+    "Error writing persistent compilation cache entry",
+)
+
+
+def root_dir() -> Path:
+    """The cache's top folder (each subfolder belongs to one JAX installation and mode)."""
+    if os.environ.get("FPE_CACHE_DIR"):
+        return Path(os.environ["FPE_CACHE_DIR"]).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(xdg).expanduser() / "fpe-jax"
+
+
+def disabled() -> bool:
+    """True when FPE_NO_CACHE is set to anything but '', '0' or 'false'."""
+    return os.environ.get("FPE_NO_CACHE", "").strip().lower() not in ("", "0", "false")
+
+
+def _one_line_warnings(stream=None) -> None:
+    """Show JAX's cache read/write warnings as one `fpe: warning:` line each kind, once."""
+    shown: set[str] = set()
+    previous = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = str(message)
+        kind = next((k for k in _JAX_CACHE_WARNINGS if text.startswith(k)), None)
+        if kind is None:
+            return previous(message, category, filename, lineno, file, line)
+        if kind not in shown:
+            shown.add(kind)
+            what = "unreadable" if "reading" in kind else "unwritable"
+            print(
+                f"fpe: warning: {what} compilation cache entry in {root_dir()} "
+                f"({text.rsplit(': ', 1)[-1][:80]}); compiling instead",
+                file=stream or sys.stderr,
+            )
+
+    warnings.showwarning = show
+
+
+def enable() -> Path | None:
+    """Point JAX's persistent cache at this installation's subfolder; returns it (None: off).
+
+    Call after the command has set x64 mode and before its first compilation.
+    """
+    if disabled():
+        return None
+    import jax
+    import jaxlib
+
+    x64 = "x64" if jax.config.jax_enable_x64 else "x32"
+    name = f"jax-{jax.__version__}_jaxlib-{jaxlib.__version__}_{jax.default_backend()}_{x64}"
+    path = root_dir() / name
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        print(f"fpe: warning: no compilation cache ({path}: {e.strerror})", file=sys.stderr)
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_enable_compilation_cache", True)
+    # our executables compile in 0.05-5 s on a CPU: store every one (JAX's default keeps >= 1 s)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    jax.config.update("jax_raise_persistent_cache_errors", False)
+    _one_line_warnings()
+    return path
+
+
+def info() -> dict:
+    """{"path", "exists", "entries", "bytes", "subfolders": {name: {"entries", "bytes"}}}."""
+    root = root_dir()
+    subs = {}
+    if root.is_dir():
+        # only the folders `enable` makes: FPE_CACHE_DIR may name a folder that holds other things
+        for sub in sorted(p for p in root.glob("jax-*") if p.is_dir()):
+            files = [f for f in sub.rglob("*") if f.is_file()]
+            # JAX writes one '<key>-cache' file per executable, plus '-atime' bookkeeping files
+            entries = [f for f in files if not f.name.endswith("-atime")]
+            subs[sub.name] = {
+                "entries": len(entries),
+                "bytes": sum(f.stat().st_size for f in files),
+            }
+    return {
+        "path": str(root),
+        "exists": root.is_dir(),
+        "entries": sum(s["entries"] for s in subs.values()),
+        "bytes": sum(s["bytes"] for s in subs.values()),
+        "subfolders": subs,
+    }
+
+
+def clear() -> dict:
+    """Remove every subfolder of the cache (the top folder stays); returns `info()` from before."""
+    before = info()
+    root = root_dir()
+    for name in before["subfolders"]:
+        shutil.rmtree(root / name, ignore_errors=True)
+    return before
