@@ -1,9 +1,15 @@
 """Strict JAX settings for every test: float64, no implicit rank promotion."""
 
+import os
+import tempfile
 from pathlib import Path
 
-import jax
-import pytest
+# the compilation cache of the tests and of the commands they start is a temporary folder: never
+# the user's, and each session starts cold (subprocesses inherit the environment)
+os.environ["FPE_CACHE_DIR"] = tempfile.mkdtemp(prefix="fpe-test-cache-")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")

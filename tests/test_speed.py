@@ -1,0 +1,177 @@
+"""The compilation cache, the JAX-free fast commands, progress lines and bucketed shapes."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fpe_jax import cache
+from fpe_jax.config import PRESET_DOCS
+from fpe_jax.params import presets
+from fpe_jax.progress import Progress
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def fpe(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "fpe_jax.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, **(env or {})},
+        timeout=600,
+    )
+
+
+@pytest.fixture(scope="module")
+def drive_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("sim") / "d"
+    r = fpe("simulate", "--duration", "12", "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def predict_args(drive_dir: Path, out: Path) -> list[str]:
+    wp = str(drive_dir / "waypoints.csv")
+    return ["predict", str(drive_dir / "drive.mcap"), "--waypoints", wp, "--out", str(out)]
+
+
+def test_preset_docs_name_every_preset():
+    assert list(PRESET_DOCS) == list(presets)
+
+
+# Each runs `fpe_jax.cli.main` in a fresh interpreter and reports whether JAX got imported.
+_NO_JAX = """
+import sys
+from fpe_jax import cli
+try:
+    rc = cli.main(sys.argv[1:])
+except SystemExit as e:
+    rc = e.code
+print("JAX-IMPORTED" if "jax" in sys.modules else "no-jax", rc, file=sys.stderr)
+"""
+
+
+def test_fast_commands_import_no_jax(tmp_path, drive_dir):
+    from fpe_jax.config import params_to_config, write_config
+
+    write_config(tmp_path / "c.json", params_to_config(presets["default"]))
+    mcap, wp = str(drive_dir / "drive.mcap"), str(drive_dir / "waypoints.csv")
+    commands = [
+        ["--help"],
+        ["presets"],
+        ["info", mcap, "--waypoints", wp],
+        ["cache", "info"],
+        ["export", str(tmp_path / "c.json"), "--format", "json", "--out", str(tmp_path / "e.json")],
+        ["export", str(tmp_path / "c.json"), "--format", "ros2", "--out", str(tmp_path / "e.yaml")],
+        ["run", "--config", str(tmp_path / "c.json"), "--waypoints", wp],
+    ]
+    for argv in commands:
+        r = subprocess.run(
+            [sys.executable, "-c", _NO_JAX, *argv],
+            input="0.0,1.0,2.0\n",
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
+        last = r.stderr.strip().splitlines()[-1]
+        assert last.startswith("no-jax 0"), (argv, r.stderr[-2000:])
+
+
+def test_cache_is_written_reused_and_survives_corrupt_entries(tmp_path, drive_dir):
+    env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
+    first = fpe(*predict_args(drive_dir, tmp_path / "a.csv"), "--quiet", env=env)
+    assert first.returncode == 0, first.stderr
+    info = json.loads(fpe("cache", "info", "--json", env=env).stdout)
+    assert info["path"] == str(tmp_path / "cache") and info["entries"] > 0 and info["bytes"] > 0
+    [sub] = info["subfolders"]  # keyed by jax + jaxlib version, backend and x64 mode
+    assert sub.startswith("jax-") and "jaxlib-" in sub and sub.endswith("_x64")
+    # every entry overwritten with garbage: a recompile and one warning line, same predictions
+    entries = [f for f in (tmp_path / "cache" / sub).rglob("*") if f.is_file()]
+    for f in entries:
+        f.write_bytes(b"not an executable" * 3)
+    again = fpe(*predict_args(drive_dir, tmp_path / "b.csv"), "--quiet", env=env)
+    assert again.returncode == 0, again.stderr
+    lines = again.stderr.strip().splitlines()
+    assert len(lines) == 2, again.stderr  # the one warning, then "wrote ..."
+    assert lines[0].startswith("fpe: warning: unreadable compilation cache entry")
+    assert "Traceback" not in again.stderr
+    a = np.loadtxt(tmp_path / "a.csv", delimiter=",", skiprows=1)
+    b = np.loadtxt(tmp_path / "b.csv", delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(a, b)
+    # clear empties it; --no-cache and FPE_NO_CACHE=1 leave it empty
+    cleared = fpe("cache", "clear", env=env)
+    assert cleared.returncode == 0 and "removed" in cleared.stdout
+    assert json.loads(fpe("cache", "info", "--json", env=env).stdout)["entries"] == 0
+    off = fpe(*predict_args(drive_dir, tmp_path / "c.csv"), "--no-cache", "--quiet", env=env)
+    assert off.returncode == 0, off.stderr
+    off = fpe(*predict_args(drive_dir, tmp_path / "d.csv"), env={**env, "FPE_NO_CACHE": "1"})
+    assert off.returncode == 0, off.stderr
+    assert json.loads(fpe("cache", "info", "--json", env=env).stdout)["entries"] == 0
+
+
+def test_cache_dir_follows_xdg(monkeypatch, tmp_path):
+    monkeypatch.delenv("FPE_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert cache.root_dir() == tmp_path / "fpe-jax"
+    monkeypatch.setenv("FPE_NO_CACHE", "1")
+    assert cache.disabled()
+    monkeypatch.setenv("FPE_NO_CACHE", "0")
+    assert not cache.disabled()
+
+
+def test_clear_leaves_other_folders_alone(monkeypatch, tmp_path):
+    monkeypatch.setenv("FPE_CACHE_DIR", str(tmp_path))
+    (tmp_path / "jax-x_jaxlib-x_cpu_x64").mkdir()
+    (tmp_path / "jax-x_jaxlib-x_cpu_x64" / "k-cache").write_bytes(b"1234")
+    (tmp_path / "mine").mkdir()
+    assert cache.clear()["entries"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]
+
+
+class _Tty:
+    def __init__(self, tty: bool):
+        self.text, self.tty = "", tty
+
+    def write(self, s):
+        self.text += s
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return self.tty
+
+
+def test_progress_plain_lines_updating_line_and_quiet():
+    log = _Tty(False)
+    with Progress(stream=log) as say:
+        say("reading")
+        say.count("predicting cars", 5, 10)
+    lines = log.text.splitlines()
+    assert [ln.split("] ", 1)[1] for ln in lines] == ["reading", "predicting cars 5/10", "done"]
+    assert all(ln.startswith("[") and " s] " in ln for ln in lines)
+    term = _Tty(True)
+    with Progress(stream=term, tick_s=60) as say:
+        say("reading")
+        say("predicting")
+    assert term.text.count("\n") == 1 and term.text.endswith("done\n")  # one line, rewritten
+    assert "\r\x1b[K" in term.text
+    quiet = _Tty(True)
+    with Progress(stream=quiet, quiet=True) as say:
+        say("reading")
+    assert quiet.text == ""
+
+
+def test_predict_shows_progress_unless_quiet(tmp_path, drive_dir):
+    r = fpe(*predict_args(drive_dir, tmp_path / "a.csv"))
+    assert r.returncode == 0, r.stderr
+    phases = [ln for ln in r.stderr.splitlines() if ln.startswith("[")]
+    assert any("predicting" in ln for ln in phases) and phases[-1].endswith("done")
+    q = fpe(*predict_args(drive_dir, tmp_path / "b.csv"), "--quiet")
+    assert q.returncode == 0 and not [ln for ln in q.stderr.splitlines() if ln.startswith("[")]
