@@ -27,7 +27,7 @@ from fpe_jax.errors import InputError
 from fpe_jax.history import distinct_mask, history_windows
 from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
 from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
-from fpe_jax.predict import predict, predict_batch, states_from_drive
+from fpe_jax.predict import bucket, pad_rows, predict, predict_rows, states_from_drive
 from fpe_jax.rollout import State
 from fpe_jax.track import Track
 
@@ -251,7 +251,16 @@ def fit_params(
         raise ValueError("fit_params: only the blend model is fitted (presets are baselines)")
     raw = unconstrain(init)
     free, fixed = eqx.partition(raw, _free_mask(raw, fit))
-    targets = [(jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask)) for d in datasets]
+    # targets and states padded to a bucketed row count (padded targets masked out): drives of
+    # similar length share one compiled solver
+    sizes = [bucket(len(d.targets.rows)) for d in datasets]
+    targets = [
+        (
+            pad_rows(d.targets.xy_m, n),
+            pad_rows(d.targets.mask, n) & (np.arange(n) < len(d.targets.rows))[:, None],
+        )
+        for d, n in zip(datasets, sizes)
+    ]
 
     def shape_of(xy):  # every State field is (N,) in the default float dtype
         leaf = jax.ShapeDtypeStruct(xy.shape[:1], xy.dtype)
@@ -278,7 +287,10 @@ def fit_params(
             lowered = _solve.lower(free, fixed, abstract, huber_m, **static)
             took["trace_s"] = time.perf_counter() - t0
             _COMPILED[key] = pool.submit(compile_timed, lowered)
-        groups = [(d.states(init), d.track, *tm) for d, tm in zip(datasets, targets)]
+        groups = [
+            (pad_rows(d.states(init), n), d.track, *tm)
+            for d, n, tm in zip(datasets, sizes, targets)
+        ]
         compiled = _COMPILED[key].result()
     t = time.perf_counter()
     value, steps, ok, loss = jax.block_until_ready(compiled(free, fixed, groups, huber_m))
@@ -297,7 +309,7 @@ def fit_params(
 
 def predict_targets(params: Params, dataset: Dataset) -> np.ndarray:
     """(N, H, 3) predictions at a dataset's target rows."""
-    return np.asarray(predict_batch(params, dataset.states(params), dataset.track))
+    return predict_rows(params, dataset.states(params), dataset.track)
 
 
 def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
@@ -315,10 +327,16 @@ def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
     return out
 
 
+@eqx.filter_jit
+def _path_heading(track: Track, xy_m):
+    along = jax.vmap(jax.vmap(track.project))(xy_m)
+    return jax.vmap(jax.vmap(track.heading_at))(along)
+
+
 def path_heading(track: Track, xy_m: np.ndarray) -> np.ndarray:
     """Path heading [rad] (N, H) at predicted positions (N, H, 2): the frame of the uncertainty."""
-    along = jax.vmap(jax.vmap(track.project))(jnp.asarray(xy_m))
-    return np.asarray(jax.vmap(jax.vmap(track.heading_at))(along))
+    n = len(xy_m)
+    return np.asarray(_path_heading(track, pad_rows(np.asarray(xy_m), bucket(n))))[:n]
 
 
 def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:

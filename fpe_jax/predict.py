@@ -44,6 +44,43 @@ def stack_params(params_list: list[Params]) -> Params:
     return jax.tree.map(lambda *xs: jnp.stack(xs), *params_list)
 
 
+MIN_BUCKET = 64
+
+
+def bucket(n: int) -> int:
+    """Padded row count for n rows: the smallest of 64, 96, 128, 192, 256, 384, ... that is >= n.
+
+    Executables are compiled per shape: padding every drive, split and target set to one of these
+    sizes (at most a third more rows) lets different drives and commands reuse the same ones,
+    in one process and from the persistent cache.
+    """
+    size = MIN_BUCKET
+    while size < n:
+        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
+    return size
+
+
+def pad_rows(tree, n: int):
+    """Every leaf (numpy or JAX, leading axis N <= n) as numpy padded to n rows by repeating its
+    last row: padded rows hold real, finite values (no NaN in a masked-out gradient)."""
+
+    def pad(x):
+        x = np.asarray(x)
+        if len(x) == n:
+            return x
+        if len(x) == 0:
+            return np.zeros((n, *x.shape[1:]), x.dtype)
+        return np.concatenate([x, np.repeat(x[-1:], n - len(x), axis=0)])
+
+    return jax.tree.map(pad, tree)
+
+
+def predict_rows(params: Params, states: State, track: Track) -> np.ndarray:
+    """`predict_batch` of N states (leading axis N) in a bucketed shape -> numpy (N, H, 3)."""
+    n = len(states.x_m)
+    return np.asarray(predict_batch(params, pad_rows(states, bucket(n)), track))[:n]
+
+
 @eqx.filter_jit
 def _states_from_windows(windows: dict, track: Track) -> State:
     states = jax.vmap(estimate_state)(
@@ -54,20 +91,22 @@ def _states_from_windows(windows: dict, track: Track) -> State:
 
 
 def states_from_drive(params: Params, drive: Drive, track: Track) -> State:
-    """The state at every observation of a drive (leading axis N).
+    """The state at every observation of a drive (numpy leaves, leading axis N).
 
     For the seed model the original's rules apply: the current row is used alone (position and
     observed yaw as recorded; the direction of motion stands in when the log has no yaw).
     """
     windows = history_windows(drive, params.settings.history)
-    states = _states_from_windows(jax.tree.map(jnp.asarray, windows), track)
+    n = len(drive.t_s)
+    states = _states_from_windows(pad_rows(windows, bucket(n)), track)
+    states = jax.tree.map(lambda x: np.asarray(x)[:n], states)
     if params.settings.model == "seed":
-        yaw_obs = jnp.asarray(drive.yaw_rad)
+        yaw_obs = np.asarray(drive.yaw_rad)
         states = dataclasses.replace(
             states,
-            x_m=jnp.asarray(drive.xy_m[:, 0]),
-            y_m=jnp.asarray(drive.xy_m[:, 1]),
-            yaw_rad=jnp.where(jnp.isfinite(yaw_obs), yaw_obs, states.yaw_rad),
+            x_m=np.asarray(drive.xy_m[:, 0]),
+            y_m=np.asarray(drive.xy_m[:, 1]),
+            yaw_rad=np.where(np.isfinite(yaw_obs), yaw_obs, states.yaw_rad),
         )
     return states
 
@@ -80,4 +119,4 @@ def predict_drive(params: Params, drive: Drive, track: Track) -> tuple[np.ndarra
         poses: (N, H, 3) x [m], y [m], yaw [rad] at stamp + h * dt_s.
     """
     states = states_from_drive(params, drive, track)
-    return drive.t_s.copy(), np.asarray(predict_batch(params, states, track))
+    return drive.t_s.copy(), predict_rows(params, states, track)
