@@ -20,7 +20,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
@@ -199,6 +198,10 @@ _COMPILED: dict = {}
 @functools.partial(jax.jit, static_argnames=("max_steps", "solver"))
 def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: str):
     """Run the optimistix solver; returns (raw values, steps, converged, loss)."""
+    # imported here, at trace time: predict, evaluate and plot use this module but not the solver,
+    # and optimistix adds ~0.3 s to their start
+    import optimistix as optx
+
     args = (raw_fixed, groups, huber_m)
     # rms_norm in the stopping test: with the default max_norm, LM stops only once every one of
     # the ~1e5 residuals and every raw value has settled, which a saturating weight or a gain
@@ -469,10 +472,12 @@ def fit(
     progress(f"fitting '{best}' blend on {sum(len(d.targets.rows) for d in train)} predictions")
     p0 = dataclasses.replace(init, settings=dataclasses.replace(settings, blend=best))
     params, info = fit_params(train, p0, fit=fit, solver=solver)
-    progress("estimating uncertainty and evaluating on held-out data")
+    progress(f"estimating uncertainty on {len(train)} training drive(s)")
     uncertainty = fit_uncertainty(params, train)
+    progress(f"evaluating the fit on {len(test)} held-out drive(s)")
     report = {"fitted": evaluate(params, test, uncertainty["cov_m2"])}
-    for name in BASELINES:
+    for i, name in enumerate(BASELINES, 1):
+        progress(f"evaluating preset '{name}' on held-out data ({i}/{len(BASELINES)})")
         report[name] = evaluate(presets[name], test)
     info.update(blend=best, validation_ade_m=selection, split=split, fit=list(fit))
     return FitResult(params, uncertainty, report, info)

@@ -175,3 +175,41 @@ def test_predict_shows_progress_unless_quiet(tmp_path, drive_dir):
     assert any("predicting" in ln for ln in phases) and phases[-1].endswith("done")
     q = fpe(*predict_args(drive_dir, tmp_path / "b.csv"), "--quiet")
     assert q.returncode == 0 and not [ln for ln in q.stderr.splitlines() if ln.startswith("[")]
+
+
+def test_bucket_sizes():
+    from fpe_jax.predict import bucket
+
+    sizes = [bucket(n) for n in (0, 1, 64, 65, 96, 97, 129, 600, 668, 768, 769)]
+    assert sizes == [64, 64, 64, 96, 96, 128, 192, 768, 768, 768, 1024]
+    assert all(bucket(n) < 1.5 * n + 1 for n in range(64, 5000))  # at most a half more rows
+
+
+def test_drives_of_similar_length_share_executables():
+    """Two drives in one bucket: the second predict traces and compiles nothing new."""
+    import jax
+
+    from fpe_jax import sim
+    from fpe_jax.predict import predict_drive
+    from fpe_jax.track import Track
+
+    a = sim.simulate("oval", duration_s=62.0, seed=1)
+    b = sim.simulate("oval", duration_s=66.0, seed=2)
+    assert len(a.drive.t_s) != len(b.drive.t_s)
+    track = Track.from_waypoints(a.centerline_xy_m)
+    params = presets["default"]
+    events = []
+
+    def listen(name, *args, **kw):
+        if name in ("/jax/core/compile/backend_compile_duration",):
+            events.append(name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        predict_drive(params, a.drive, track)
+        first = len(events)
+        _, poses = predict_drive(params, b.drive, track)
+        assert len(events) == first, "the second drive compiled again"
+    finally:
+        jax.monitoring.clear_event_listeners()
+    assert first > 0 and poses.shape == (len(b.drive.t_s), params.settings.horizon, 3)
