@@ -274,7 +274,7 @@ def cmd_run(args) -> int:
         return 1
 
 
-def _fit_inputs(args):
+def _fit_inputs(args, say=lambda msg: None):
     """(drives, waypoints, descriptions, test drives, test waypoints, options) for `fpe fit`."""
     from fpe_jax import io
     from fpe_jax.recipe import load_recipe
@@ -293,11 +293,13 @@ def _fit_inputs(args):
         raise InputError("--waypoints", "missing", "a waypoint file for the drives")
     wp = io.load_waypoints(args.waypoints).xy_m
     drives = []
-    for log in args.logs:
+    for i, log in enumerate(args.logs, 1):
+        say(f"reading drive {i}/{len(args.logs)}: {log}")
         args.log = log
         drives.append((_load_drive_from_args(args), wp, log))
     tests = []
-    for log in args.test or []:
+    for i, log in enumerate(args.test or [], 1):
+        say(f"reading test drive {i}/{len(args.test)}: {log}")
         args.log = log
         tests.append((_load_drive_from_args(args), wp, log))
     opts = dict(
@@ -321,7 +323,7 @@ def cmd_fit(args) -> int:
         io.check_output_path(args.out, args.force)
     with _progress(args) as say:
         say("reading drives")
-        drives, tests, out, opts = _fit_inputs(args)
+        drives, tests, out, opts = _fit_inputs(args, say)
         if out is None:
             raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
         io.check_output_path(out, args.force)
