@@ -667,7 +667,12 @@ def commands_markdown(cmd: dict, fit: dict) -> list[str]:
     lines = [
         f"Each command in a fresh process (`fpe ... --quiet`), medians of {cmd['runs']}: cold = "
         "an empty compilation cache, warm = a cache filled by one earlier run. predict, "
-        "evaluate and plot: a 60 s simulated drive with a fitted config.",
+        "evaluate and plot: a 60 s simulated drive with a fitted config."
+        + (
+            f" Load average at the end: {cmd['load_avg']:.1f} (2 cores)."
+            if "load_avg" in cmd
+            else ""
+        ),
         "",
         "| command | cold [s] | warm [s] | warm target [s] |",
         "| --- | ---: | ---: | ---: |",
