@@ -36,6 +36,8 @@ def disabled() -> bool:
 
 def _one_line_warnings(stream=None) -> None:
     """Show JAX's cache read/write warnings as one `fpe: warning:` line each kind, once."""
+    if getattr(warnings.showwarning, "_fpe_cache", False):  # installed by an earlier call
+        return
     shown: set[str] = set()
     previous = warnings.showwarning
 
@@ -53,6 +55,7 @@ def _one_line_warnings(stream=None) -> None:
                 file=stream or sys.stderr,
             )
 
+    show._fpe_cache = True
     warnings.showwarning = show
 
 
