@@ -371,7 +371,7 @@ def cmd_predict(args) -> int:
     from fpe_jax import io
     from fpe_jax.config import load_params, read_config
     from fpe_jax.fit import covariance_map, path_heading
-    from fpe_jax.predict import predict_drive
+    from fpe_jax.predict import predict_states, states_from_drive
     from fpe_jax.track import Track
 
     io.check_output_path(args.out, args.force)
@@ -384,9 +384,10 @@ def cmd_predict(args) -> int:
     waypoints = io.load_waypoints(args.waypoints)
     drive = _load_drive_from_args(args)
     track = Track.from_waypoints(waypoints.xy_m)
-    stamps_s, poses = predict_drive(params, drive, track)
+    states = states_from_drive(params, drive, track)
+    stamps_s, poses = drive.t_s.copy(), predict_states(params, states, track)
     if cov is not None:  # the config's per-step ellipses, turned into the map frame
-        cov = covariance_map(cov, path_heading(track, poses[..., :2]))
+        cov = covariance_map(cov, path_heading(track, poses[..., :2], states))
     io.write_predictions(
         args.out, stamps_s, poses, params.settings.dt_s, drive=drive, cov_m2=cov, force=args.force
     )

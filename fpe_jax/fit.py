@@ -27,9 +27,9 @@ from fpe_jax.errors import InputError
 from fpe_jax.history import distinct_mask, history_windows
 from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
 from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
-from fpe_jax.predict import predict, predict_batch, states_from_drive
+from fpe_jax.predict import PREDICT_CHUNK, predict, predict_states, states_from_drive
 from fpe_jax.rollout import State
-from fpe_jax.track import Track
+from fpe_jax.track import Track, project_rollout
 
 # What `--fit` may name, and the Params fields each name frees.
 FIT_GROUPS = {
@@ -297,7 +297,7 @@ def fit_params(
 
 def predict_targets(params: Params, dataset: Dataset) -> np.ndarray:
     """(N, H, 3) predictions at a dataset's target rows."""
-    return np.asarray(predict_batch(params, dataset.states(params), dataset.track))
+    return predict_states(params, dataset.states(params), dataset.track)
 
 
 def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
@@ -307,7 +307,7 @@ def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
         pred = predict_targets(params, d)
         errs.append(errors_m(pred[..., :2], d.targets.xy_m, d.targets.mask))
         if cov_m2 is not None:
-            res.append(_track_residuals(pred, d))
+            res.append(_track_residuals(pred, d, params))
             masks.append(d.targets.mask)
     out = summarize(np.concatenate(errs))
     if cov_m2 is not None:
@@ -315,10 +315,25 @@ def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
     return out
 
 
-def path_heading(track: Track, xy_m: np.ndarray) -> np.ndarray:
-    """Path heading [rad] (N, H) at predicted positions (N, H, 2): the frame of the uncertainty."""
-    along = jax.vmap(jax.vmap(track.project))(jnp.asarray(xy_m))
-    return np.asarray(jax.vmap(jax.vmap(track.heading_at))(along))
+def path_heading(track: Track, xy_m: np.ndarray, states: State) -> np.ndarray:
+    """Path heading [rad] (N, H) at predicted positions (N, H, 2): the frame of the uncertainty.
+
+    Each prediction is projected near its own car's arc length (`states`, leading axis N, with
+    `s_m`), in chunks of rows: memory O(chunk x H + track points), not (N, H, track points).
+    """
+    out = []
+    for a in range(0, len(xy_m), PREDICT_CHUNK):
+        rows = slice(a, a + PREDICT_CHUNK)
+        st = jax.tree.map(lambda x: jnp.asarray(x[rows]), states)
+        start = jnp.stack([st.x_m, st.y_m], axis=-1)
+        out.append(np.asarray(_heading_chunk(track, jnp.asarray(xy_m[rows]), start, st.s_m)))
+    return np.concatenate(out) if out else np.zeros(np.shape(xy_m)[:2])
+
+
+@jax.jit
+def _heading_chunk(track: Track, xy_m, start_xy_m, s_start_m):
+    along = jax.vmap(project_rollout, in_axes=(None, 0, 0, 0))(track, xy_m, start_xy_m, s_start_m)
+    return jax.vmap(jax.vmap(track.heading_at))(along)
 
 
 def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
@@ -328,14 +343,16 @@ def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
     return rot @ np.asarray(cov_track_m2)[None] @ np.swapaxes(rot, -1, -2)
 
 
-def _track_residuals(pred: np.ndarray, d: Dataset) -> np.ndarray:
-    heading = path_heading(d.track, pred[..., :2])
+def _track_residuals(pred: np.ndarray, d: Dataset, params: Params) -> np.ndarray:
+    heading = path_heading(d.track, pred[..., :2], d.states(params))
     return track_frame_residuals(pred[..., :2], d.targets.xy_m, heading)
 
 
 def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
     """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame."""
-    res = np.concatenate([_track_residuals(predict_targets(params, d), d) for d in datasets])
+    res = np.concatenate(
+        [_track_residuals(predict_targets(params, d), d, params) for d in datasets]
+    )
     mask = np.concatenate([d.targets.mask for d in datasets])
     return {
         "frame": "track",

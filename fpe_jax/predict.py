@@ -17,6 +17,10 @@ from fpe_jax.params import Params
 from fpe_jax.rollout import State, rollout
 from fpe_jax.track import Track, arclength_along
 
+# Rows per compiled prediction call: a drive of any length runs in blocks of this size (a
+# 10-million-row log asked XLA for one 13.4 GB block before).
+PREDICT_CHUNK = 1 << 15
+
 
 def predict(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
     """Poses (H, 3) x [m], y [m], yaw [rad] at t + h * dt_s, h = 1..H, for one car."""
@@ -72,6 +76,23 @@ def states_from_drive(params: Params, drive: Drive, track: Track) -> State:
     return states
 
 
+def predict_states(params: Params, states: State, track: Track, chunk: int = 0) -> np.ndarray:
+    """(N, H, 3) NumPy predictions from N states (leading axis), `chunk` rows per compiled call
+    (default PREDICT_CHUNK): the rollout's intermediates stay O(chunk x H) for any N."""
+    chunk = chunk or PREDICT_CHUNK
+    n = len(states.x_m)
+    out = []
+    for a in range(0, n, chunk):
+        part = jax.tree.map(lambda x: x[a : a + chunk], states)
+        if n > chunk and len(part.x_m) < chunk:  # pad the last block: one compiled shape
+            pad = chunk - len(part.x_m)
+            part = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad)]), part)
+        out.append(np.asarray(predict_batch(params, part, track))[: n - a])
+    if not out:
+        return np.zeros((0, params.settings.horizon, 3))
+    return np.concatenate(out) if len(out) > 1 else out[0]
+
+
 def predict_drive(params: Params, drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray]:
     """Predict from every observation of a drive.
 
@@ -80,4 +101,4 @@ def predict_drive(params: Params, drive: Drive, track: Track) -> tuple[np.ndarra
         poses: (N, H, 3) x [m], y [m], yaw [rad] at stamp + h * dt_s.
     """
     states = states_from_drive(params, drive, track)
-    return drive.t_s.copy(), np.asarray(predict_batch(params, states, track))
+    return drive.t_s.copy(), predict_states(params, states, track)
