@@ -324,7 +324,7 @@ def path_heading(track: Track, xy_m: np.ndarray, states: State) -> np.ndarray:
     out = []
     for a in range(0, len(xy_m), PREDICT_CHUNK):
         rows = slice(a, a + PREDICT_CHUNK)
-        st = jax.tree.map(lambda x: jnp.asarray(x[rows]), states)
+        st = jax.tree.map(lambda x, r=rows: jnp.asarray(x[r]), states)
         start = jnp.stack([st.x_m, st.y_m], axis=-1)
         out.append(np.asarray(_heading_chunk(track, jnp.asarray(xy_m[rows]), start, st.s_m)))
     return np.concatenate(out) if out else np.zeros(np.shape(xy_m)[:2])

@@ -83,7 +83,7 @@ def predict_states(params: Params, states: State, track: Track, chunk: int = 0) 
     n = len(states.x_m)
     out = []
     for a in range(0, n, chunk):
-        part = jax.tree.map(lambda x: x[a : a + chunk], states)
+        part = jax.tree.map(lambda x, r=slice(a, a + chunk): x[r], states)
         if n > chunk and len(part.x_m) < chunk:  # pad the last block: one compiled shape
             pad = chunk - len(part.x_m)
             part = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad)]), part)
