@@ -86,7 +86,7 @@ def predict_states(params: Params, states: State, track: Track, chunk: int = 0) 
         part = jax.tree.map(lambda x, r=slice(a, a + chunk): x[r], states)
         if n > chunk and len(part.x_m) < chunk:  # pad the last block: one compiled shape
             pad = chunk - len(part.x_m)
-            part = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad)]), part)
+            part = jax.tree.map(lambda x, k=pad: jnp.concatenate([x, jnp.repeat(x[-1:], k)]), part)
         out.append(np.asarray(predict_batch(params, part, track))[: n - a])
     if not out:
         return np.zeros((0, params.settings.horizon, 3))
