@@ -51,6 +51,29 @@ def _add_predictor_flags(p: argparse.ArgumentParser, *, required: bool) -> None:
     src = p.add_mutually_exclusive_group(required=required)
     src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
     src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    _add_settings_flags(p, "with --preset")
+
+
+# flag -> Settings field of the car and the prediction grid (fpe_jax.params.USER_SETTINGS)
+SETTINGS_FLAGS = {
+    "--wheelbase": "wheelbase_m",
+    "--max-steer": "max_steer_rad",
+    "--dt": "dt_s",
+    "--horizon": "horizon",
+}
+
+
+def _add_settings_flags(p: argparse.ArgumentParser, when: str) -> None:
+    g = p.add_argument_group(f"car and prediction settings ({when}; default: the preset's)")
+    g.add_argument("--wheelbase", type=float, metavar="M", help="wheelbase [m] (F1TENTH 0.325)")
+    g.add_argument("--max-steer", type=float, metavar="RAD", help="steering limit [rad]")
+    g.add_argument("--dt", type=float, metavar="S", help="prediction step [s] (0.1)")
+    g.add_argument("--horizon", type=int, metavar="N", help="number of steps (10)")
+
+
+def _settings_from_args(args) -> dict:
+    """{flag: (Settings field, value)} of the settings flags given (None where omitted)."""
+    return {f: (k, getattr(args, f[2:].replace("-", "_"))) for f, k in SETTINGS_FLAGS.items()}
 
 
 def _load_drive_from_args(args):
@@ -94,6 +117,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--test", nargs="+", metavar="LOG", help="separate held-out drives instead")
     p.add_argument("--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: all but split)")
     p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
+    _add_settings_flags(p, "saved in the config; a recipe may set them in [settings]")
     p.add_argument(
         "--solver",
         choices=SOLVERS,
@@ -247,6 +271,7 @@ def _fit_inputs(args):
             fit=r.fit,
             blend=args.blend or r.blend,
             solver=args.solver or r.solver,
+            settings=r.settings,
         )
         return r.drives, r.test_drives, out, opts
     if not args.waypoints:
@@ -261,7 +286,11 @@ def _fit_inputs(args):
         args.log = log
         tests.append((_load_drive_from_args(args), wp, log))
     opts = dict(
-        holdout=args.holdout or 0.3, fit=None, blend=args.blend or "auto", solver=args.solver
+        holdout=args.holdout or 0.3,
+        fit=None,
+        blend=args.blend or "auto",
+        solver=args.solver,
+        settings={},
     )
     return drives, tests, args.out, opts
 
@@ -289,8 +318,15 @@ def cmd_fit(args) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
+        from fpe_jax.config import apply_settings
         from fpe_jax.fit import DEFAULT_FIT, fit, format_fitted, format_table, provenance
+        from fpe_jax.params import presets
         from fpe_jax.track import Track
+
+        # the recipe's [settings], then the flags on top
+        init = apply_settings(presets["default"], opts["settings"], str(args.logs[0]))
+        flags = {k: v for k, v in _settings_from_args(args).items() if v[1] is not None}
+        init = apply_settings(init, flags)
 
         tracks = [Track.from_waypoints(wp) for _, wp, _ in drives]
         test_tracks = [Track.from_waypoints(wp) for _, wp, _ in tests] or None
@@ -303,6 +339,7 @@ def cmd_fit(args) -> int:
             test_drives=[d for d, _, _ in tests] or None,
             test_tracks=test_tracks,
             solver=opts["solver"] or SOLVERS[0],
+            init=init,
             progress=say,
         )
     topics = {
@@ -338,7 +375,7 @@ def cmd_evaluate(args) -> int:
     from fpe_jax.fit import Dataset, evaluate, format_table, make_targets
     from fpe_jax.track import Track
 
-    params = load_params(preset=args.preset, config=args.config)
+    params = load_params(preset=args.preset, config=args.config, settings=_settings_from_args(args))
     cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2") if args.config else None
     name = args.config or args.preset
     drive = _load_drive_from_args(args)
@@ -377,7 +414,7 @@ def cmd_predict(args) -> int:
     io.check_output_path(args.out, args.force)
     if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
         raise InputError(args.out, "unknown output format", ".csv or .mcap")
-    params = load_params(preset=args.preset, config=args.config)
+    params = load_params(preset=args.preset, config=args.config, settings=_settings_from_args(args))
     cov = None
     if args.config:
         cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
@@ -559,7 +596,7 @@ def cmd_batch(args) -> int:
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in (".npy", ".csv"):
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
-    params = load_params(preset=args.preset, config=args.config)
+    params = load_params(preset=args.preset, config=args.config, settings=_settings_from_args(args))
     track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
     cars = read_cars(args.states)
     t0 = time.perf_counter()
@@ -618,7 +655,7 @@ def cmd_plot(args) -> int:
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in FIGURE_SUFFIXES:
         raise InputError(out, f"unknown figure type {out.suffix!r}", " or ".join(FIGURE_SUFFIXES))
-    params = load_params(preset=args.preset, config=args.config)
+    params = load_params(preset=args.preset, config=args.config, settings=_settings_from_args(args))
     name = args.preset or f"config {Path(args.config).name}"
     waypoints = io.load_waypoints(args.waypoints)
     drive = _load_drive_from_args(args)

@@ -26,7 +26,7 @@ from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.history import distinct_mask, history_windows
 from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
-from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
+from fpe_jax.params import Params, Settings, constrain, presets, unconstrain, with_settings
 from fpe_jax.predict import PREDICT_CHUNK, predict, predict_states, states_from_drive
 from fpe_jax.rollout import State
 from fpe_jax.track import Track, project_rollout
@@ -472,9 +472,20 @@ def fit(
     uncertainty = fit_uncertainty(params, train)
     report = {"fitted": evaluate(params, test, uncertainty["cov_m2"])}
     for name in BASELINES:
-        report[name] = evaluate(presets[name], test)
+        report[name] = evaluate(baseline(name, settings), test)
     info.update(blend=best, validation_ade_m=selection, split=split, fit=list(fit))
     return FitResult(params, uncertainty, report, info)
+
+
+def baseline(name: str, settings: Settings) -> Params:
+    """Preset `name` on the fit's prediction grid (step, horizon) and, where the fit's car is not
+    the F1TENTH default, with its wheelbase and steering limit."""
+    default = Settings()
+    changes = dict(dt_s=settings.dt_s, horizon=settings.horizon)
+    for k in ("wheelbase_m", "max_steer_rad"):
+        if getattr(settings, k) != getattr(default, k):
+            changes[k] = getattr(settings, k)
+    return with_settings(presets[name], **changes)
 
 
 def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
