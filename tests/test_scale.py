@@ -192,3 +192,20 @@ def test_uncertainty_frame_never_builds_predictions_by_track_points():
     got = path_heading(track, pts, states)
     want = jax.vmap(jax.vmap(lambda p: track.heading_at(track.project(p))))(jnp.asarray(pts))
     np.testing.assert_allclose(got, np.asarray(want), atol=1e-9)
+
+
+def test_forged_npy_header_is_refused_before_allocating(tmp_path, capsys):
+    """A .npy whose header declares 29 TiB (more than the file holds): one line, exit 2."""
+    forged = tmp_path / "forged.npy"
+    with open(forged, "wb") as f:  # 1e12 x 4 float64 declared (29 TiB), 3 rows present
+        header = {"descr": "<f8", "fortran_order": False, "shape": (10**12, 4)}
+        np.lib.format.write_array_header_1_0(f, header)
+        f.write(np.zeros((3, 4)).tobytes())
+    out = tmp_path / "out.npy"
+    wp = tmp_path / "wp.csv"
+    wp.write_text("x,y\n" + "\n".join(f"{np.cos(a):.6f},{np.sin(a):.6f}" for a in range(0, 6)))
+    argv = ["batch", str(forged), "--waypoints", str(wp), "--preset", "linear", "--out", str(out)]
+    assert main(argv) == 2
+    line = _one_error_line(capsys)
+    assert "header declares" in line and str(forged) in line
+    assert not out.exists()

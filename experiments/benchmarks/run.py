@@ -750,7 +750,7 @@ def bench_fullsize(quick: bool) -> dict:
             out = []
             for _ in range(runs):
                 proc = subprocess.run(
-                    [sys.executable, str(Path(__file__).resolve()), "--rss-child", "--", *argv]
+                    [sys.executable, str(Path(__file__).resolve()), "--rss-child", *argv]
                     + (["--force"] if name == "predict" else []),
                     capture_output=True,
                     text=True,
@@ -1025,6 +1025,9 @@ def plot(results: dict, path: Path) -> None:
 
 
 def main() -> None:
+    if sys.argv[1:2] == ["--rss-child"]:  # `run.py --rss-child FPE-ARGS...`: not for argparse
+        rss_child(sys.argv[2:])
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke test, ~1 min)")
     ap.add_argument("--out-dir", default=str(HERE), help="where results.* and the plot go")
@@ -1036,14 +1039,10 @@ def main() -> None:
     )
     ap.add_argument("--fit-child", type=float, metavar="MINUTES", help=argparse.SUPPRESS)
     ap.add_argument("--with-scipy", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--rss-child", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     ap.add_argument(
         "--only", choices=("fullsize",), help="run one section and merge it into results.json"
     )
     args = ap.parse_args()
-    if args.rss_child is not None:
-        rss_child(args.rss_child[1:] if args.rss_child[:1] == ["--"] else args.rss_child)
-        return
     if args.peak_memory_child:
         peak_memory_child(int(args.peak_memory_child[0]), args.peak_memory_child[1])
         return
