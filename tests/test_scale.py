@@ -209,3 +209,11 @@ def test_forged_npy_header_is_refused_before_allocating(tmp_path, capsys):
     line = _one_error_line(capsys)
     assert "header declares" in line and str(forged) in line
     assert not out.exists()
+
+
+@pytest.mark.parametrize("duration", ["1e12", "nan", "7201"])
+def test_simulate_duration_is_limited_up_front(tmp_path, capsys, duration):
+    argv = ["simulate", "--track", "oval", "--duration", duration, "--out", str(tmp_path / "d")]
+    assert main(argv) == 2
+    assert "duration" in _one_error_line(capsys)
+    assert not (tmp_path / "d").exists()
