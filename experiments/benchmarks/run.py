@@ -736,6 +736,7 @@ def bench_fullsize(quick: bool) -> dict:
         t0 = time.perf_counter()
         facts = fullsize_drive(tmp)
         facts["simulate_s"] = time.perf_counter() - t0
+        facts["load_avg_start"] = load_average()  # the machine may be shared: times depend on it
         car = ["--wheelbase", str(facts["wheelbase_m"]), "--max-steer", "0.5"]
         log = [str(tmp / "drive.mcap"), "--waypoints", str(tmp / "waypoints.csv")]
         topics = ["--pose-topic", "/opp/pose", "--truth-topic", "/opp/odom"]
@@ -771,6 +772,7 @@ def bench_fullsize(quick: bool) -> dict:
                 flush=True,
             )
         config = json.loads(Path(cfg).read_text())
+    facts["load_avg_end"] = load_average()
     fit = rows["fit"]
     return {
         **facts,
@@ -798,7 +800,12 @@ def fullsize_markdown(fs: dict | None) -> list[str]:
         f"{fs['n_observations']} detections and {fs['n_truth']} truth poses at 25 Hz. Each "
         "command in a fresh process (compilation included); median wall time, largest peak RSS "
         f"(`ru_maxrss`). Target: fit <= {fs['target']['fit_wall_s']:.0f} s and "
-        f"<= {fs['target']['fit_peak_rss_mb']:.0f} MB: **{_met(fs['met'])}**.",
+        f"<= {fs['target']['fit_peak_rss_mb']:.0f} MB: **{_met(fs['met'])}**."
+        + (
+            f" Load average {fs['load_avg_start']:.1f} -> {fs['load_avg_end']:.1f}."
+            if "load_avg_start" in fs
+            else ""
+        ),
         "",
         "| command | wall s | peak RSS MB |",
         "|---|---|---|",
