@@ -217,3 +217,24 @@ def test_simulate_duration_is_limited_up_front(tmp_path, capsys, duration):
     assert main(argv) == 2
     assert "duration" in _one_error_line(capsys)
     assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize("preset", ["default", "seed"])
+def test_runner_honours_a_full_size_cars_settings(full_size_drive, preset):
+    """The NumPy runner reads wheelbase, steering limit, step and horizon from the config and
+    matches the JAX prediction on a full-size drive (parity 1e-6 m)."""
+    from fpe_jax.config import params_to_config
+    from fpe_jax.predict import predict_drive
+    from fpe_jax.runner import Runner
+
+    _, res = full_size_drive
+    p = with_settings(presets[preset], wheelbase_m=2.578, max_steer_rad=0.5, dt_s=0.05, horizon=24)
+    drive = res.drive.slice_time(0.0, 8.0)
+    wp = res.centerline_xy_m
+    _, want = predict_drive(p, drive, Track.from_waypoints(wp))
+    r = Runner(params_to_config(p), wp)
+    got = np.stack(
+        [r.update(t, x, y, yaw) for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad)]
+    )
+    assert got.shape == want.shape == (len(drive.t_s), 24, 3)
+    assert np.max(np.abs(got[..., :2] - want[..., :2])) <= 1e-6
