@@ -562,6 +562,33 @@ def _store(out: np.ndarray, start: int, stop: int, result, n_sets) -> None:
 # ---- files for `fpe batch` ---------------------------------------------------------------------
 
 
+MAX_CARS = 1 << 28  # cars per file (2.7e8 rows of 5 float64 are 10.7 GB): beyond is not a batch
+
+
+def _check_npy_header(p: Path) -> None:
+    """Refuse a .npy whose header declares more data than the file holds, or than MAX_CARS rows,
+    before anything is allocated (a forged header once asked for 29 TiB)."""
+    try:
+        with open(p, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = {(1, 0): np.lib.format.read_array_header_1_0}.get(
+                version, np.lib.format.read_array_header_2_0
+            )
+            shape, _, dtype = read(f)
+            data_start = f.tell()
+    except (ValueError, OSError, EOFError) as e:
+        raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
+    n_bytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    available = p.stat().st_size - data_start
+    if n_bytes > available:
+        raise InputError(
+            p, f"header declares shape {shape} ({n_bytes} bytes) but holds {available}",
+            "an intact np.save file",
+        )  # fmt: skip
+    if shape and shape[0] > MAX_CARS:
+        raise InputError(p, f"{shape[0]} cars", f"at most {MAX_CARS} per call; split the file")
+
+
 def read_cars(path) -> np.ndarray:
     """Cars from a CSV with header `x,y,yaw,v[,yaw_rate]` or a `.npy` (N, 4|5) array.
 
@@ -572,9 +599,10 @@ def read_cars(path) -> np.ndarray:
     if p.suffix.lower() == ".npy":
         if not p.is_file():
             raise InputError(p, "does not exist", "a .npy array or a CSV of cars")
+        _check_npy_header(p)
         try:
             arr = np.load(p, allow_pickle=False)
-        except (ValueError, OSError) as e:
+        except (ValueError, OSError, EOFError) as e:
             raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
         if arr.ndim != 2 or arr.shape[1] not in (4, 5) or not np.issubdtype(arr.dtype, np.number):
             raise InputError(

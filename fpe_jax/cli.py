@@ -51,6 +51,29 @@ def _add_predictor_flags(p: argparse.ArgumentParser, *, required: bool) -> None:
     src = p.add_mutually_exclusive_group(required=required)
     src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
     src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    _add_settings_flags(p, "with --preset")
+
+
+# flag -> Settings field of the car and the prediction grid (fpe_jax.params.USER_SETTINGS)
+SETTINGS_FLAGS = {
+    "--wheelbase": "wheelbase_m",
+    "--max-steer": "max_steer_rad",
+    "--dt": "dt_s",
+    "--horizon": "horizon",
+}
+
+
+def _add_settings_flags(p: argparse.ArgumentParser, when: str) -> None:
+    g = p.add_argument_group(f"car and prediction settings ({when}; default: the preset's)")
+    g.add_argument("--wheelbase", type=float, metavar="M", help="wheelbase [m] (F1TENTH 0.325)")
+    g.add_argument("--max-steer", type=float, metavar="RAD", help="steering limit [rad]")
+    g.add_argument("--dt", type=float, metavar="S", help="prediction step [s] (0.1)")
+    g.add_argument("--horizon", type=int, metavar="N", help="number of steps (10)")
+
+
+def _settings_from_args(args) -> dict:
+    """{flag: (Settings field, value)} of the settings flags given (None where omitted)."""
+    return {f: (k, getattr(args, f[2:].replace("-", "_"))) for f, k in SETTINGS_FLAGS.items()}
 
 
 def _add_run_flags(p: argparse.ArgumentParser) -> None:
@@ -124,6 +147,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--test", nargs="+", metavar="LOG", help="separate held-out drives instead")
     p.add_argument("--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: all but split)")
     p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
+    _add_settings_flags(p, "saved in the config; a recipe may set them in [settings]")
     p.add_argument(
         "--solver",
         choices=SOLVERS,
@@ -287,6 +311,7 @@ def _fit_inputs(args, say=lambda msg: None):
             fit=r.fit,
             blend=args.blend or r.blend,
             solver=args.solver or r.solver,
+            settings=r.settings,
         )
         return r.drives, r.test_drives, out, opts
     if not args.waypoints:
@@ -303,7 +328,11 @@ def _fit_inputs(args, say=lambda msg: None):
         args.log = log
         tests.append((_load_drive_from_args(args), wp, log))
     opts = dict(
-        holdout=args.holdout or 0.3, fit=None, blend=args.blend or "auto", solver=args.solver
+        holdout=args.holdout or 0.3,
+        fit=None,
+        blend=args.blend or "auto",
+        solver=args.solver,
+        settings={},
     )
     return drives, tests, args.out, opts
 
@@ -329,8 +358,15 @@ def cmd_fit(args) -> int:
         io.check_output_path(out, args.force)
         say("loading JAX")
         _start_jax(args)
+        from fpe_jax.config import apply_settings
         from fpe_jax.fit import DEFAULT_FIT, fit, format_fitted, format_table, provenance
+        from fpe_jax.params import presets
         from fpe_jax.track import Track
+
+        # the recipe's [settings], then the flags on top
+        init = apply_settings(presets["default"], opts["settings"], str(args.logs[0]))
+        flags = {k: v for k, v in _settings_from_args(args).items() if v[1] is not None}
+        init = apply_settings(init, flags)
 
         tracks = [Track.from_waypoints(wp) for _, wp, _ in drives]
         test_tracks = [Track.from_waypoints(wp) for _, wp, _ in tests] or None
@@ -343,6 +379,7 @@ def cmd_fit(args) -> int:
             test_drives=[d for d, _, _ in tests] or None,
             test_tracks=test_tracks,
             solver=opts["solver"] or SOLVERS[0],
+            init=init,
             progress=say,
         )
     topics = {
@@ -381,7 +418,8 @@ def cmd_evaluate(args) -> int:
         from fpe_jax.track import Track
 
         say("reading the drive and waypoints")
-        params = load_params(preset=args.preset, config=args.config)
+        settings = _settings_from_args(args)
+        params = load_params(preset=args.preset, config=args.config, settings=settings)
         cfg = read_config(args.config) if args.config else {}
         cov = (cfg.get("uncertainty") or {}).get("cov_m2")
         drive = _load_drive_from_args(args)
@@ -445,11 +483,12 @@ def cmd_predict(args) -> int:
         _start_jax(args)
         from fpe_jax.config import load_params
         from fpe_jax.fit import covariance_map, path_heading
-        from fpe_jax.predict import predict_drive
+        from fpe_jax.predict import predict_rows, states_from_drive
         from fpe_jax.track import Track
 
         say("reading the drive and waypoints")
-        params = load_params(preset=args.preset, config=args.config)
+        settings = _settings_from_args(args)
+        params = load_params(preset=args.preset, config=args.config, settings=settings)
         cov = None
         if args.config:
             cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
@@ -457,9 +496,10 @@ def cmd_predict(args) -> int:
         drive = _load_drive_from_args(args)
         track = Track.from_waypoints(waypoints.xy_m)
         say(f"predicting {len(drive.t_s)} observations")
-        stamps_s, poses = predict_drive(params, drive, track)
+        states = states_from_drive(params, drive, track)
+        stamps_s, poses = drive.t_s.copy(), predict_rows(params, states, track)
         if cov is not None:  # the config's per-step ellipses, turned into the map frame
-            cov = covariance_map(cov, path_heading(track, poses[..., :2]))
+            cov = covariance_map(cov, path_heading(track, poses[..., :2], states))
         say(f"writing {args.out}")
         io.write_predictions(
             args.out,
@@ -643,7 +683,8 @@ def cmd_batch(args) -> int:
         from fpe_jax.track import Track
 
         say("reading the cars and waypoints")
-        params = load_params(preset=args.preset, config=args.config)
+        settings = _settings_from_args(args)
+        params = load_params(preset=args.preset, config=args.config, settings=settings)
         track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
         cars = read_cars(args.states)
         say(f"predicting {len(cars)} cars")
@@ -715,7 +756,8 @@ def cmd_plot(args) -> int:
         from fpe_jax.plots import plot_drive
 
         say("reading the drive and waypoints")
-        params = load_params(preset=args.preset, config=args.config)
+        settings = _settings_from_args(args)
+        params = load_params(preset=args.preset, config=args.config, settings=settings)
         name = args.preset or f"config {Path(args.config).name}"
         waypoints = io.load_waypoints(args.waypoints)
         drive = _load_drive_from_args(args)

@@ -111,13 +111,54 @@ def write_config(path, cfg: dict[str, Any], *, force: bool = False) -> None:
     os.replace(tmp, path)
 
 
-def load_params(*, preset: str | None = None, config: str | None = None):
-    """Params from a preset name or a config file (exactly one; default preset: 'default')."""
+def load_params(*, preset: str | None = None, config: str | None = None, settings=None):
+    """Params from a preset name or a config file (exactly one; default preset: 'default').
+
+    settings: {flag: (Settings field, value)} of user settings (`params.USER_SETTINGS`) for a
+    preset; a config carries the settings it was fitted with, so they are an error there.
+    """
     from fpe_jax.params import presets
 
+    settings = {k: v for k, v in (settings or {}).items() if v[1] is not None}
     if config is not None:
+        if settings:
+            flags = ", ".join(settings)
+            raise InputError(flags, "given with --config", "a config's own settings (or --preset)")
         return config_to_params(read_config(config))
     name = preset or "default"
     if name not in presets:
         raise InputError("--preset", f"unknown preset {name!r}", f"one of {', '.join(presets)}")
-    return presets[name]
+    return apply_settings(presets[name], settings)
+
+
+def apply_settings(params, settings: dict, source: str | None = None):
+    """params with {name: (Settings field, value)} applied; a bad value is an InputError naming
+    `source` or the flag."""
+    from fpe_jax.params import with_settings
+
+    for name, (field, value) in settings.items():
+        ok = _is_number(value) and value > 0
+        if field == "horizon":
+            ok = ok and isinstance(value, int) and value <= MAX_HORIZON
+        if not ok or (field == "max_steer_rad" and value >= 1.5707963):
+            what = f"{source}: {name}" if source else name
+            raise InputError(what, f"{value!r}", SETTING_EXPECTED[field])
+    try:
+        return with_settings(params, **{f: v for f, v in settings.values()})
+    except ValueError as e:
+        raise InputError(source or ", ".join(settings), str(e), "valid settings") from None
+
+
+MAX_HORIZON = 1000  # steps; longer horizons are not predictions of a car's near future
+SETTING_EXPECTED = {
+    "wheelbase_m": "a positive wheelbase in metres",
+    "max_steer_rad": "a steering limit in radians, > 0 and < pi/2",
+    "dt_s": "a positive step in seconds",
+    "horizon": f"a whole number of steps, 1 to {MAX_HORIZON}",
+}
+
+
+def _is_number(x) -> bool:
+    import math
+
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)

@@ -25,10 +25,17 @@ from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.history import distinct_mask, history_windows
 from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
-from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
-from fpe_jax.predict import bucket, pad_rows, predict, predict_rows, states_from_drive
+from fpe_jax.params import Params, Settings, constrain, presets, unconstrain, with_settings
+from fpe_jax.predict import (
+    bucket,
+    pad_rows,
+    predict,
+    predict_rows,
+    row_blocks,
+    states_from_drive,
+)
 from fpe_jax.rollout import State
-from fpe_jax.track import Track
+from fpe_jax.track import Track, project_rollout
 
 # What `--fit` may name, and the Params fields each name frees.
 FIT_GROUPS = {
@@ -322,7 +329,7 @@ def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
         pred = predict_targets(params, d)
         errs.append(errors_m(pred[..., :2], d.targets.xy_m, d.targets.mask))
         if cov_m2 is not None:
-            res.append(_track_residuals(pred, d))
+            res.append(_track_residuals(pred, d, params))
             masks.append(d.targets.mask)
     out = summarize(np.concatenate(errs))
     if cov_m2 is not None:
@@ -330,16 +337,26 @@ def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
     return out
 
 
-@eqx.filter_jit
-def _path_heading(track: Track, xy_m):
-    along = jax.vmap(jax.vmap(track.project))(xy_m)
+def path_heading(track: Track, xy_m: np.ndarray, states: State) -> np.ndarray:
+    """Path heading [rad] (N, H) at predicted positions (N, H, 2): the frame of the uncertainty.
+
+    Each prediction is projected near its own car's arc length (`states`, leading axis N, with
+    `s_m`), in bucketed blocks of rows: memory O(block x H + track points), not
+    (N, H, track points).
+    """
+    out = []
+    for rows, size in row_blocks(len(xy_m)):
+        st = pad_rows(jax.tree.map(lambda x, r=rows: x[r], states), size)
+        start = np.stack([st.x_m, st.y_m], axis=-1)
+        xy = pad_rows(np.asarray(xy_m[rows]), size)
+        out.append(np.asarray(_heading_chunk(track, xy, start, st.s_m))[: rows.stop - rows.start])
+    return np.concatenate(out) if out else np.zeros(np.shape(xy_m)[:2])
+
+
+@jax.jit
+def _heading_chunk(track: Track, xy_m, start_xy_m, s_start_m):
+    along = jax.vmap(project_rollout, in_axes=(None, 0, 0, 0))(track, xy_m, start_xy_m, s_start_m)
     return jax.vmap(jax.vmap(track.heading_at))(along)
-
-
-def path_heading(track: Track, xy_m: np.ndarray) -> np.ndarray:
-    """Path heading [rad] (N, H) at predicted positions (N, H, 2): the frame of the uncertainty."""
-    n = len(xy_m)
-    return np.asarray(_path_heading(track, pad_rows(np.asarray(xy_m), bucket(n))))[:n]
 
 
 def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
@@ -349,14 +366,16 @@ def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
     return rot @ np.asarray(cov_track_m2)[None] @ np.swapaxes(rot, -1, -2)
 
 
-def _track_residuals(pred: np.ndarray, d: Dataset) -> np.ndarray:
-    heading = path_heading(d.track, pred[..., :2])
+def _track_residuals(pred: np.ndarray, d: Dataset, params: Params) -> np.ndarray:
+    heading = path_heading(d.track, pred[..., :2], d.states(params))
     return track_frame_residuals(pred[..., :2], d.targets.xy_m, heading)
 
 
 def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
     """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame."""
-    res = np.concatenate([_track_residuals(predict_targets(params, d), d) for d in datasets])
+    res = np.concatenate(
+        [_track_residuals(predict_targets(params, d), d, params) for d in datasets]
+    )
     mask = np.concatenate([d.targets.mask for d in datasets])
     return {
         "frame": "track",
@@ -478,9 +497,20 @@ def fit(
     report = {"fitted": evaluate(params, test, uncertainty["cov_m2"])}
     for i, name in enumerate(BASELINES, 1):
         progress(f"evaluating preset '{name}' on held-out data ({i}/{len(BASELINES)})")
-        report[name] = evaluate(presets[name], test)
+        report[name] = evaluate(baseline(name, settings), test)
     info.update(blend=best, validation_ade_m=selection, split=split, fit=list(fit))
     return FitResult(params, uncertainty, report, info)
+
+
+def baseline(name: str, settings: Settings) -> Params:
+    """Preset `name` on the fit's prediction grid (step, horizon) and, where the fit's car is not
+    the F1TENTH default, with its wheelbase and steering limit."""
+    default = Settings()
+    changes = dict(dt_s=settings.dt_s, horizon=settings.horizon)
+    for k in ("wheelbase_m", "max_steer_rad"):
+        if getattr(settings, k) != getattr(default, k):
+            changes[k] = getattr(settings, k)
+    return with_settings(presets[name], **changes)
 
 
 def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:

@@ -131,6 +131,32 @@ class Params(eqx.Module):
         }
 
 
+# Settings a user may change on a predictor (flags --wheelbase, --max-steer, --dt, --horizon and
+# a recipe's [settings] table): the car and the prediction grid, never the model's form.
+USER_SETTINGS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")
+
+
+def with_settings(params: Params, **changes) -> Params:
+    """params with some `USER_SETTINGS` changed (Settings checks them: ValueError).
+
+    On a new step or horizon the per-step weights are read off as a function of lead time
+    (linear interpolation of the old weights at h * dt_s, held beyond the old horizon), so a
+    preset's blend means the same at the same time ahead.
+    """
+    unknown = set(changes) - set(USER_SETTINGS)
+    if unknown:
+        raise ValueError(f"Settings: unknown {sorted(unknown)}; expected {USER_SETTINGS}")
+    old = params.settings
+    new = dataclasses.replace(old, **changes)
+    weights = params.weights
+    if (new.horizon, new.dt_s) != (old.horizon, old.dt_s):
+        t_old = np.arange(1, old.horizon + 1) * old.dt_s
+        t_new = np.arange(1, new.horizon + 1) * new.dt_s
+        w = np.interp(t_new, t_old, np.asarray(weights))
+        weights = jnp.asarray(w, dtype=weights.dtype)
+    return dataclasses.replace(params, weights=weights, settings=new)
+
+
 # ---- reparametrisation -------------------------------------------------------------------------
 
 _RAW_EPS = 1e-6  # keeps the inverse maps finite at the bounds (w = 0 or 1, delay = 0)

@@ -17,6 +17,10 @@ from fpe_jax.params import Params
 from fpe_jax.rollout import State, rollout
 from fpe_jax.track import Track, arclength_along
 
+# Rows per compiled prediction call: a drive of any length runs in blocks of this size (a
+# 10-million-row log asked XLA for one 13.4 GB block before).
+PREDICT_CHUNK = 1 << 15
+
 
 def predict(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
     """Poses (H, 3) x [m], y [m], yaw [rad] at t + h * dt_s, h = 1..H, for one car."""
@@ -75,10 +79,24 @@ def pad_rows(tree, n: int):
     return jax.tree.map(pad, tree)
 
 
+def row_blocks(n: int):
+    """Slices of at most PREDICT_CHUNK rows covering 0..n, each with its bucketed row count."""
+    for a in range(0, n, PREDICT_CHUNK):
+        rows = slice(a, min(n, a + PREDICT_CHUNK))
+        yield rows, bucket(rows.stop - rows.start)
+
+
 def predict_rows(params: Params, states: State, track: Track) -> np.ndarray:
-    """`predict_batch` of N states (leading axis N) in a bucketed shape -> numpy (N, H, 3)."""
-    n = len(states.x_m)
-    return np.asarray(predict_batch(params, pad_rows(states, bucket(n)), track))[:n]
+    """(N, H, 3) NumPy predictions of N states (leading axis N): `predict_batch` over blocks of
+    at most PREDICT_CHUNK rows, each padded to its bucket, so intermediates stay O(chunk x H) for
+    any N and every drive reuses a few compiled shapes."""
+    out = []
+    for rows, size in row_blocks(len(states.x_m)):
+        part = pad_rows(jax.tree.map(lambda x, r=rows: x[r], states), size)
+        out.append(np.asarray(predict_batch(params, part, track))[: rows.stop - rows.start])
+    if not out:
+        return np.zeros((0, params.settings.horizon, 3))
+    return np.concatenate(out) if len(out) > 1 else out[0]
 
 
 @eqx.filter_jit

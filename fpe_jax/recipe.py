@@ -7,6 +7,9 @@ fit = ["lookahead", "weights", "delay", "speed"]
 blend = "auto"
 solver = "bfgs"                # or "lm"
 
+[settings]                     # the car and the prediction grid (default: F1TENTH, 10 x 0.1 s)
+wheelbase_m = 2.578            # also max_steer_rad, dt_s, horizon
+
 [[drives]]
 path = "../../shared/data/levine/actual-poses.csv"
 rate_hz = 10                   # also: pose_topic, truth_topic, waypoints, log_time
@@ -40,7 +43,18 @@ DRIVE_KEYS = {
     "tag_to_base",
     "drop_outside_tf",
 }
-TOP_KEYS = {"out", "waypoints", "holdout", "fit", "blend", "solver", "drives", "test_drives"}
+TOP_KEYS = {
+    "out",
+    "waypoints",
+    "holdout",
+    "fit",
+    "blend",
+    "solver",
+    "drives",
+    "test_drives",
+    "settings",
+}
+SETTINGS_KEYS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")  # params.USER_SETTINGS
 
 
 @dataclasses.dataclass
@@ -55,6 +69,7 @@ class Recipe:
     fit: tuple[str, ...] | None
     blend: str
     solver: str | None
+    settings: dict  # {"[settings] key": (Settings field, value)}, see config.apply_settings
 
 
 def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
@@ -104,6 +119,10 @@ def load_recipe(path) -> Recipe:
         raise InputError(path, f"unknown keys {sorted(unknown)}", f"{sorted(TOP_KEYS)}")
     if not spec.get("drives"):
         raise InputError(path, "no [[drives]]", "at least one [[drives]] entry")
+    table = spec.get("settings", {})
+    if not isinstance(table, dict) or set(table) - set(SETTINGS_KEYS):
+        bad = sorted(set(table) - set(SETTINGS_KEYS)) if isinstance(table, dict) else table
+        raise InputError(path, f"[settings] has {bad!r}", f"keys from {', '.join(SETTINGS_KEYS)}")
     base = path.parent
     wp = spec.get("waypoints")
     drives = [_load_entry(e, base, wp, path) for e in spec["drives"]]
@@ -122,4 +141,5 @@ def load_recipe(path) -> Recipe:
         fit=tuple(fit) if fit is not None else None,
         blend=spec.get("blend", "auto"),
         solver=spec.get("solver"),
+        settings={f"[settings] {k}": (k, v) for k, v in table.items()},
     )

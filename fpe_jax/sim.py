@@ -36,6 +36,9 @@ SIM_VERSION = "1.0"
 DT_S = 0.01  # RK4 and driver step (100 Hz)
 TRUTH_EVERY = 2  # truth is recorded every 2nd step (50 Hz)
 REF_SPACING_M = 0.1  # the driver's reference path is resampled at this spacing
+# The closed loop keeps ~300 bytes per 10 ms step in Python lists: 2 hours are ~0.2 GB (the
+# same again for the sensor), where a day would be several GB. Longer drives: several seeds.
+MAX_DURATION_S = 7200.0
 G_MPS2 = 9.81
 
 
@@ -195,8 +198,9 @@ def simulate(
     Returns:
         A `SimResult`; detections stamped after `duration_s` are not recorded.
     """
-    if not (duration_s > 0 and math.isfinite(duration_s)):
-        raise InputError("duration", f"{duration_s!r} s", "a positive number of seconds")
+    if not (0 < duration_s <= MAX_DURATION_S):  # NaN fails too
+        expected = f"a positive number of seconds, at most {MAX_DURATION_S:.0f}"
+        raise InputError("duration", f"{duration_s!r} s", expected)
     if not (latency_s >= 0 and math.isfinite(latency_s)):
         raise InputError("latency", f"{latency_s!r} s", "a non-negative number of seconds")
     name, center, hw, ref_xy, ref_v = _resolve_track(track, raceline, half_width_m)

@@ -182,3 +182,22 @@ def arclength_along(track: Track, xy_m: Float[Array, "N 2"]) -> Float[Array, " N
 
     _, s = jax.lax.scan(step, s0, xy_m)
     return s
+
+
+def project_rollout(
+    track: Track, xy_m: Float[Array, "H 2"], start_xy_m: Float[Array, "2"], s_start_m
+) -> Float[Array, " H"]:
+    """Arc length [m] of each point of one predicted path (H, 2), from the car's own place.
+
+    Each point is projected in a window around the previous point's arc length plus the distance
+    moved since (from `start_xy_m` (2,) at `s_start_m` [m] for the first): O(H x window) work,
+    independent of the track's size, and never snapped to another part of the track.
+    """
+
+    def step(carry, p):
+        s_prev, p_prev = carry
+        s = track.project_window(p, s_prev + jnp.linalg.norm(p - p_prev))
+        return (s, p), s
+
+    _, s = jax.lax.scan(step, (s_start_m, start_xy_m), xy_m)
+    return s

@@ -14,6 +14,9 @@ after compilation, with compile time reported separately):
 4. fit     fit wall time for 1, 10, 60 min of 10 Hz drive; SciPy L-BFGS-B baseline (see FIT below).
 5. runner  the NumPy on-car runner's update latency (median, p99) when `fpe_jax.runner` exists.
 6. memory  peak resident memory of a fresh process predicting N = 1e6 cars.
+7. fullsize a full-size car: 5 minutes at 12-32 m/s on Austin scaled x6 (2524 m, 2524 waypoints),
+           25 Hz detections and truth; `fpe fit`, `fpe predict` and `fpe evaluate` each in a fresh
+           process: wall time and peak RSS (targets: fit <= 60 s and <= 2 GB).
 
 Usage: python experiments/benchmarks/run.py [--quick]   (--quick: small sizes, for smoke tests)
 """
@@ -782,6 +785,183 @@ def bench_memory(n: int, dtypes) -> list[dict]:
 # ---- report ------------------------------------------------------------------------------------
 
 
+# ---- 7. a full-size car on a full-size track ---------------------------------------------------
+
+AUSTIN = ROOT.parent / "shared" / "data" / "tracks" / "Austin_centerline.csv"
+FULLSIZE = dict(scale=6.0, waypoint_spacing_m=1.0, duration_s=300.0, latency_s=0.1, seed=3)
+FULLSIZE_RUNS = 3  # fresh processes per command (the median wall time, the largest peak RSS)
+FULLSIZE_TARGET = dict(fit_wall_s=60.0, fit_peak_rss_mb=2048.0)
+
+
+def fullsize_drive(out_dir: Path) -> dict:
+    """Simulate the full-size case into out_dir (drive.mcap, waypoints.csv); return its facts.
+
+    The car: CommonRoad vehicle 2 (a BMW 320i: wheelbase 2.578 m) on grip mu 1.6; the driver's
+    and detector's lengths scaled with the track (x6). Truth is thinned to 25 Hz (the rate of a
+    full-size car's odometry).
+    """
+    import dataclasses as dc
+
+    from fpe_jax import sim
+    from fpe_jax.io import load_waypoints
+    from fpe_jax.tracks import resample_loop
+
+    k = FULLSIZE["scale"]
+    center, _ = resample_loop(load_waypoints(AUSTIN).xy_m * k, FULLSIZE["waypoint_spacing_m"])
+    vehicle = sim.Vehicle(
+        mu=1.6, c_sf=20.89, c_sr=20.89, lf_m=1.1566, lr_m=1.4224, h_cg_m=0.574, mass_kg=1225.0,
+        inertia_kgm2=1538.0, steer_max_rad=1.066, steer_rate_max_rps=0.8, accel_max_mps2=11.5,
+        v_switch_mps=20.0, v_kinematic_mps=2.0, v_dynamic_mps=4.0,
+    )  # fmt: skip
+    driver = sim.Driver(
+        lookahead_min_m=4.0, lookahead_time_s=0.4, offset_max_m=0.3, edge_margin_m=0.3 * k,
+        lat_accel_mps2=15.0, accel_mps2=8.0, brake_mps2=8.0, v_min_mps=12.0, v_max_mps=32.0,
+    )  # fmt: skip
+    sensor = sim.Sensor(rate_hz=25.0, sigma_m=0.1, sigma_per_m=0.005, ego_gap_m=(12.0, 24.0))
+    res = sim.simulate(
+        center,
+        duration_s=FULLSIZE["duration_s"],
+        latency_s=FULLSIZE["latency_s"],
+        seed=FULLSIZE["seed"],
+        half_width_m=1.1 * k,
+        vehicle=vehicle,
+        driver=driver,
+        sensor=sensor,
+    )
+    d = res.drive
+    thin = slice(None, None, 2)  # 50 Hz -> 25 Hz
+    drive = dc.replace(
+        d,
+        truth_t_s=d.truth_t_s[thin],
+        truth_xy_m=d.truth_xy_m[thin],
+        truth_yaw_rad=d.truth_yaw_rad[thin],
+        truth_v_mps=d.truth_v_mps[thin],
+    )
+    res = dc.replace(res, drive=drive, truth_yaw_rate_rps=res.truth_yaw_rate_rps[thin])
+    sim.write_simulation(res, out_dir, force=True)
+    v = drive.truth_v_mps
+    return {
+        "track": f"{AUSTIN.name} x{k:g}, resampled at {FULLSIZE['waypoint_spacing_m']} m",
+        "n_waypoints": int(len(center)),
+        "length_m": float(np.sum(np.hypot(*np.diff(np.vstack([center, center[:1]]), axis=0).T))),
+        "wheelbase_m": vehicle.lf_m + vehicle.lr_m,
+        "mu": vehicle.mu,
+        "speed_mps": {"min": float(v.min()), "median": float(np.median(v)), "max": float(v.max())},
+        "n_observations": int(len(drive.t_s)),
+        "n_truth": int(len(drive.truth_t_s)),
+        "truth_rate_hz": 25.0,
+        **{k2: FULLSIZE[k2] for k2 in ("duration_s", "latency_s", "seed")},
+    }
+
+
+def rss_child(argv: list[str]) -> None:
+    """Run `fpe ARGV` in this fresh process; print its exit status, wall time and peak RSS."""
+    import resource
+
+    from fpe_jax.cli import main as fpe_main
+
+    t0 = time.perf_counter()
+    rc = fpe_main(argv)
+    wall = time.perf_counter() - t0
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+    print(json.dumps({"rc": rc, "wall_s": wall, "peak_rss_mb": peak_mb}))
+
+
+def bench_fullsize(quick: bool) -> dict:
+    import tempfile
+
+    if not AUSTIN.exists():
+        return {"skipped": f"{AUSTIN} not found"}
+    runs = 1 if quick else FULLSIZE_RUNS
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        t0 = time.perf_counter()
+        facts = fullsize_drive(tmp)
+        facts["simulate_s"] = time.perf_counter() - t0
+        facts["load_avg_start"] = load_average()  # the machine may be shared: times depend on it
+        car = ["--wheelbase", str(facts["wheelbase_m"]), "--max-steer", "0.5"]
+        log = [str(tmp / "drive.mcap"), "--waypoints", str(tmp / "waypoints.csv")]
+        topics = ["--pose-topic", "/opp/pose", "--truth-topic", "/opp/odom"]
+        cfg = str(tmp / "config.json")
+        commands = {
+            "fit": ["fit", *log, *topics, *car, "--out", cfg, "--force"],
+            "predict": ["predict", *log, *topics, "--config", cfg, "--out", str(tmp / "p.csv")],
+            "evaluate": ["evaluate", *log, *topics, "--config", cfg, "--json"],
+        }
+        rows = {}
+        for name, argv in commands.items():
+            out = []
+            for _ in range(runs):
+                proc = subprocess.run(
+                    [sys.executable, str(Path(__file__).resolve()), "--rss-child", *argv]
+                    + (["--force"] if name == "predict" else []),
+                    capture_output=True,
+                    text=True,
+                )
+                last = proc.stdout.strip().splitlines()[-1:] or ["{}"]
+                if proc.returncode != 0 or json.loads(last[0]).get("rc") != 0:
+                    err = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+                    return {"skipped": f"fpe {name} failed: {err}", **facts}
+                out.append(json.loads(last[0]))
+            rows[name] = {
+                "wall_s": float(np.median([r["wall_s"] for r in out])),
+                "wall_s_runs": [r["wall_s"] for r in out],
+                "peak_rss_mb": max(r["peak_rss_mb"] for r in out),
+            }
+            print(
+                f"  fullsize {name}: median {rows[name]['wall_s']:.1f} s of {runs}, "
+                f"peak RSS {rows[name]['peak_rss_mb']:.0f} MB",
+                flush=True,
+            )
+        config = json.loads(Path(cfg).read_text())
+    facts["load_avg_end"] = load_average()
+    fit = rows["fit"]
+    return {
+        **facts,
+        "commands": {k: " ".join(["fpe", *v]) for k, v in commands.items()},
+        "results": rows,
+        "heldout": config["provenance"].get("heldout"),
+        "target": FULLSIZE_TARGET,
+        "met": bool(
+            fit["wall_s"] <= FULLSIZE_TARGET["fit_wall_s"]
+            and fit["peak_rss_mb"] <= FULLSIZE_TARGET["fit_peak_rss_mb"]
+        ),
+    }
+
+
+def fullsize_markdown(fs: dict | None) -> list[str]:
+    if not fs:
+        return ["Not run."]
+    if "skipped" in fs:
+        return [f"Skipped: {fs['skipped']}"]
+    v = fs["speed_mps"]
+    lines = [
+        f"{fs['track']}: {fs['length_m']:.0f} m, {fs['n_waypoints']} waypoints; wheelbase "
+        f"{fs['wheelbase_m']:.3f} m, mu {fs['mu']}, {fs['duration_s']:.0f} s at "
+        f"{v['min']:.1f}-{v['max']:.1f} m/s (median {v['median']:.1f}), "
+        f"{fs['n_observations']} detections and {fs['n_truth']} truth poses at 25 Hz. Each "
+        "command in a fresh process (compilation included); median wall time, largest peak RSS "
+        f"(`ru_maxrss`). Target: fit <= {fs['target']['fit_wall_s']:.0f} s and "
+        f"<= {fs['target']['fit_peak_rss_mb']:.0f} MB: **{_met(fs['met'])}**."
+        + (
+            f" Load average {fs['load_avg_start']:.1f} -> {fs['load_avg_end']:.1f}."
+            if "load_avg_start" in fs
+            else ""
+        ),
+        "",
+        "| command | wall s | peak RSS MB |",
+        "|---|---|---|",
+    ]
+    for name, r in fs["results"].items():
+        lines.append(f"| `fpe {name}` | {r['wall_s']:.1f} | {r['peak_rss_mb']:.0f} |")
+    held = (fs.get("heldout") or {}).get("fitted")
+    if held:
+        lines += ["", f"Held-out (last 30 %): fitted ADE {held['ade_m']:.3f} m, FDE "
+                  f"{held['fde_m']:.3f} m."]  # fmt: skip
+    lines += ["", "Commands: " + "; ".join(f"`{c}`" for c in fs["commands"].values())]
+    return lines
+
+
 def summarize(results: dict) -> dict:
     """The headline numbers against the issue's targets."""
 
@@ -948,6 +1128,7 @@ def write_markdown(results: dict, path: Path) -> None:
     if "commands" in results:
         lines += ["", "## Commands, cold and warm", ""]
         lines += commands_markdown(results["commands"], fit)
+    lines += ["", "## Full-size car and track", ""] + fullsize_markdown(results.get("fullsize"))
     lines += ["", "![throughput](throughput.png)", ""]
     path.write_text("\n".join(lines) + "\n")
 
@@ -1000,6 +1181,9 @@ def plot(results: dict, path: Path) -> None:
 
 
 def main() -> None:
+    if sys.argv[1:2] == ["--rss-child"]:  # `run.py --rss-child FPE-ARGS...`: not for argparse
+        rss_child(sys.argv[2:])
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small sizes (a smoke test, ~1 min)")
     ap.add_argument("--out-dir", default=str(HERE), help="where results.* and the plot go")
@@ -1022,6 +1206,9 @@ def main() -> None:
     )
     ap.add_argument("--fit-child", type=float, metavar="MINUTES", help=argparse.SUPPRESS)
     ap.add_argument("--with-scipy", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--only", choices=("fullsize",), help="run one section and merge it into results.json"
+    )
     args = ap.parse_args()
     if args.peak_memory_child:
         peak_memory_child(int(args.peak_memory_child[0]), args.peak_memory_child[1])
@@ -1036,6 +1223,12 @@ def main() -> None:
         cmd["machine"], cmd["load_avg"] = machine(), load_average()
         (out_dir / "commands.json").write_text(json.dumps(cmd, indent=2) + "\n")
         (out_dir / "commands.md").write_text("\n".join(commands_markdown(cmd, {})) + "\n")
+        return
+    if args.only == "fullsize":  # one section, merged into the committed results
+        results = json.loads((out_dir / "results.json").read_text())
+        results["fullsize"] = bench_fullsize(args.quick)
+        (out_dir / "results.json").write_text(json.dumps(results, indent=2) + "\n")
+        write_markdown(results, out_dir / "results.md")
         return
     if args.report_only:
         results = json.loads((out_dir / "results.json").read_text())
@@ -1085,6 +1278,8 @@ def main() -> None:
     )
     print("runner", flush=True)
     results["runner"] = bench_runner(waypoints)
+    print("full-size car", flush=True)
+    results["fullsize"] = bench_fullsize(args.quick)
     results["memory"] = memory
     results["load_avg_end"] = load_average()
     results["summary"] = summarize(results)
