@@ -39,8 +39,16 @@ FIT_GROUPS = {
     "weights": ("weights",),
     "delay": ("delay_s",),
     "speed": ("speed_weight", "speed_mps"),
+    "tau": ("offset_tau_s", "speed_tau_s"),
 }
-DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")
+DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")  # of the blend model
+# the groups each fitted model reads, and its default: the line model has no memorised speed
+MODEL_FIT = {
+    "blend": (("lookahead", "lookahead_m", "gain", "weights", "delay", "speed"), DEFAULT_FIT),
+    "line": (("delay", "tau"), ("delay", "tau")),
+}
+FIT_MODELS = tuple(MODEL_FIT)
+DEFAULT_MODEL = "line"
 PARAM_FIELDS = (
     "lookahead_m",
     "lookahead_gain_s",
@@ -48,9 +56,15 @@ PARAM_FIELDS = (
     "delay_s",
     "speed_weight",
     "speed_mps",
+    "offset_tau_s",
+    "speed_tau_s",
+    "line_offset_m",
+    "line_speed_mps",
+    "line_coverage",
 )
 BLEND_CHOICES = ("position", "heading")
 BASELINES = ("seed", "seed-measured-speed", "linear", "pure-pursuit", "constant-velocity", "ctrv")
+BASELINES += ("frenet",)
 MIN_HISTORY = 3  # distinct observations needed before a prediction counts
 HUBER_M = 0.3  # residuals beyond this grow linearly: AprilTag jumps must not dominate
 RAW_RIDGE = 1e-3  # light pull of raw values toward 0: stops saturated weights from drifting
@@ -224,7 +238,7 @@ def fit_params(
     datasets: Sequence[Dataset],
     init: Params,
     *,
-    fit: Sequence[str] = DEFAULT_FIT,
+    fit: Sequence[str] | None = None,
     huber_m: float = HUBER_M,
     solver: str = DEFAULT_SOLVER,
     max_steps: int | None = None,
@@ -242,13 +256,19 @@ def fit_params(
     this call) and of those trace_s (tracing the solver), compile_s (XLA, on a second thread
     while the states are estimated; both 0 when compiled by an earlier call) and solve_s.
     """
+    if init.settings.model not in MODEL_FIT:
+        raise ValueError(f"fit_params: only the models {FIT_MODELS} are fitted, not presets'")
+    fit = tuple(fit) if fit else MODEL_FIT[init.settings.model][1]
     unknown = [f for f in fit if f not in FIT_GROUPS]
     if unknown:
         raise InputError("--fit", f"unknown name(s) {', '.join(unknown)}", ", ".join(FIT_GROUPS))
     if solver not in SOLVERS:
         raise InputError("--solver", f"unknown solver {solver!r}", ", ".join(SOLVERS))
-    if init.settings.model != "blend":
-        raise ValueError("fit_params: only the blend model is fitted (presets are baselines)")
+    allowed = MODEL_FIT[init.settings.model][0]
+    if any(f not in allowed for f in fit):
+        wrong = ", ".join(f for f in fit if f not in allowed)
+        msg = f"{wrong} do(es) not apply to model {init.settings.model}"
+        raise InputError("--fit", msg, ", ".join(allowed))
     raw = unconstrain(init)
     free, fixed = eqx.partition(raw, _free_mask(raw, fit))
     targets = [(jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask)) for d in datasets]
@@ -392,7 +412,8 @@ def fit(
     drives: Sequence[Drive],
     tracks: Sequence[Track],
     *,
-    fit: Sequence[str] = DEFAULT_FIT,
+    fit: Sequence[str] | None = None,
+    model: str = DEFAULT_MODEL,
     blend: str = "auto",
     holdout: float = 0.3,
     test_drives: Sequence[Drive] | None = None,
@@ -405,9 +426,13 @@ def fit(
 
     Args:
         drives, tracks: the drives to fit and the track each was driven on.
-        fit: which values to fit (names of FIT_GROUPS).
-        blend: "position", "heading", or "auto" (each is fitted on the first 75 % of the
-            training data and the one with the lower validation loss on the rest is kept).
+        fit: which values to fit (names of FIT_GROUPS; default: the model's, MODEL_FIT).
+        model: "line" (default: the opponent's line and speed profile, learned from the
+            training drives, `fpe_jax.line`; every training and test drive must share one set
+            of waypoints) or "blend" (linear / pure-pursuit blend). Ignored when init is given.
+        blend: for the blend model: "position", "heading", or "auto" (each is fitted on the
+            first 75 % of the training data and the one with the lower validation loss on the
+            rest is kept).
         holdout: fraction of each drive (its end) held out, unless test_drives are given.
         test_drives, test_tracks: separate held-out drives (then all of `drives` is training).
         init: starting point (default: the "default" preset).
@@ -415,8 +440,6 @@ def fit(
         progress: called with a short message at each phase.
     """
     jax.config.update("jax_enable_x64", True)  # fitting needs float64 (tiny gradients)
-    init = init or presets["default"]
-    settings = init.settings
     if test_drives is None:
         pairs = [split_drive(d, holdout) for d in drives]
         train_d, test_d = [p[0] for p in pairs], [p[1] for p in pairs]
@@ -426,12 +449,22 @@ def fit(
         train_d, test_d = list(drives), list(test_drives)
         test_tracks = test_tracks or tracks
         split = {"kind": "drives", "n_test": len(test_d)}
+    if model not in MODEL_FIT:
+        raise InputError("--model", f"unknown model {model!r}", ", ".join(FIT_MODELS))
+    line_info = {}
+    if init is None and model == "line":
+        init, line_info = _line_init(train_d, list(tracks) + list(test_tracks), progress)
+    init = init or presets["default"]
+    settings = init.settings
+    fit = tuple(fit) if fit else MODEL_FIT.get(settings.model, MODEL_FIT["blend"])[1]
     train = _datasets(train_d, tracks, settings, "training")
     test = _datasets(test_d, test_tracks, settings, "held-out")
     if "speed" in fit:  # start the typical speed where the data is
         v = np.concatenate([np.asarray(d.states(init).v_mps) for d in train])
         init = dataclasses.replace(init, speed_mps=jnp.asarray(max(float(np.median(v)), 0.1)))
 
+    if settings.model != "blend":  # the blend mode means nothing to other models
+        blend = settings.blend
     modes = BLEND_CHOICES if blend == "auto" else (blend,)
     selection = {}
     if len(modes) > 1:
@@ -456,8 +489,31 @@ def fit(
     report = {"fitted": evaluate(params, test, uncertainty["cov_m2"])}
     for name in BASELINES:
         report[name] = evaluate(presets[name], test)
-    info.update(blend=best, validation_ade_m=selection, split=split, fit=list(fit))
+    info.update(blend=best, validation_ade_m=selection, split=split, fit=list(fit), **line_info)
     return FitResult(params, uncertainty, report, info)
+
+
+def _line_init(drives: Sequence[Drive], tracks: Sequence[Track], progress) -> tuple[Params, dict]:
+    """The line model's starting point: the profile learned from `drives` on the one track
+    every drive (fit and test) uses, good unfitted time constants and delay."""
+    from fpe_jax.line import learn_line, waypoints_sha256
+
+    hashes = {waypoints_sha256(np.asarray(t.raw_xy_m)) for t in tracks}
+    if len(hashes) != 1:
+        raise InputError(
+            "--model line", "the drives use different waypoints", "one track, or --model blend"
+        )
+    progress("learning the line and speed profile from the training drives")
+    profile = learn_line(drives, tracks[0])
+    init = Params.create(
+        Settings(model="line"),
+        weights=1.0,
+        delay_s=0.1,
+        offset_tau_s=1.0,
+        speed_tau_s=0.5,
+        **profile,
+    )
+    return init, {"waypoints_sha256": hashes.pop()}
 
 
 def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
@@ -480,6 +536,14 @@ def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
 def format_fitted(result: FitResult) -> str:
     """Two lines: the fitted values, and the per-step weights."""
     p, info = result.params.physical(), result.info
+    if result.params.settings.model == "line":
+        covered = float(np.mean(np.asarray(result.params.line_coverage) > 0))
+        return (
+            f"fitted (line model, {info['steps']} {info['solver']} steps): delay "
+            f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
+            f"{p['speed_tau_s']:.3f} s\nline: {len(p['line_offset_m'])} points, {covered:.0%} "
+            f"covered, offset rms {np.sqrt(np.mean(np.square(p['line_offset_m']))):.3f} m"
+        )
     return (
         f"fitted ({info['blend']} blend, {info['steps']} {info['solver']} steps): "
         f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
