@@ -14,7 +14,8 @@ from fpe_jax.errors import InputError
 
 # names `--fit` and `--solver` accept (fpe_jax.fit's, kept here so `fpe --help` does not import
 # JAX; a test checks they agree)
-FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed")
+FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed", "tau")
+FIT_MODELS = ("line", "blend")
 SOLVERS = ("bfgs", "lm")
 
 
@@ -92,7 +93,15 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="CONFIG.json to write (a recipe may name it)")
     p.add_argument("--holdout", type=float, help="held-out fraction at each drive's end (0.3)")
     p.add_argument("--test", nargs="+", metavar="LOG", help="separate held-out drives instead")
-    p.add_argument("--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: all but split)")
+    p.add_argument(
+        "--model",
+        choices=FIT_MODELS,
+        help="line (default): the car's own line and speed profile, learned from the drives; "
+        "blend: linear / pure-pursuit blend",
+    )
+    p.add_argument(
+        "--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: the model's own values)"
+    )
     p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
     p.add_argument(
         "--solver",
@@ -246,6 +255,7 @@ def _fit_inputs(args):
             holdout=args.holdout or r.holdout,
             fit=r.fit,
             blend=args.blend or r.blend,
+            model=args.model or r.model,
             solver=args.solver or r.solver,
         )
         return r.drives, r.test_drives, out, opts
@@ -261,7 +271,11 @@ def _fit_inputs(args):
         args.log = log
         tests.append((_load_drive_from_args(args), wp, log))
     opts = dict(
-        holdout=args.holdout or 0.3, fit=None, blend=args.blend or "auto", solver=args.solver
+        holdout=args.holdout or 0.3,
+        fit=None,
+        blend=args.blend or "auto",
+        model=args.model,
+        solver=args.solver,
     )
     return drives, tests, args.out, opts
 
@@ -289,7 +303,7 @@ def cmd_fit(args) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-        from fpe_jax.fit import DEFAULT_FIT, fit, format_fitted, format_table, provenance
+        from fpe_jax.fit import fit, format_fitted, format_table, provenance
         from fpe_jax.track import Track
 
         tracks = [Track.from_waypoints(wp) for _, wp, _ in drives]
@@ -297,7 +311,8 @@ def cmd_fit(args) -> int:
         result = fit(
             [d for d, _, _ in drives],
             tracks,
-            fit=fit_names or opts["fit"] or DEFAULT_FIT,
+            fit=fit_names or opts["fit"] or None,
+            model=opts["model"] or "line",
             blend=opts["blend"],
             holdout=opts["holdout"],
             test_drives=[d for d, _, _ in tests] or None,
@@ -310,10 +325,14 @@ def cmd_fit(args) -> int:
         "truth": drives[0][0].meta.get("truth_topic"),
     }
     sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
+    line = None
+    if "waypoints_sha256" in result.info:
+        line = {"waypoints_sha256": result.info["waypoints_sha256"], "waypoints": args.waypoints}
     cfg = params_to_config(
         result.params,
         uncertainty=result.uncertainty,
         provenance=provenance(result, sources, topics),
+        line=line,
     )
     write_config(out, cfg, force=args.force)
     print(format_fitted(result))
@@ -338,11 +357,12 @@ def cmd_evaluate(args) -> int:
     from fpe_jax.fit import Dataset, evaluate, format_table, make_targets
     from fpe_jax.track import Track
 
-    params = load_params(preset=args.preset, config=args.config)
+    wp = io.load_waypoints(args.waypoints).xy_m
+    params = load_params(preset=args.preset, config=args.config, waypoints=(args.waypoints, wp))
     cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2") if args.config else None
     name = args.config or args.preset
     drive = _load_drive_from_args(args)
-    track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+    track = Track.from_waypoints(wp)
     data = Dataset(drive, track, make_targets(drive, params.settings))
     if len(data.targets.rows) == 0:
         raise InputError(args.log, "no prediction has a target", "a longer drive")
@@ -377,11 +397,13 @@ def cmd_predict(args) -> int:
     io.check_output_path(args.out, args.force)
     if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
         raise InputError(args.out, "unknown output format", ".csv or .mcap")
-    params = load_params(preset=args.preset, config=args.config)
+    waypoints = io.load_waypoints(args.waypoints)
+    params = load_params(
+        preset=args.preset, config=args.config, waypoints=(args.waypoints, waypoints.xy_m)
+    )
     cov = None
     if args.config:
         cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
-    waypoints = io.load_waypoints(args.waypoints)
     drive = _load_drive_from_args(args)
     track = Track.from_waypoints(waypoints.xy_m)
     stamps_s, poses = predict_drive(params, drive, track)
@@ -558,8 +580,9 @@ def cmd_batch(args) -> int:
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in (".npy", ".csv"):
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
-    params = load_params(preset=args.preset, config=args.config)
-    track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+    wp = io.load_waypoints(args.waypoints).xy_m
+    params = load_params(preset=args.preset, config=args.config, waypoints=(args.waypoints, wp))
+    track = Track.from_waypoints(wp)
     cars = read_cars(args.states)
     t0 = time.perf_counter()
     poses = predict_chunked(params, cars, track, dtype=args.dtype, chunk=args.chunk)
@@ -617,9 +640,11 @@ def cmd_plot(args) -> int:
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in FIGURE_SUFFIXES:
         raise InputError(out, f"unknown figure type {out.suffix!r}", " or ".join(FIGURE_SUFFIXES))
-    params = load_params(preset=args.preset, config=args.config)
-    name = args.preset or f"config {Path(args.config).name}"
     waypoints = io.load_waypoints(args.waypoints)
+    params = load_params(
+        preset=args.preset, config=args.config, waypoints=(args.waypoints, waypoints.xy_m)
+    )
+    name = args.preset or f"config {Path(args.config).name}"
     drive = _load_drive_from_args(args)
     m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log)
     print(

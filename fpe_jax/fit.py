@@ -481,7 +481,8 @@ def fit(
         best = min(selection, key=selection.get)
     else:
         best = modes[0]
-    progress(f"fitting '{best}' blend on {sum(len(d.targets.rows) for d in train)} predictions")
+    what = f"'{best}' blend" if settings.model == "blend" else f"the {settings.model} model"
+    progress(f"fitting {what} on {sum(len(d.targets.rows) for d in train)} predictions")
     p0 = dataclasses.replace(init, settings=dataclasses.replace(settings, blend=best))
     params, info = fit_params(train, p0, fit=fit, solver=solver)
     progress("estimating uncertainty and evaluating on held-out data")
@@ -496,7 +497,8 @@ def fit(
 def _line_init(drives: Sequence[Drive], tracks: Sequence[Track], progress) -> tuple[Params, dict]:
     """The line model's starting point: the profile learned from `drives` on the one track
     every drive (fit and test) uses, good unfitted time constants and delay."""
-    from fpe_jax.line import learn_line, waypoints_sha256
+    from fpe_jax.line import learn_line
+    from fpe_jax.path import waypoints_sha256
 
     hashes = {waypoints_sha256(np.asarray(t.raw_xy_m)) for t in tracks}
     if len(hashes) != 1:

@@ -13,7 +13,6 @@ The profile is tied to the waypoints it was learned on by `waypoints_sha256`.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Sequence
 
 import jax
@@ -27,12 +26,6 @@ PROFILE_DS_M = 0.5  # spacing of the profile's points [m]
 PROFILE_SMOOTH_M = 1.0  # standard deviation of the smoothing kernel [m]
 MAX_GAP_S = 0.5  # samples further apart than this give no speed
 MIN_SAMPLES = 1.0  # kernel-weighted samples for full coverage
-
-
-def waypoints_sha256(waypoints_xy_m) -> str:
-    """Content hash of waypoints (K, 2) [m]: sha256 of their float64 bytes, row-major."""
-    xy = np.ascontiguousarray(np.asarray(waypoints_xy_m, dtype=np.float64))
-    return hashlib.sha256(xy.tobytes()).hexdigest()
 
 
 def _samples(drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ from jaxtyping import Array, Float
 
 BLEND_MODES = ("position", "heading")
 MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
+LINE_KEYS = ("line_offset_m", "line_speed_mps", "line_coverage")
 MIN_TAU_S = 0.01  # time constants stay above this: exp(-t / tau) must not underflow to 0/0
 
 
@@ -156,8 +157,9 @@ class Params(eqx.Module):
         )
 
     def physical(self) -> dict:
-        """The values as plain Python numbers / lists (for configs and reports)."""
-        return {
+        """The values as plain Python numbers / lists (for configs and reports); the line
+        profile only for the line model."""
+        out = {
             "lookahead_m": float(self.lookahead_m),
             "lookahead_gain_s": float(self.lookahead_gain_s),
             "weights": [float(w) for w in np.asarray(self.weights)],
@@ -166,10 +168,11 @@ class Params(eqx.Module):
             "speed_mps": float(self.speed_mps),
             "offset_tau_s": float(self.offset_tau_s),
             "speed_tau_s": float(self.speed_tau_s),
-            "line_offset_m": [float(v) for v in np.asarray(self.line_offset_m)],
-            "line_speed_mps": [float(v) for v in np.asarray(self.line_speed_mps)],
-            "line_coverage": [float(v) for v in np.asarray(self.line_coverage)],
         }
+        if self.settings.model == "line":
+            for key in LINE_KEYS:
+                out[key] = [float(v) for v in np.asarray(getattr(self, key))]
+        return out
 
 
 # ---- reparametrisation -------------------------------------------------------------------------

@@ -3,8 +3,7 @@
 out = "levine.json"            # paths are relative to the recipe's folder
 waypoints = "../../shared/data/levine/levine-waypoints.csv"
 holdout = 0.4                  # or [[test_drives]] for separate held-out drives
-fit = ["lookahead", "weights", "delay", "speed"]
-blend = "auto"
+model = "line"                 # or "blend" (then also fit = [...] and blend = "auto")
 solver = "bfgs"                # or "lm"
 
 [[drives]]
@@ -40,7 +39,8 @@ DRIVE_KEYS = {
     "tag_to_base",
     "drop_outside_tf",
 }
-TOP_KEYS = {"out", "waypoints", "holdout", "fit", "blend", "solver", "drives", "test_drives"}
+TOP_KEYS = {"out", "waypoints", "holdout", "fit", "model", "blend", "solver", "drives"}
+TOP_KEYS |= {"test_drives"}
 
 
 @dataclasses.dataclass
@@ -54,6 +54,7 @@ class Recipe:
     holdout: float
     fit: tuple[str, ...] | None
     blend: str
+    model: str | None
     solver: str | None
 
 
@@ -121,5 +122,6 @@ def load_recipe(path) -> Recipe:
         holdout=float(spec.get("holdout", 0.3)),
         fit=tuple(fit) if fit is not None else None,
         blend=spec.get("blend", "auto"),
+        model=spec.get("model"),
         solver=spec.get("solver"),
     )

@@ -31,7 +31,8 @@ class State(eqx.Module):
         s_m: arc length hint [m]: where on the track the car is (from a windowed projection).
         s_fit_m, sdot_mps, offset_m: the track-frame estimate (`estimate_track_frame`): arc
             length [m], along-track speed [m/s] and lateral offset [m] at the newest stamp,
-            and sdot_age_s, how old the speed is [s] (the window's middle); None: the frenet and line rollouts take them from x, y, v and the course.
+            and sdot_age_s, how old the speed is [s] (the window's middle); None: the frenet
+            and line rollouts take them from x, y, v and the course.
     """
 
     x_m: Float[Array, ""]
