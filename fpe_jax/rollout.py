@@ -290,16 +290,17 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     pace and brakes where the profile brakes. Where the profile's coverage c(s) is 0 both fall
     back (line 0, ratio 1). The yaw is the path heading turned by the offset's slope.
     """
-    if state.s_fit_m is not None:
-        s0, v0, d0, age = state.s_fit_m, state.sdot_mps, state.offset_m, state.sdot_age_s
-    else:
-        age = 0.0
-        p0 = jnp.stack([state.x_m, state.y_m])
-        s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
-        h0 = track.heading_at(s0)
-        c0 = track.point_at(s0)
-        d0 = (p0[1] - c0[1]) * jnp.cos(h0) - (p0[0] - c0[0]) * jnp.sin(h0)
-        v0 = state.v_mps * jnp.cos(state.course_rad - h0)
+    p0 = jnp.stack([state.x_m, state.y_m])
+    s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
+    h0 = track.heading_at(s0)
+    c0 = track.point_at(s0)
+    d0 = (p0[1] - c0[1]) * jnp.cos(h0) - (p0[0] - c0[0]) * jnp.sin(h0)
+    v0 = state.v_mps * jnp.cos(state.course_rad - h0)
+    age = jnp.zeros_like(v0)
+    if state.s_fit_m is not None:  # the track-frame estimate; NaN (an export's input): absent
+        ok = jnp.isfinite(state.s_fit_m)
+        s0, v0 = jnp.where(ok, state.s_fit_m, s0), jnp.where(ok, state.sdot_mps, v0)
+        d0, age = jnp.where(ok, state.offset_m, d0), jnp.where(ok, state.sdot_age_s, age)
     dts = _step_times(params)
     t_end = jnp.cumsum(dts)
     has_line = params.line_offset_m.shape[0] > 0  # static: the line model
