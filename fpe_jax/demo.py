@@ -176,20 +176,23 @@ def fit_case(
     *,
     blend: str = "position",
     fit: Sequence[str] | None = None,
+    model: str = "line",
     progress: Callable[[str], None] = lambda msg: None,
 ):
-    """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`."""
+    """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`.
+
+    model: "line" (the default fitted model) or "blend" (then `blend` applies)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from fpe_jax.fit import DEFAULT_FIT
     from fpe_jax.fit import fit as fit_drives
 
     track = case.track()
     return fit_drives(
         [case.fit_drive],
         [track],
-        fit=tuple(fit) if fit else DEFAULT_FIT,
+        fit=tuple(fit) if fit else None,
+        model=model,
         blend=blend,
         test_drives=[case.test_drive],
         test_tracks=[track],
@@ -355,7 +358,7 @@ def write_demo_outputs(out: Path, case: Case, result, checks, progress) -> list[
 
     progress("predicting the test drive for the plots")
     track = case.track()
-    names = ("seed", "seed-measured-speed", "fitted")
+    names = ("seed", "seed-measured-speed", "frenet", "fitted")
     by_name = {n: presets[n] for n in names[:-1]} | {"fitted": result.params}
     held = heldout_predictions(case.test_drive, track, by_name)
     dt_s = result.params.settings.dt_s

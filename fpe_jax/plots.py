@@ -25,6 +25,7 @@ COLORS = {
     "pure-pursuit": "tab:blue",
     "constant-velocity": "tab:brown",
     "ctrv": "tab:gray",
+    "frenet": "tab:olive",
 }
 # The thesis's names for the presets it describes.
 APPROACH = {
@@ -34,6 +35,7 @@ APPROACH = {
     "seed": "approach 4: 0.7 blend as written (seed)",
     "seed-measured-speed": "approach 4 with measured speed",
     "ctrv": "constant turn rate and velocity",
+    "frenet": "frenet (track speed held, offset decays)",
     "fitted": "fitted",
 }
 

@@ -276,6 +276,9 @@ def profile_at(values: Float[Array, " P"], s_m, track: Track):
 
 MIN_PROFILE_SPEED_MPS = 0.2  # a profile slower than this is no speed reference (ratio held at 1)
 MAX_SPEED_RATIO = 3.0  # the profile may at most triple or cut to 0 the current speed
+# Where the fit drives never went the offset decays as the frenet preset's does: a fitted time
+# constant describes how the car holds a line it knows, not the centerline.
+FALLBACK_TAU_S = 1.0
 
 
 def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
@@ -288,7 +291,7 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     exp(-t / offset_tau_s), and the speed follows the profile's shape scaled to the car's own:
     v(t) = v0 (1 + (v_p(s(t)) / v_p(s0) - 1) (1 - exp(-t / speed_tau_s))), so the car keeps its
     pace and brakes where the profile brakes. Where the profile's coverage c(s) is 0 both fall
-    back (line 0, ratio 1). The yaw is the path heading turned by the offset's slope.
+    back (line 0, ratio 1, the offset's time constant FALLBACK_TAU_S). The yaw is the path heading turned by the offset's slope.
     """
     p0 = jnp.stack([state.x_m, state.y_m])
     s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
@@ -304,6 +307,7 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     dts = _step_times(params)
     t_end = jnp.cumsum(dts)
     has_line = params.line_offset_m.shape[0] > 0  # static: the line model
+    tau = params.offset_tau_s
 
     def line(s):  # the line's offset [m] and the speed profile [m/s] at s, coverage applied
         c = profile_at(params.line_coverage, s, track)
@@ -314,7 +318,8 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
         )
 
     if has_line:
-        l0 = line(s0)[0]
+        l0, c_now, _ = line(s0)
+        tau = c_now * tau + (1.0 - c_now) * FALLBACK_TAU_S
         # the measured speed is the window's average: the profile's shape from where the car
         # was then (s0 - v0 age) carries it to now and over the horizon
         _, cov0, vp0 = line(s0 - v0 * age)
@@ -334,7 +339,7 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
         l_s = jax.vmap(lambda x: line(x)[0])(s)
     else:
         s, l0, l_s = s0 + v0 * t_end, 0.0, 0.0
-    d = l_s + (d0 - l0) * jnp.exp(-t_end / params.offset_tau_s)
+    d = l_s + (d0 - l0) * jnp.exp(-t_end / tau)
     heading = jax.vmap(track.heading_at)(s)
     xy = jax.vmap(track.point_at)(s)
     xs = xy[:, 0] - d * jnp.sin(heading)

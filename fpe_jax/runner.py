@@ -46,6 +46,7 @@ TRACK_FRAME_ITERS = 3  # fpe_jax.estimate.estimate_track_frame's project_local i
 MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.rollout's
 MAX_SPEED_RATIO = 3.0
 MIN_TAU_S = 0.01
+FALLBACK_TAU_S = 1.0
 
 _PI = math.pi
 _TWO_PI = 2 * math.pi
@@ -417,9 +418,10 @@ class Runner:
         s0, v0, d0, age = est
         path = self.path
         t, s_all, d_all = 0.0, [], []
-        l0 = 0.0
+        l0, tau = 0.0, self._offset_tau_s
         if self._line is not None:
-            l0 = self._line_at(s0)[0]
+            l0, c_now, _ = self._line_at(s0)
+            tau = c_now * tau + (1.0 - c_now) * FALLBACK_TAU_S
             _, cov0, vp0 = self._line_at(s0 - v0 * age)
             ok0 = cov0 * (1.0 if vp0 > MIN_PROFILE_SPEED_MPS else 0.0)
             vp0 = max(vp0, MIN_PROFILE_SPEED_MPS)
@@ -438,7 +440,7 @@ class Runner:
                 t += dt
                 line = self._line_at(s)[0]
             s_all.append(s)
-            d_all.append(line + (d0 - l0) * math.exp(-t / self._offset_tau_s))
+            d_all.append(line + (d0 - l0) * math.exp(-t / tau))
         rows, s_prev, d_prev = [], s0, d0
         for k, (s, d) in enumerate(zip(s_all, d_all)):
             h = path.heading_at(s)
