@@ -291,7 +291,8 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     exp(-t / offset_tau_s), and the speed follows the profile's shape scaled to the car's own:
     v(t) = v0 (1 + (v_p(s(t)) / v_p(s0) - 1) (1 - exp(-t / speed_tau_s))), so the car keeps its
     pace and brakes where the profile brakes. Where the profile's coverage c(s) is 0 both fall
-    back (line 0, ratio 1, the offset's time constant FALLBACK_TAU_S). The yaw is the path heading turned by the offset's slope.
+    back (line 0, ratio 1, the offset's time constant FALLBACK_TAU_S). The yaw is the path
+    heading turned by the offset's slope.
     """
     p0 = jnp.stack([state.x_m, state.y_m])
     s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
