@@ -14,7 +14,7 @@ from fpe_jax.errors import InputError
 
 # names `--fit` and `--solver` accept (fpe_jax.fit's, kept here so `fpe --help` does not import
 # JAX; a test checks they agree)
-FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed", "tau")
+FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed", "tau", "smoothing")
 FIT_MODELS = ("line", "blend")
 SOLVERS = ("bfgs", "lm")
 

@@ -5,7 +5,8 @@ can load the same files.
 Schema (version 1):
     {"schema_version": 1,
      "params": {"lookahead_m", "lookahead_gain_s", "weights": [H], "delay_s", "speed_weight",
-                "speed_mps", optional: "offset_tau_s", "speed_tau_s" (frenet / line models),
+                "speed_mps", optional: "offset_tau_s", "speed_tau_s", "position_smoothing"
+                (frenet / line models),
                 "line_offset_m", "line_speed_mps", "line_coverage": [P] (line model only)},
      "settings": {"dt_s", "horizon", "wheelbase_m", "max_steer_rad", "blend", "model",
                   "min_lookahead_m", "history"},
@@ -26,7 +27,7 @@ from fpe_jax.errors import InputError
 
 SCHEMA_VERSION = 1
 PARAM_KEYS = ("lookahead_m", "lookahead_gain_s", "weights", "delay_s", "speed_weight", "speed_mps")
-OPTIONAL_PARAM_KEYS = ("offset_tau_s", "speed_tau_s")
+OPTIONAL_PARAM_KEYS = ("offset_tau_s", "speed_tau_s", "position_smoothing")
 LINE_KEYS = ("line_offset_m", "line_speed_mps", "line_coverage")
 SETTING_KEYS = (
     "dt_s",

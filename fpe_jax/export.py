@@ -59,6 +59,7 @@ ROS2_PARAMS = (
     ("typical_speed_mps", "params", "speed_mps", float, "speed the measured one shrinks to [m/s]"),
     ("offset_decay_s", "params", "offset_tau_s", float, "frenet/line: lateral offset decay [s]"),
     ("speed_profile_blend_s", "params", "speed_tau_s", float, "line: profile blend-in time [s]"),
+    ("position_smoothing", "params", "position_smoothing", float, "frenet/line: 0 newest, 1 fit"),
     ("step_s", "settings", "dt_s", float, "time between predicted poses [s]"),
     ("horizon", "settings", "horizon", int, "number of predicted poses H"),
     ("wheelbase_m", "settings", "wheelbase_m", float, "kinematic-bicycle wheelbase [m]"),
@@ -139,6 +140,7 @@ def to_ros2_yaml(
     params = dict(cfg["params"])
     params.setdefault("offset_tau_s", 1.0)  # configs from before the frenet / line models
     params.setdefault("speed_tau_s", 0.5)
+    params.setdefault("position_smoothing", 0.0)
     sections = {"params": params, "settings": cfg["settings"]}
     rows = list(ROS2_PARAMS)
     if cfg["settings"]["model"] == "line":

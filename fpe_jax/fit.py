@@ -40,12 +40,13 @@ FIT_GROUPS = {
     "delay": ("delay_s",),
     "speed": ("speed_weight", "speed_mps"),
     "tau": ("offset_tau_s", "speed_tau_s"),
+    "smoothing": ("position_smoothing",),
 }
 DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")  # of the blend model
 # the groups each fitted model reads, and its default: the line model has no memorised speed
 MODEL_FIT = {
     "blend": (("lookahead", "lookahead_m", "gain", "weights", "delay", "speed"), DEFAULT_FIT),
-    "line": (("delay", "tau"), ("delay", "tau")),
+    "line": (("delay", "tau", "smoothing"), ("delay", "tau", "smoothing")),
 }
 FIT_MODELS = tuple(MODEL_FIT)
 DEFAULT_MODEL = "line"
@@ -58,6 +59,7 @@ PARAM_FIELDS = (
     "speed_mps",
     "offset_tau_s",
     "speed_tau_s",
+    "position_smoothing",
     "line_offset_m",
     "line_speed_mps",
     "line_coverage",
@@ -543,7 +545,8 @@ def format_fitted(result: FitResult) -> str:
         return (
             f"fitted (line model, {info['steps']} {info['solver']} steps): delay "
             f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
-            f"{p['speed_tau_s']:.3f} s\nline: {len(p['line_offset_m'])} points, {covered:.0%} "
+            f"{p['speed_tau_s']:.3f} s, position smoothing {p['position_smoothing']:.2f}\n"
+            f"line: {len(p['line_offset_m'])} points, {covered:.0%} "
             f"covered, offset rms {np.sqrt(np.mean(np.square(p['line_offset_m']))):.3f} m"
         )
     return (

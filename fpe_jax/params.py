@@ -93,6 +93,9 @@ class Params(eqx.Module):
             from the car's current offset to the line (the centerline for "frenet").
         speed_tau_s: () line model: time constant [s] with which the speed profile's shape
             v(s') / v(s_now) is blended into the car's current along-track speed.
+        position_smoothing: () frenet / line models, in [0, 1]: where the rollout starts along
+            and across the track: 0 = the newest observation's projection, 1 = the track-frame
+            Theil-Sen estimate at the newest stamp (`estimate_track_frame`), linear between.
         line_offset_m: (P,) line model: the learned line's lateral offset from the centerline
             [m] on P points spread evenly over the track's arc length (left positive); (0,)
             for every other model.
@@ -110,6 +113,7 @@ class Params(eqx.Module):
     speed_mps: Float[Array, ""]
     offset_tau_s: Float[Array, ""]
     speed_tau_s: Float[Array, ""]
+    position_smoothing: Float[Array, ""]
     line_offset_m: Float[Array, " P"]
     line_speed_mps: Float[Array, " P"]
     line_coverage: Float[Array, " P"]
@@ -128,6 +132,7 @@ class Params(eqx.Module):
         speed_mps=1.0,
         offset_tau_s=1.0,
         speed_tau_s=0.5,
+        position_smoothing=0.0,
         line_offset_m=(),
         line_speed_mps=(),
         line_coverage=(),
@@ -150,6 +155,7 @@ class Params(eqx.Module):
             speed_mps=jnp.asarray(speed_mps, dtype=float),
             offset_tau_s=jnp.asarray(offset_tau_s, dtype=float),
             speed_tau_s=jnp.asarray(speed_tau_s, dtype=float),
+            position_smoothing=jnp.asarray(position_smoothing, dtype=float),
             line_offset_m=line[0],
             line_speed_mps=line[1],
             line_coverage=line[2],
@@ -168,6 +174,7 @@ class Params(eqx.Module):
             "speed_mps": float(self.speed_mps),
             "offset_tau_s": float(self.offset_tau_s),
             "speed_tau_s": float(self.speed_tau_s),
+            "position_smoothing": float(self.position_smoothing),
         }
         if self.settings.model == "line":
             for key in LINE_KEYS:
@@ -203,6 +210,7 @@ def unconstrain(params: Params) -> Params:
         speed_mps=_inv_softplus(params.speed_mps),
         offset_tau_s=_inv_softplus(params.offset_tau_s - MIN_TAU_S),
         speed_tau_s=_inv_softplus(params.speed_tau_s - MIN_TAU_S),
+        position_smoothing=_logit(params.position_smoothing),
     )
 
 
@@ -219,6 +227,7 @@ def constrain(raw: Params) -> Params:
         speed_mps=jax.nn.softplus(raw.speed_mps),
         offset_tau_s=MIN_TAU_S + jax.nn.softplus(raw.offset_tau_s),
         speed_tau_s=MIN_TAU_S + jax.nn.softplus(raw.speed_tau_s),
+        position_smoothing=jax.nn.sigmoid(raw.position_smoothing),
     )
 
 
@@ -257,7 +266,8 @@ PRESET_DOCS = {
     "pure-pursuit": "kinematic bicycle following the path, 2 m lookahead (approach 3)",
     "constant-velocity": "constant velocity vector from the recent history (approach 1)",
     "ctrv": "constant turn rate and velocity",
-    "frenet": "along-track speed held, lateral offset decaying to the centerline (tau 1 s)",
+    "frenet": "along-track speed held from the newest position, lateral offset decaying to the "
+    "centerline (tau 1 s)",
     "default": "the differentiable position blend; the fitter's starting point for --model blend",
 }
 

@@ -284,15 +284,17 @@ FALLBACK_TAU_S = 1.0
 def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
     """Frenet rollout: along-track speed and a lateral offset that decays toward the line.
 
-    s0, d0 = the car's arc length and signed offset from the path (left positive); its
-    along-track speed is v cos(course - path heading). Without a line profile ("frenet") the
-    speed is held and the offset decays to 0: d(t) = d0 exp(-t / offset_tau_s). With one
-    ("line"), the offset decays toward the learned line l(s): d(t) = l(s(t)) + (d0 - l(s0))
-    exp(-t / offset_tau_s), and the speed follows the profile's shape scaled to the car's own:
-    v(t) = v0 (1 + (v_p(s(t)) / v_p(s0) - 1) (1 - exp(-t / speed_tau_s))), so the car keeps its
-    pace and brakes where the profile brakes. Where the profile's coverage c(s) is 0 both fall
-    back (line 0, ratio 1, the offset's time constant FALLBACK_TAU_S). The yaw is the path
-    heading turned by the offset's slope.
+    s0, d0 = the car's arc length and signed offset from the path (left positive), between the
+    newest observation's projection and the track-frame estimate (`position_smoothing`); its
+    along-track speed v0 is the track-frame estimate's (without one: v cos(course - heading)).
+    Without a line profile ("frenet") the speed is held and the offset decays to 0:
+    d(t) = d0 exp(-t / offset_tau_s). With one ("line") the offset decays toward the learned
+    line l(s): d(t) = l(s(t)) + (d0 - l(s0)) exp(-t / offset_tau_s), and the speed follows the
+    profile's shape scaled to the car's own: v(t) = v0 (1 + (v_p(s(t)) / v_p(s_ref) - 1)
+    (1 - exp(-t / speed_tau_s))), s_ref where the speed was measured, so the car keeps its pace
+    and brakes where the profile brakes. Where the profile's coverage c(s) is 0 both fall back
+    (line 0, ratio 1, the offset's time constant FALLBACK_TAU_S). The yaw is the path heading
+    turned by the offset's slope.
     """
     p0 = jnp.stack([state.x_m, state.y_m])
     s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
@@ -303,8 +305,11 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     age = jnp.zeros_like(v0)
     if state.s_fit_m is not None:  # the track-frame estimate; NaN (an export's input): absent
         ok = jnp.isfinite(state.s_fit_m)
-        s0, v0 = jnp.where(ok, state.s_fit_m, s0), jnp.where(ok, state.sdot_mps, v0)
-        d0, age = jnp.where(ok, state.offset_m, d0), jnp.where(ok, state.sdot_age_s, age)
+        w = jnp.where(ok, params.position_smoothing, 0.0)
+        fit_s = jnp.where(ok, state.s_fit_m, s0)
+        fit_d = jnp.where(ok, state.offset_m, d0)
+        s0, d0 = s0 + w * (fit_s - s0), d0 + w * (fit_d - d0)
+        v0, age = jnp.where(ok, state.sdot_mps, v0), jnp.where(ok, state.sdot_age_s, age)
     dts = _step_times(params)
     t_end = jnp.cumsum(dts)
     has_line = params.line_offset_m.shape[0] > 0  # static: the line model

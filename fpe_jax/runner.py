@@ -195,6 +195,9 @@ def check_config(cfg: dict, source: str) -> dict:
     for key in ("offset_tau_s", "speed_tau_s"):
         if key in p and not (_is_number(p[key]) and p[key] >= MIN_TAU_S):
             raise InputError(source, f"params.{key} is {p[key]!r}", f"a number >= {MIN_TAU_S}")
+    w = p.get("position_smoothing", 0.0)
+    if not (_is_number(w) and 0.0 <= w <= 1.0):
+        raise InputError(source, f"params.position_smoothing is {w!r}", "a number in [0, 1]")
     if st["model"] == "line" and not all(all(map(_is_number, p[k])) for k in LINE_KEYS):
         raise InputError(source, "params.line_* hold non-numbers", "finite numbers")
     w = p["weights"]
@@ -248,6 +251,7 @@ class Runner:
         self._typical_speed_mps = float(p["speed_mps"])
         self._offset_tau_s = float(p.get("offset_tau_s", 1.0))
         self._speed_tau_s = float(p.get("speed_tau_s", 0.5))
+        self._smoothing = float(p.get("position_smoothing", 0.0))
         self._line = [[float(v) for v in p[k]] for k in LINE_KEYS] if self.model == "line" else None
         self._history = deque(maxlen=int(st["history"]))  # distinct (t, x, y, yaw), oldest first
         self.path = RunnerPath(waypoints_xy_m, source="waypoints")
@@ -314,7 +318,7 @@ class Runner:
         s_prev = path.project(ex, ey) if self._s_m is None else self._s_m
         self._s_m = path.project_window(ex, ey, s_prev)
         if self.model in ("frenet", "line"):
-            return self._frenet(self._track_frame(self._s_m))
+            return self._frenet(self._track_frame(self._s_m), est)
         if self.blend == "heading":
             w = self._weights
             return self._bicycle(est, self._s_m, [1.0 - wk for wk in [w[0], *w]])
@@ -413,10 +417,17 @@ class Runner:
         c = self._profile_at(coverage, s_m)
         return c * self._profile_at(offset, s_m), c, self._profile_at(speed, s_m)
 
-    def _frenet(self, est) -> np.ndarray:
-        """fpe_jax.rollout.rollout_frenet from the track-frame estimate."""
-        s0, v0, d0, age = est
+    def _frenet(self, frame, est) -> np.ndarray:
+        """fpe_jax.rollout.rollout_frenet from the track-frame estimate and the state."""
+        s_fit, v0, d_fit, age = frame
         path = self.path
+        # the newest (outlier-free) position's own arc length and offset
+        s0 = path.project_local(est[0], est[1], self._s_m)
+        cx, cy = path.point_at(s0)
+        h = path.heading_at(s0)
+        d0 = (est[1] - cy) * math.cos(h) - (est[0] - cx) * math.sin(h)
+        w = self._smoothing
+        s0, d0 = s0 + w * (s_fit - s0), d0 + w * (d_fit - d0)
         t, s_all, d_all = 0.0, [], []
         l0, tau = 0.0, self._offset_tau_s
         if self._line is not None:

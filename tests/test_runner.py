@@ -158,7 +158,12 @@ def line_params(wp, drive, upto_s: float) -> Params:
 
     profile = learn_line([drive.slice_time(-np.inf, upto_s)], Track.from_waypoints(wp))
     return Params.create(
-        Settings(model="line"), delay_s=0.12, offset_tau_s=0.8, speed_tau_s=0.3, **profile
+        Settings(model="line"),
+        delay_s=0.12,
+        offset_tau_s=0.8,
+        speed_tau_s=0.3,
+        position_smoothing=0.6,
+        **profile,
     )
 
 
