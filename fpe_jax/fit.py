@@ -355,9 +355,32 @@ def _track_residuals(pred: np.ndarray, d: Dataset) -> np.ndarray:
     return track_frame_residuals(pred[..., :2], d.targets.xy_m, heading)
 
 
+def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
+    """(N, H, 3) predictions of the line model at d's targets, each from a line learned on the
+    other half of d's drive: the line fits its own drive's truth, so in-sample residuals would
+    understate the error on drives the line was not learned on."""
+    from fpe_jax.line import learn_line
+
+    t0, t1 = d.drive.t_s[0], d.drive.t_s[-1]
+    t_mid = 0.5 * (t0 + t1)
+    halves = (d.drive.slice_time(-np.inf, t_mid), d.drive.slice_time(t_mid, np.inf))
+    preds = []
+    for half in halves[::-1]:  # first the line of the second half, for the first half's rows
+        line = {k: jnp.asarray(v) for k, v in learn_line([half], d.track).items()}
+        preds.append(predict_targets(dataclasses.replace(params, **line), d))
+    late = d.drive.t_s[d.targets.rows] >= t_mid
+    return np.where(late[:, None, None], preds[1], preds[0])
+
+
 def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
-    """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame."""
-    res = np.concatenate([_track_residuals(predict_targets(params, d), d) for d in datasets])
+    """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame.
+
+    For the line model from cross-fitted predictions (`_cross_fitted`)."""
+    if params.settings.model == "line":
+        preds = [_cross_fitted(params, d) for d in datasets]
+    else:
+        preds = [predict_targets(params, d) for d in datasets]
+    res = np.concatenate([_track_residuals(p, d) for p, d in zip(preds, datasets)])
     mask = np.concatenate([d.targets.mask for d in datasets])
     return {
         "frame": "track",
