@@ -86,7 +86,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser(
-        "fit", help="fit lookahead, weights, delay and speed to drives; report held-out metrics"
+        "fit", help="learn the car's line and fit the predictor to drives; report held-out metrics"
     )
     p.add_argument("logs", nargs="+", metavar="LOG", help="drive logs, or one recipe .toml")
     p.add_argument("--waypoints", help="waypoint / centerline / raceline file")
