@@ -14,7 +14,8 @@ from fpe_jax.errors import InputError
 
 # names `--fit` and `--solver` accept (fpe_jax.fit's, kept here so `fpe --help` does not import
 # JAX; a test checks they agree)
-FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed")
+FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed", "tau", "smoothing")
+FIT_MODELS = ("line", "blend")
 SOLVERS = ("bfgs", "lm")
 
 
@@ -105,6 +106,19 @@ def _progress(args):
     return Progress(quiet=getattr(args, "quiet", False))
 
 
+def _load_predictor(args):
+    """(Params, Waypoints) of --preset / --config with the settings flags; a line-model config
+    is checked against the --waypoints it will run on."""
+    from fpe_jax import io
+    from fpe_jax.config import load_params
+
+    wp = io.load_waypoints(args.waypoints)
+    settings = _settings_from_args(args)
+    where = (args.waypoints, wp.xy_m)
+    params = load_params(preset=args.preset, config=args.config, settings=settings, waypoints=where)
+    return params, wp
+
+
 def _load_drive_from_args(args):
     from fpe_jax import io
 
@@ -138,14 +152,22 @@ def _build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser(
-        "fit", help="fit lookahead, weights, delay and speed to drives; report held-out metrics"
+        "fit", help="learn the car's line and fit the predictor to drives; report held-out metrics"
     )
     p.add_argument("logs", nargs="+", metavar="LOG", help="drive logs, or one recipe .toml")
     p.add_argument("--waypoints", help="waypoint / centerline / raceline file")
     p.add_argument("--out", help="CONFIG.json to write (a recipe may name it)")
     p.add_argument("--holdout", type=float, help="held-out fraction at each drive's end (0.3)")
     p.add_argument("--test", nargs="+", metavar="LOG", help="separate held-out drives instead")
-    p.add_argument("--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: all but split)")
+    p.add_argument(
+        "--model",
+        choices=FIT_MODELS,
+        help="line (default): the car's own line and speed profile, learned from the drives; "
+        "blend: linear / pure-pursuit blend",
+    )
+    p.add_argument(
+        "--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: the model's own values)"
+    )
     p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
     _add_settings_flags(p, "saved in the config; a recipe may set them in [settings]")
     p.add_argument(
@@ -310,6 +332,7 @@ def _fit_inputs(args, say=lambda msg: None):
             holdout=args.holdout or r.holdout,
             fit=r.fit,
             blend=args.blend or r.blend,
+            model=args.model or r.model,
             solver=args.solver or r.solver,
             settings=r.settings,
         )
@@ -331,6 +354,7 @@ def _fit_inputs(args, say=lambda msg: None):
         holdout=args.holdout or 0.3,
         fit=None,
         blend=args.blend or "auto",
+        model=args.model,
         solver=args.solver,
         settings={},
     )
@@ -359,7 +383,7 @@ def cmd_fit(args) -> int:
         say("loading JAX")
         _start_jax(args)
         from fpe_jax.config import apply_settings
-        from fpe_jax.fit import DEFAULT_FIT, fit, format_fitted, format_table, provenance
+        from fpe_jax.fit import fit, format_fitted, format_table, provenance
         from fpe_jax.params import presets
         from fpe_jax.track import Track
 
@@ -373,7 +397,8 @@ def cmd_fit(args) -> int:
         result = fit(
             [d for d, _, _ in drives],
             tracks,
-            fit=fit_names or opts["fit"] or DEFAULT_FIT,
+            fit=fit_names or opts["fit"] or None,
+            model=opts["model"] or "line",
             blend=opts["blend"],
             holdout=opts["holdout"],
             test_drives=[d for d, _, _ in tests] or None,
@@ -387,10 +412,14 @@ def cmd_fit(args) -> int:
         "truth": drives[0][0].meta.get("truth_topic"),
     }
     sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
+    line = None
+    if "waypoints_sha256" in result.info:
+        line = {"waypoints_sha256": result.info["waypoints_sha256"], "waypoints": args.waypoints}
     cfg = params_to_config(
         result.params,
         uncertainty=result.uncertainty,
         provenance=provenance(result, sources, topics),
+        line=line,
     )
     write_config(out, cfg, force=args.force)
     print(format_fitted(result))
@@ -407,23 +436,20 @@ def cmd_fit(args) -> int:
 def cmd_evaluate(args) -> int:
     import json
 
-    from fpe_jax import io
     from fpe_jax.config import read_config
 
     with _progress(args) as say:
         say("loading JAX")
         _start_jax(args)
-        from fpe_jax.config import load_params
         from fpe_jax.fit import Dataset, evaluate, make_targets
         from fpe_jax.track import Track
 
         say("reading the drive and waypoints")
-        settings = _settings_from_args(args)
-        params = load_params(preset=args.preset, config=args.config, settings=settings)
+        params, waypoints = _load_predictor(args)
         cfg = read_config(args.config) if args.config else {}
         cov = (cfg.get("uncertainty") or {}).get("cov_m2")
         drive = _load_drive_from_args(args)
-        track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+        track = Track.from_waypoints(waypoints.xy_m)
         data = Dataset(drive, track, make_targets(drive, params.settings))
         if len(data.targets.rows) == 0:
             raise InputError(args.log, "no prediction has a target", "a longer drive")
@@ -481,18 +507,15 @@ def cmd_predict(args) -> int:
     with _progress(args) as say:
         say("loading JAX")
         _start_jax(args)
-        from fpe_jax.config import load_params
         from fpe_jax.fit import covariance_map, path_heading
         from fpe_jax.predict import predict_rows, states_from_drive
         from fpe_jax.track import Track
 
         say("reading the drive and waypoints")
-        settings = _settings_from_args(args)
-        params = load_params(preset=args.preset, config=args.config, settings=settings)
+        params, waypoints = _load_predictor(args)
         cov = None
         if args.config:
             cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
-        waypoints = io.load_waypoints(args.waypoints)
         drive = _load_drive_from_args(args)
         track = Track.from_waypoints(waypoints.xy_m)
         say(f"predicting {len(drive.t_s)} observations")
@@ -679,13 +702,11 @@ def cmd_batch(args) -> int:
         say("loading JAX")
         _start_jax(args, x64=False)  # the predictor runs in --dtype (batch.py pins it)
         from fpe_jax.batch import predict_chunked, read_cars, write_poses
-        from fpe_jax.config import load_params
         from fpe_jax.track import Track
 
         say("reading the cars and waypoints")
-        settings = _settings_from_args(args)
-        params = load_params(preset=args.preset, config=args.config, settings=settings)
-        track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+        params, waypoints = _load_predictor(args)
+        track = Track.from_waypoints(waypoints.xy_m)
         cars = read_cars(args.states)
         say(f"predicting {len(cars)} cars")
         t0 = time.perf_counter()
@@ -752,14 +773,11 @@ def cmd_plot(args) -> int:
     with _progress(args) as say:
         say("loading JAX")
         _start_jax(args)
-        from fpe_jax.config import load_params
         from fpe_jax.plots import plot_drive
 
         say("reading the drive and waypoints")
-        settings = _settings_from_args(args)
-        params = load_params(preset=args.preset, config=args.config, settings=settings)
+        params, waypoints = _load_predictor(args)
         name = args.preset or f"config {Path(args.config).name}"
-        waypoints = io.load_waypoints(args.waypoints)
         drive = _load_drive_from_args(args)
         m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log, progress=say)
     print(

@@ -5,9 +5,12 @@ can load the same files.
 Schema (version 1):
     {"schema_version": 1,
      "params": {"lookahead_m", "lookahead_gain_s", "weights": [H], "delay_s", "speed_weight",
-                "speed_mps"},
+                "speed_mps", optional: "offset_tau_s", "speed_tau_s", "position_smoothing"
+                (frenet / line models),
+                "line_offset_m", "line_speed_mps", "line_coverage": [P] (line model only)},
      "settings": {"dt_s", "horizon", "wheelbase_m", "max_steer_rad", "blend", "model",
                   "min_lookahead_m", "history"},
+     "line": {"waypoints_sha256", "waypoints"},   # line model only: what the line belongs to
      "uncertainty": null | {"frame": "track", "cov_m2": [H][2][2]},   # along-, cross-track
      "provenance": {...}}
 """
@@ -31,11 +34,15 @@ PRESET_DOCS = {
     "pure-pursuit": "kinematic bicycle following the path, 2 m lookahead (approach 3)",
     "constant-velocity": "constant velocity vector from the recent history (approach 1)",
     "ctrv": "constant turn rate and velocity",
-    "default": "the differentiable position blend; the fitter's starting point",
+    "frenet": "along-track speed held from the newest position, lateral offset decaying to the "
+    "centerline (tau 1 s)",
+    "default": "the differentiable position blend; the fitter's starting point for --model blend",
 }
 
 SCHEMA_VERSION = 1
 PARAM_KEYS = ("lookahead_m", "lookahead_gain_s", "weights", "delay_s", "speed_weight", "speed_mps")
+OPTIONAL_PARAM_KEYS = ("offset_tau_s", "speed_tau_s", "position_smoothing")
+LINE_KEYS = ("line_offset_m", "line_speed_mps", "line_coverage")
 SETTING_KEYS = (
     "dt_s",
     "horizon",
@@ -77,6 +84,18 @@ def read_config(path) -> dict[str, Any]:
         raise InputError(
             path, f"{len(cfg['params']['weights'])} weights for horizon {horizon}", "H weights"
         )
+    if cfg["settings"]["model"] == "line":
+        missing = [k for k in LINE_KEYS if not isinstance(cfg["params"].get(k), list)]
+        if (
+            missing
+            or not isinstance(cfg.get("line"), dict)
+            or "waypoints_sha256" not in cfg["line"]
+        ):
+            what = ", ".join(f"params.{k}" for k in missing) or "line.waypoints_sha256"
+            raise InputError(path, f"model 'line' without {what}", "a config written by `fpe fit`")
+        sizes = {len(cfg["params"][k]) for k in LINE_KEYS}
+        if len(sizes) != 1 or 0 in sizes:
+            raise InputError(path, "line profile arrays differ in size", "P values each, P > 0")
     cfg.setdefault("uncertainty", None)
     cfg.setdefault("provenance", {})
     return cfg
@@ -87,18 +106,42 @@ def config_to_params(cfg: dict[str, Any]):
     from fpe_jax.params import Params, Settings
 
     settings = Settings(**{k: cfg["settings"][k] for k in SETTING_KEYS})
-    return Params.create(settings, **{k: cfg["params"][k] for k in PARAM_KEYS})
+    keys = PARAM_KEYS + OPTIONAL_PARAM_KEYS + (LINE_KEYS if settings.model == "line" else ())
+    return Params.create(settings, **{k: cfg["params"][k] for k in keys if k in cfg["params"]})
 
 
-def params_to_config(params, *, uncertainty=None, provenance=None) -> dict[str, Any]:
-    """A config dict from Params (+ optional uncertainty and provenance)."""
-    return {
+def check_waypoints(cfg: dict[str, Any], config_source, waypoints_xy_m, waypoints_source) -> None:
+    """A line-model config is only valid on the waypoints its line was learned on (sha256 of
+    their float64 values): InputError naming both files otherwise. Other models: no check."""
+    if cfg["settings"]["model"] != "line":
+        return
+    from fpe_jax.path import waypoints_sha256
+
+    line = cfg["line"]
+    if waypoints_sha256(waypoints_xy_m) != line["waypoints_sha256"]:
+        raise InputError(
+            waypoints_source,
+            f"not the waypoints the line of {config_source} was learned on "
+            f"({line.get('waypoints') or 'sha256 ' + line['waypoints_sha256'][:12]})",
+            "the waypoint file the config was fitted with",
+        )
+
+
+def params_to_config(params, *, uncertainty=None, provenance=None, line=None) -> dict[str, Any]:
+    """A config dict from Params (+ optional uncertainty and provenance; `line`, the line
+    model's {"waypoints_sha256", "waypoints"}, is required for it)."""
+    cfg = {
         "schema_version": SCHEMA_VERSION,
         "params": params.physical(),
         "settings": dataclasses.asdict(params.settings),
         "uncertainty": uncertainty,
         "provenance": provenance or {},
     }
+    if params.settings.model == "line":
+        if not line or "waypoints_sha256" not in line:
+            raise ValueError("params_to_config: the line model needs line.waypoints_sha256")
+        cfg["line"] = dict(line)
+    return cfg
 
 
 def write_config(path, cfg: dict[str, Any], *, force: bool = False) -> None:
@@ -111,11 +154,15 @@ def write_config(path, cfg: dict[str, Any], *, force: bool = False) -> None:
     os.replace(tmp, path)
 
 
-def load_params(*, preset: str | None = None, config: str | None = None, settings=None):
+def load_params(
+    *, preset: str | None = None, config: str | None = None, settings=None, waypoints=None
+):
     """Params from a preset name or a config file (exactly one; default preset: 'default').
 
     settings: {flag: (Settings field, value)} of user settings (`params.USER_SETTINGS`) for a
     preset; a config carries the settings it was fitted with, so they are an error there.
+    waypoints: optional (file name, (K, 2) array) the params will run on: a line-model config
+    must have been fitted on exactly these (`check_waypoints`).
     """
     from fpe_jax.params import presets
 
@@ -124,7 +171,10 @@ def load_params(*, preset: str | None = None, config: str | None = None, setting
         if settings:
             flags = ", ".join(settings)
             raise InputError(flags, "given with --config", "a config's own settings (or --preset)")
-        return config_to_params(read_config(config))
+        cfg = read_config(config)
+        if waypoints is not None:
+            check_waypoints(cfg, config, waypoints[1], waypoints[0])
+        return config_to_params(cfg)
     name = preset or "default"
     if name not in presets:
         raise InputError("--preset", f"unknown preset {name!r}", f"one of {', '.join(presets)}")

@@ -176,20 +176,23 @@ def fit_case(
     *,
     blend: str = "position",
     fit: Sequence[str] | None = None,
+    model: str = "line",
     progress: Callable[[str], None] = lambda msg: None,
 ):
-    """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`."""
+    """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`.
+
+    model: "line" (the default fitted model) or "blend" (then `blend` applies)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from fpe_jax.fit import DEFAULT_FIT
     from fpe_jax.fit import fit as fit_drives
 
     track = case.track()
     return fit_drives(
         [case.fit_drive],
         [track],
-        fit=tuple(fit) if fit else DEFAULT_FIT,
+        fit=tuple(fit) if fit else None,
+        model=model,
         blend=blend,
         test_drives=[case.test_drive],
         test_tracks=[track],
@@ -311,7 +314,8 @@ def run_demo(
 
     Files (overwritten on every run: the folder is the demo's own output): config.json (the
     tuned config), params.yaml (ROS 2 parameters), waypoints.csv (the centerline, x,y [m]),
-    trajectory.png, error_vs_horizon.png, weights.png, report.md (the table and the checks).
+    trajectory.png, error_vs_horizon.png, line.png (weights.png for the blend model), report.md
+    (the table and the checks).
     """
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -341,13 +345,17 @@ def write_demo_outputs(out: Path, case: Case, result, checks, progress) -> list[
 
     progress("writing the tuned config and the ROS 2 parameters")
     waypoints = out / "waypoints.csv"
-    np.savetxt(waypoints, case.waypoints_xy_m, fmt="%.6f", delimiter=",", header="x,y", comments="")
+    # every digit: a line-model config is tied to the exact waypoint values (sha256)
+    np.savetxt(
+        waypoints, case.waypoints_xy_m, fmt="%.17g", delimiter=",", header="x,y", comments=""
+    )
     cfg_path = out / "config.json"
     sources = [f"fit:{case.description}", f"test:{case.description}"]
     cfg = params_to_config(
         result.params,
         uncertainty=result.uncertainty,
         provenance=provenance(result, sources, {"pose": None, "truth": None}),
+        line=_line_section(result, waypoints),
     )
     write_config(cfg_path, cfg, force=True)
     files = [waypoints, cfg_path]
@@ -355,11 +363,12 @@ def write_demo_outputs(out: Path, case: Case, result, checks, progress) -> list[
 
     progress("predicting the test drive for the plots")
     track = case.track()
-    names = ("seed", "seed-measured-speed", "fitted")
+    names = ("seed", "seed-measured-speed", "frenet", "fitted")
     by_name = {n: presets[n] for n in names[:-1]} | {"fitted": result.params}
     held = heldout_predictions(case.test_drive, track, by_name)
     dt_s = result.params.settings.dt_s
-    progress("drawing trajectory.png, error_vs_horizon.png, weights.png")
+    last = "line.png" if result.params.settings.model == "line" else "weights.png"
+    progress(f"drawing trajectory.png, error_vs_horizon.png, {last}")
     fig = plots.trajectory_figure(
         case.waypoints_xy_m,
         case.test_drive,
@@ -377,33 +386,53 @@ def write_demo_outputs(out: Path, case: Case, result, checks, progress) -> list[
         title=f"Demo: mean error vs horizon on the test drive ({case.name})",
     )
     files.append(plots.save(fig, out / "error_vs_horizon.png"))
-    fig = plots.weights_figure(
-        {f"fitted on {case.name} ({result.info['blend']} blend)": result.params},
-        title="Demo: fitted per-step weights vs the thesis's 0.7^i",
-        latency_s=case.latency_s,
-    )
-    files.append(plots.save(fig, out / "weights.png"))
+    if last == "line.png":
+        fig = plots.line_figure(
+            result.params,
+            float(track.length_m),
+            track.closed,
+            title=f"Demo: the line and speed profile learned from the fit drive ({case.name})",
+        )
+    else:
+        fig = plots.weights_figure(
+            {f"fitted on {case.name} ({result.info['blend']} blend)": result.params},
+            title="Demo: fitted per-step weights vs the thesis's 0.7^i",
+            latency_s=case.latency_s,
+        )
+    files.append(plots.save(fig, out / last))
     report = out / "report.md"
     report.write_text(demo_report(case, result, checks))
     files.append(report)
     return files
 
 
+def _line_section(result, waypoints: Path) -> dict | None:
+    """The config's `line` section for a line-model fit (None for other models)."""
+    sha = result.info.get("waypoints_sha256")
+    return None if sha is None else {"waypoints_sha256": sha, "waypoints": str(waypoints)}
+
+
 def demo_report(case: Case, result, checks) -> str:
     """The demo's Markdown report: what was run, the fitted values, the table, the checks."""
-    from fpe_jax.fit import format_table
+    from fpe_jax.fit import format_fitted, format_table
 
     p = result.params.physical()
+    if result.params.settings.model == "line":
+        fitted = [format_fitted(result), f"true latency {case.latency_s:.3f} s"]
+    else:
+        fitted = [
+            f"fitted ({result.info['blend']} blend, {result.info['steps']} solver steps): "
+            f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
+            f"delay {p['delay_s']:.3f} s (true latency {case.latency_s:.3f} s), "
+            f"speed {p['speed_weight']:.2f} * measured + {1 - p['speed_weight']:.2f} * "
+            f"{p['speed_mps']:.2f} m/s",
+            "",
+            "weights " + " ".join(f"{w:.3f}" for w in p["weights"]),
+        ]
     lines = [
         f"# fpe demo: {case.description}",
         "",
-        f"fitted ({result.info['blend']} blend, {result.info['steps']} solver steps): "
-        f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
-        f"delay {p['delay_s']:.3f} s (true latency {case.latency_s:.3f} s), "
-        f"speed {p['speed_weight']:.2f} * measured + {1 - p['speed_weight']:.2f} * "
-        f"{p['speed_mps']:.2f} m/s",
-        "",
-        "weights " + " ".join(f"{w:.3f}" for w in p["weights"]),
+        *fitted,
         "",
         "Held-out (the separate test drive):",
         "",

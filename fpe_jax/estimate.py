@@ -13,6 +13,7 @@ is slow or the tag is lost).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
@@ -95,3 +96,47 @@ def estimate_state(
         course_rad=course,
         s_m=None,
     )
+
+
+def estimate_track_frame(
+    t_s: Float[Array, " W"],
+    xy_m: Float[Array, "W 2"],
+    valid: Bool[Array, " W"],
+    s_hint_m: Float[Array, ""],
+    track,
+) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
+    """Arc length s [m], along-track speed ds/dt [m/s], lateral offset d [m] (left positive)
+    at the newest stamp of one window, by Theil-Sen lines in the track frame, and the speed's
+    age [s] (the median observation's age: a slope describes the window's middle).
+
+    Each observation is projected onto the path, newest first, each from its newer neighbour's
+    arc length (`Track.project_local`: consecutive observations are close). s and d at the
+    newest stamp are the medians of the observations moved along their Theil-Sen slopes: noise
+    along the line of sight averages out over the window, and unlike a straight line in the map
+    frame the path's curvature adds no bias. The frenet and line rollouts start from these.
+    """
+    w = t_s.shape[0]
+
+    def back(s_next, k):
+        s = track.project_local(xy_m[k], s_next, iters=3)
+        s = jnp.where(valid[k], s, s_next)
+        return s, s
+
+    _, s_rev = jax.lax.scan(back, s_hint_m, jnp.arange(w - 1, -1, -1))
+    s = s_rev[::-1]
+    centre = jax.vmap(track.point_at)(s)
+    heading = jax.vmap(track.heading_at)(s)
+    d = (xy_m[:, 1] - centre[:, 1]) * jnp.cos(heading) - (xy_m[:, 0] - centre[:, 0]) * jnp.sin(
+        heading
+    )
+    i, j = np.triu_indices(w, 1)
+    dt = t_s[j] - t_s[i]
+    pair_ok = valid[i] & valid[j] & (dt >= MIN_PAIR_DT_S)
+    safe_dt = jnp.where(pair_ok, dt, 1.0)
+    sdot = _masked_median((s[j] - s[i]) / safe_dt, pair_ok)
+    ddot = _masked_median((d[j] - d[i]) / safe_dt, pair_ok)
+    ahead = t_s[-1] - t_s
+    s_now = s[-1] + _masked_median(s + sdot * ahead - s[-1], valid)
+    d_now = _masked_median(d + ddot * ahead, valid)
+    age = _masked_median(ahead, valid)
+    return s_now, sdot, d_now, age

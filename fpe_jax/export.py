@@ -35,6 +35,10 @@ INPUTS = (
     ("yaw_rate_rps", "yaw rate [rad/s]"),
     ("course_rad", "direction of motion [rad]"),
     ("s_m", "arc length along the track [m] from a windowed projection; NaN: project globally"),
+    ("s_fit_m", "frenet / line: track-frame arc length [m]; NaN: from x, y, v, course"),
+    ("sdot_mps", "frenet / line: along-track speed [m/s] (track-frame estimate)"),
+    ("offset_m", "frenet / line: lateral offset from the path [m], left positive"),
+    ("sdot_age_s", "line: age of the speed estimate [s] (the history window's middle)"),
 )
 """The artifact's inputs, in order: each a (b,) float64 array (b >= 1, the batch of cars), the
 fields of `fpe_jax.rollout.State` as `fpe_jax.predict.states_from_drive` estimates them (for the
@@ -53,12 +57,22 @@ ROS2_PARAMS = (
     ("delay_offset_s", "params", "delay_s", float, "observation delay, advanced over first [s]"),
     ("speed_weight", "params", "speed_weight", float, "v = w * measured + (1 - w) * typical"),
     ("typical_speed_mps", "params", "speed_mps", float, "speed the measured one shrinks to [m/s]"),
+    ("offset_decay_s", "params", "offset_tau_s", float, "frenet/line: lateral offset decay [s]"),
+    ("speed_profile_blend_s", "params", "speed_tau_s", float, "line: profile blend-in time [s]"),
+    ("position_smoothing", "params", "position_smoothing", float, "frenet/line: 0 newest, 1 fit"),
     ("step_s", "settings", "dt_s", float, "time between predicted poses [s]"),
     ("horizon", "settings", "horizon", int, "number of predicted poses H"),
     ("wheelbase_m", "settings", "wheelbase_m", float, "kinematic-bicycle wheelbase [m]"),
     ("max_steering_rad", "settings", "max_steer_rad", float, "steering limit [rad]"),
     ("min_lookahead_m", "settings", "min_lookahead_m", float, "lower bound of the lookahead [m]"),
     ("history", "settings", "history", int, "distinct recent observations the estimate uses"),
+)
+
+# the line model's profile, P values each on points spread evenly over the track's arc length
+ROS2_LINE_PARAMS = (
+    ("line_offset_m", "params", "line_offset_m", list, "line: offset from the centerline [m]"),
+    ("line_speed_mps", "params", "line_speed_mps", list, "line: along-track speed [m/s]"),
+    ("line_coverage", "params", "line_coverage", list, "line: fit drives' coverage in [0, 1]"),
 )
 
 
@@ -123,8 +137,16 @@ def to_ros2_yaml(
         "    # version of the fpe-jax config schema these values follow",
         f"    schema_version: {int(cfg['schema_version'])}",
     ]
-    for name, section, key, kind, doc in ROS2_PARAMS:
-        value = cfg[section][key]
+    params = dict(cfg["params"])
+    params.setdefault("offset_tau_s", 1.0)  # configs from before the frenet / line models
+    params.setdefault("speed_tau_s", 0.5)
+    params.setdefault("position_smoothing", 0.0)
+    sections = {"params": params, "settings": cfg["settings"]}
+    rows = list(ROS2_PARAMS)
+    if cfg["settings"]["model"] == "line":
+        rows += ROS2_LINE_PARAMS
+    for name, section, key, kind, doc in rows:
+        value = sections[section][key]
         value = [float(v) for v in value] if kind is list else kind(value)
         lines += [f"    # {doc}", f"    {name}: {_yaml_scalar(value)}"]
     lines += [
@@ -147,7 +169,7 @@ def _predictor(params, track):
     from fpe_jax.predict import predict_batch
     from fpe_jax.rollout import State
 
-    def f(x_m, y_m, yaw_rad, v_mps, yaw_rate_rps, course_rad, s_m):
+    def f(x_m, y_m, yaw_rad, v_mps, yaw_rate_rps, course_rad, s_m, s_fit_m, *frame):
         states = State(
             x_m=x_m,
             y_m=y_m,
@@ -156,8 +178,13 @@ def _predictor(params, track):
             yaw_rate_rps=yaw_rate_rps,
             course_rad=course_rad,
             s_m=s_m,
+            s_fit_m=s_fit_m,
+            sdot_mps=frame[0],
+            offset_m=frame[1],
+            sdot_age_s=frame[2],
         )
-        if params.settings.model == "blend":  # only pure pursuit reads the arc length
+        # only pure pursuit and the Frenet rollouts read the arc length
+        if params.settings.model in ("blend", "frenet", "line"):
             # a NaN arc length asks for a global projection; skipped when every car has one
             def global_s(s):
                 p = jnp.stack([x_m, y_m], axis=1)
@@ -238,7 +265,8 @@ class ExportedPredictor:
 
     Arguments by name or in the order of `INPUTS`; each a scalar or a (b,) array. Omitted
     optional ones take the `State` defaults: yaw_rate_rps 0, course_rad = yaw_rad, and
-    s_m NaN (a global projection on the track).
+    s_m NaN (a global projection on the track), the track-frame estimate NaN (taken from x, y, v
+    and the course).
 
     Attributes:
         exported: the `jax.export.Exported`.
@@ -272,6 +300,10 @@ class ExportedPredictor:
             "yaw_rate_rps": 0.0,
             "course_rad": given["yaw_rad"],
             "s_m": math.nan,
+            "s_fit_m": math.nan,
+            "sdot_mps": math.nan,
+            "offset_m": math.nan,
+            "sdot_age_s": math.nan,
         }
         arrays = [
             np.broadcast_to(np.asarray(given.get(n, defaults.get(n)), dtype=np.float64), x.shape)

@@ -25,7 +25,15 @@ from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.history import distinct_mask, history_windows
 from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
-from fpe_jax.params import Params, Settings, constrain, presets, unconstrain, with_settings
+from fpe_jax.params import (
+    USER_SETTINGS,
+    Params,
+    Settings,
+    constrain,
+    presets,
+    unconstrain,
+    with_settings,
+)
 from fpe_jax.predict import (
     bucket,
     pad_rows,
@@ -45,8 +53,17 @@ FIT_GROUPS = {
     "weights": ("weights",),
     "delay": ("delay_s",),
     "speed": ("speed_weight", "speed_mps"),
+    "tau": ("offset_tau_s", "speed_tau_s"),
+    "smoothing": ("position_smoothing",),
 }
-DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")
+DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")  # of the blend model
+# the groups each fitted model reads, and its default: the line model has no memorised speed
+MODEL_FIT = {
+    "blend": (("lookahead", "lookahead_m", "gain", "weights", "delay", "speed"), DEFAULT_FIT),
+    "line": (("delay", "tau", "smoothing"), ("delay", "tau", "smoothing")),
+}
+FIT_MODELS = tuple(MODEL_FIT)
+DEFAULT_MODEL = "line"
 PARAM_FIELDS = (
     "lookahead_m",
     "lookahead_gain_s",
@@ -54,9 +71,16 @@ PARAM_FIELDS = (
     "delay_s",
     "speed_weight",
     "speed_mps",
+    "offset_tau_s",
+    "speed_tau_s",
+    "position_smoothing",
+    "line_offset_m",
+    "line_speed_mps",
+    "line_coverage",
 )
 BLEND_CHOICES = ("position", "heading")
 BASELINES = ("seed", "seed-measured-speed", "linear", "pure-pursuit", "constant-velocity", "ctrv")
+BASELINES += ("frenet",)
 MIN_HISTORY = 3  # distinct observations needed before a prediction counts
 HUBER_M = 0.3  # residuals beyond this grow linearly: AprilTag jumps must not dominate
 RAW_RIDGE = 1e-3  # light pull of raw values toward 0: stops saturated weights from drifting
@@ -234,7 +258,7 @@ def fit_params(
     datasets: Sequence[Dataset],
     init: Params,
     *,
-    fit: Sequence[str] = DEFAULT_FIT,
+    fit: Sequence[str] | None = None,
     huber_m: float = HUBER_M,
     solver: str = DEFAULT_SOLVER,
     max_steps: int | None = None,
@@ -252,13 +276,19 @@ def fit_params(
     this call) and of those trace_s (tracing the solver), compile_s (XLA, on a second thread
     while the states are estimated; both 0 when compiled by an earlier call) and solve_s.
     """
+    if init.settings.model not in MODEL_FIT:
+        raise ValueError(f"fit_params: only the models {FIT_MODELS} are fitted, not presets'")
+    fit = tuple(fit) if fit else MODEL_FIT[init.settings.model][1]
     unknown = [f for f in fit if f not in FIT_GROUPS]
     if unknown:
         raise InputError("--fit", f"unknown name(s) {', '.join(unknown)}", ", ".join(FIT_GROUPS))
     if solver not in SOLVERS:
         raise InputError("--solver", f"unknown solver {solver!r}", ", ".join(SOLVERS))
-    if init.settings.model != "blend":
-        raise ValueError("fit_params: only the blend model is fitted (presets are baselines)")
+    allowed = MODEL_FIT[init.settings.model][0]
+    if any(f not in allowed for f in fit):
+        wrong = ", ".join(f for f in fit if f not in allowed)
+        msg = f"{wrong} do(es) not apply to model {init.settings.model}"
+        raise InputError("--fit", msg, ", ".join(allowed))
     raw = unconstrain(init)
     free, fixed = eqx.partition(raw, _free_mask(raw, fit))
     # targets and states padded to a bucketed row count (padded targets masked out): drives of
@@ -371,11 +401,32 @@ def _track_residuals(pred: np.ndarray, d: Dataset, params: Params) -> np.ndarray
     return track_frame_residuals(pred[..., :2], d.targets.xy_m, heading)
 
 
+def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
+    """(N, H, 3) predictions of the line model at d's targets, each from a line learned on the
+    other half of d's drive: the line fits its own drive's truth, so in-sample residuals would
+    understate the error on drives the line was not learned on."""
+    from fpe_jax.line import learn_line
+
+    t0, t1 = d.drive.t_s[0], d.drive.t_s[-1]
+    t_mid = 0.5 * (t0 + t1)
+    halves = (d.drive.slice_time(-np.inf, t_mid), d.drive.slice_time(t_mid, np.inf))
+    preds = []
+    for half in halves[::-1]:  # first the line of the second half, for the first half's rows
+        line = {k: jnp.asarray(v) for k, v in learn_line([half], d.track).items()}
+        preds.append(predict_targets(dataclasses.replace(params, **line), d))
+    late = d.drive.t_s[d.targets.rows] >= t_mid
+    return np.where(late[:, None, None], preds[1], preds[0])
+
+
 def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
-    """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame."""
-    res = np.concatenate(
-        [_track_residuals(predict_targets(params, d), d, params) for d in datasets]
-    )
+    """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame.
+
+    For the line model from cross-fitted predictions (`_cross_fitted`)."""
+    if params.settings.model == "line":
+        preds = [_cross_fitted(params, d) for d in datasets]
+    else:
+        preds = [predict_targets(params, d) for d in datasets]
+    res = np.concatenate([_track_residuals(p, d, params) for p, d in zip(preds, datasets)])
     mask = np.concatenate([d.targets.mask for d in datasets])
     return {
         "frame": "track",
@@ -432,7 +483,8 @@ def fit(
     drives: Sequence[Drive],
     tracks: Sequence[Track],
     *,
-    fit: Sequence[str] = DEFAULT_FIT,
+    fit: Sequence[str] | None = None,
+    model: str = DEFAULT_MODEL,
     blend: str = "auto",
     holdout: float = 0.3,
     test_drives: Sequence[Drive] | None = None,
@@ -445,18 +497,21 @@ def fit(
 
     Args:
         drives, tracks: the drives to fit and the track each was driven on.
-        fit: which values to fit (names of FIT_GROUPS).
-        blend: "position", "heading", or "auto" (each is fitted on the first 75 % of the
-            training data and the one with the lower validation loss on the rest is kept).
+        fit: which values to fit (names of FIT_GROUPS; default: the model's, MODEL_FIT).
+        model: "line" (default: the opponent's line and speed profile, learned from the
+            training drives, `fpe_jax.line`; every training and test drive must share one set
+            of waypoints) or "blend" (linear / pure-pursuit blend).
+        blend: for the blend model: "position", "heading", or "auto" (each is fitted on the
+            first 75 % of the training data and the one with the lower validation loss on the
+            rest is kept).
         holdout: fraction of each drive (its end) held out, unless test_drives are given.
         test_drives, test_tracks: separate held-out drives (then all of `drives` is training).
-        init: starting point (default: the "default" preset).
+        init: starting point (default: the "default" preset). For the line model a Params of
+            another model only lends its car and prediction grid (`USER_SETTINGS`).
         solver: "bfgs" or "lm" (see `fit_params`).
         progress: called with a short message at each phase.
     """
     jax.config.update("jax_enable_x64", True)  # fitting needs float64 (tiny gradients)
-    init = init or presets["default"]
-    settings = init.settings
     if test_drives is None:
         pairs = [split_drive(d, holdout) for d in drives]
         train_d, test_d = [p[0] for p in pairs], [p[1] for p in pairs]
@@ -466,12 +521,23 @@ def fit(
         train_d, test_d = list(drives), list(test_drives)
         test_tracks = test_tracks or tracks
         split = {"kind": "drives", "n_test": len(test_d)}
+    if model not in MODEL_FIT:
+        raise InputError("--model", f"unknown model {model!r}", ", ".join(FIT_MODELS))
+    line_info = {}
+    if model == "line" and (init is None or init.settings.model != "line"):
+        car = init.settings if init is not None else Settings()
+        init, line_info = _line_init(train_d, list(tracks) + list(test_tracks), car, progress)
+    init = init or presets["default"]
+    settings = init.settings
+    fit = tuple(fit) if fit else MODEL_FIT.get(settings.model, MODEL_FIT["blend"])[1]
     train = _datasets(train_d, tracks, settings, "training")
     test = _datasets(test_d, test_tracks, settings, "held-out")
     if "speed" in fit:  # start the typical speed where the data is
         v = np.concatenate([np.asarray(d.states(init).v_mps) for d in train])
         init = dataclasses.replace(init, speed_mps=jnp.asarray(max(float(np.median(v)), 0.1)))
 
+    if settings.model != "blend":  # the blend mode means nothing to other models
+        blend = settings.blend
     modes = BLEND_CHOICES if blend == "auto" else (blend,)
     selection = {}
     if len(modes) > 1:
@@ -488,7 +554,8 @@ def fit(
         best = min(selection, key=selection.get)
     else:
         best = modes[0]
-    progress(f"fitting '{best}' blend on {sum(len(d.targets.rows) for d in train)} predictions")
+    what = f"'{best}' blend" if settings.model == "blend" else f"the {settings.model} model"
+    progress(f"fitting {what} on {sum(len(d.targets.rows) for d in train)} predictions")
     p0 = dataclasses.replace(init, settings=dataclasses.replace(settings, blend=best))
     params, info = fit_params(train, p0, fit=fit, solver=solver)
     progress(f"estimating uncertainty on {len(train)} training drive(s)")
@@ -498,7 +565,7 @@ def fit(
     for i, name in enumerate(BASELINES, 1):
         progress(f"evaluating preset '{name}' on held-out data ({i}/{len(BASELINES)})")
         report[name] = evaluate(baseline(name, settings), test)
-    info.update(blend=best, validation_ade_m=selection, split=split, fit=list(fit))
+    info.update(blend=best, validation_ade_m=selection, split=split, fit=list(fit), **line_info)
     return FitResult(params, uncertainty, report, info)
 
 
@@ -511,6 +578,33 @@ def baseline(name: str, settings: Settings) -> Params:
         if getattr(settings, k) != getattr(default, k):
             changes[k] = getattr(settings, k)
     return with_settings(presets[name], **changes)
+
+
+def _line_init(
+    drives: Sequence[Drive], tracks: Sequence[Track], car: Settings, progress
+) -> tuple[Params, dict]:
+    """The line model's starting point: the profile learned from `drives` on the one track
+    every drive (fit and test) uses, good unfitted time constants and delay, on the car and
+    prediction grid of `car` (its `USER_SETTINGS`)."""
+    from fpe_jax.line import learn_line
+    from fpe_jax.path import waypoints_sha256
+
+    hashes = {waypoints_sha256(np.asarray(t.raw_xy_m)) for t in tracks}
+    if len(hashes) != 1:
+        raise InputError(
+            "--model line", "the drives use different waypoints", "one track, or --model blend"
+        )
+    progress("learning the line and speed profile from the training drives")
+    profile = learn_line(drives, tracks[0])
+    init = Params.create(
+        Settings(model="line", **{k: getattr(car, k) for k in USER_SETTINGS}),
+        weights=1.0,
+        delay_s=0.1,
+        offset_tau_s=1.0,
+        speed_tau_s=0.5,
+        **profile,
+    )
+    return init, {"waypoints_sha256": hashes.pop()}
 
 
 def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
@@ -533,6 +627,15 @@ def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
 def format_fitted(result: FitResult) -> str:
     """Two lines: the fitted values, and the per-step weights."""
     p, info = result.params.physical(), result.info
+    if result.params.settings.model == "line":
+        covered = float(np.mean(np.asarray(result.params.line_coverage) > 0))
+        return (
+            f"fitted (line model, {info['steps']} {info['solver']} steps): delay "
+            f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
+            f"{p['speed_tau_s']:.3f} s, position smoothing {p['position_smoothing']:.2f}\n"
+            f"line: {len(p['line_offset_m'])} points, {covered:.0%} "
+            f"covered, offset rms {np.sqrt(np.mean(np.square(p['line_offset_m']))):.3f} m"
+        )
     return (
         f"fitted ({info['blend']} blend, {info['steps']} {info['solver']} steps): "
         f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "

@@ -3,7 +3,9 @@
 Params holds physical values users read (`lookahead_m`, `weights`, ...). The fitter works on
 unconstrained raw values: `unconstrain(params)` and `constrain(raw)` map between the two, so
 every fitted value stays in its valid range without clipping (lookahead >= min_lookahead_m,
-gain >= 0, weights and speed_weight in [0, 1], delay >= 0, speed_mps >= 0).
+gain >= 0, weights and speed_weight in [0, 1], delay >= 0, speed_mps >= 0, time constants
+>= MIN_TAU_S). The learned line's profile arrays are never fitted by the solver (they are learned
+from the fit drives first, `fpe_jax.line`) and pass through both maps unchanged.
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 BLEND_MODES = ("position", "heading")
-MODELS = ("blend", "seed", "cv", "ctrv")
+MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
+LINE_KEYS = ("line_offset_m", "line_speed_mps", "line_coverage")
+MIN_TAU_S = 0.01  # time constants stay above this: exp(-t / tau) must not underflow to 0/0
 
 
 def _is_int(x) -> bool:
@@ -38,7 +42,9 @@ class Settings:
             "heading" (one rollout whose turn is scaled by 1 - w per step, as the original did).
         model: "blend" (linear / pure pursuit / their blend), "seed" (the original node's exact
             discrete rules), "cv" (constant velocity vector from the history), "ctrv"
-            (constant turn rate and velocity).
+            (constant turn rate and velocity), "frenet" (along-track speed held, lateral offset
+            from the path decaying with `offset_tau_s`), "line" (the Frenet rollout on the
+            opponent's learned line with its speed profile; the fitted default).
         min_lookahead_m: lower bound of the lookahead distance [m].
         history: number of distinct recent observations the state estimator uses.
     """
@@ -83,6 +89,19 @@ class Params(eqx.Module):
             v = speed_weight * v_measured + (1 - speed_weight) * speed_mps (a noisy sensor's
             speed is best shrunk toward a typical speed; 0 is the original's hard-coded speed).
         speed_mps: () the typical speed the measured one is shrunk toward [m/s].
+        offset_tau_s: () frenet / line models: time constant [s] of the lateral offset's decay
+            from the car's current offset to the line (the centerline for "frenet").
+        speed_tau_s: () line model: time constant [s] with which the speed profile's shape
+            v(s') / v(s_now) is blended into the car's current along-track speed.
+        position_smoothing: () frenet / line models, in [0, 1]: where the rollout starts along
+            and across the track: 0 = the newest observation's projection, 1 = the track-frame
+            Theil-Sen estimate at the newest stamp (`estimate_track_frame`), linear between.
+        line_offset_m: (P,) line model: the learned line's lateral offset from the centerline
+            [m] on P points spread evenly over the track's arc length (left positive); (0,)
+            for every other model.
+        line_speed_mps: (P,) line model: along-track speed profile [m/s] on the same points.
+        line_coverage: (P,) line model: in [0, 1], how well the fit drives covered each point;
+            where 0 the rollout falls back to the centerline and the current speed.
         settings: static `Settings`.
     """
 
@@ -92,6 +111,12 @@ class Params(eqx.Module):
     delay_s: Float[Array, ""]
     speed_weight: Float[Array, ""]
     speed_mps: Float[Array, ""]
+    offset_tau_s: Float[Array, ""]
+    speed_tau_s: Float[Array, ""]
+    position_smoothing: Float[Array, ""]
+    line_offset_m: Float[Array, " P"]
+    line_speed_mps: Float[Array, " P"]
+    line_coverage: Float[Array, " P"]
     settings: Settings = eqx.field(static=True)
 
     @classmethod
@@ -105,10 +130,22 @@ class Params(eqx.Module):
         delay_s=0.0,
         speed_weight=1.0,
         speed_mps=1.0,
+        offset_tau_s=1.0,
+        speed_tau_s=0.5,
+        position_smoothing=0.0,
+        line_offset_m=(),
+        line_speed_mps=(),
+        line_coverage=(),
     ) -> Params:
         """Params from plain numbers; a scalar `weights` is broadcast to all H steps."""
         settings = settings or Settings()
         w = jnp.broadcast_to(jnp.asarray(weights, dtype=float), (settings.horizon,))
+        line = [jnp.asarray(a, dtype=float).reshape(-1) for a in (line_offset_m, line_speed_mps)]
+        line.append(jnp.asarray(line_coverage, dtype=float).reshape(-1))
+        if len({a.shape for a in line}) != 1:
+            raise ValueError("Params: line_offset_m, line_speed_mps, line_coverage differ in size")
+        if (settings.model == "line") != (line[0].shape[0] > 0):
+            raise ValueError("Params: the line model needs a line profile, other models none")
         return cls(
             lookahead_m=jnp.asarray(lookahead_m, dtype=float),
             lookahead_gain_s=jnp.asarray(lookahead_gain_s, dtype=float),
@@ -116,19 +153,33 @@ class Params(eqx.Module):
             delay_s=jnp.asarray(delay_s, dtype=float),
             speed_weight=jnp.asarray(speed_weight, dtype=float),
             speed_mps=jnp.asarray(speed_mps, dtype=float),
+            offset_tau_s=jnp.asarray(offset_tau_s, dtype=float),
+            speed_tau_s=jnp.asarray(speed_tau_s, dtype=float),
+            position_smoothing=jnp.asarray(position_smoothing, dtype=float),
+            line_offset_m=line[0],
+            line_speed_mps=line[1],
+            line_coverage=line[2],
             settings=settings,
         )
 
     def physical(self) -> dict:
-        """The values as plain Python numbers / lists (for configs and reports)."""
-        return {
+        """The values as plain Python numbers / lists (for configs and reports); the line
+        profile only for the line model."""
+        out = {
             "lookahead_m": float(self.lookahead_m),
             "lookahead_gain_s": float(self.lookahead_gain_s),
             "weights": [float(w) for w in np.asarray(self.weights)],
             "delay_s": float(self.delay_s),
             "speed_weight": float(self.speed_weight),
             "speed_mps": float(self.speed_mps),
+            "offset_tau_s": float(self.offset_tau_s),
+            "speed_tau_s": float(self.speed_tau_s),
+            "position_smoothing": float(self.position_smoothing),
         }
+        if self.settings.model == "line":
+            for key in LINE_KEYS:
+                out[key] = [float(v) for v in np.asarray(getattr(self, key))]
+        return out
 
 
 # Settings a user may change on a predictor (flags --wheelbase, --max-steer, --dt, --horizon and
@@ -183,6 +234,9 @@ def unconstrain(params: Params) -> Params:
         delay_s=_inv_softplus(params.delay_s),
         speed_weight=_logit(params.speed_weight),
         speed_mps=_inv_softplus(params.speed_mps),
+        offset_tau_s=_inv_softplus(params.offset_tau_s - MIN_TAU_S),
+        speed_tau_s=_inv_softplus(params.speed_tau_s - MIN_TAU_S),
+        position_smoothing=_logit(params.position_smoothing),
     )
 
 
@@ -197,6 +251,9 @@ def constrain(raw: Params) -> Params:
         delay_s=jax.nn.softplus(raw.delay_s),
         speed_weight=jax.nn.sigmoid(raw.speed_weight),
         speed_mps=jax.nn.softplus(raw.speed_mps),
+        offset_tau_s=MIN_TAU_S + jax.nn.softplus(raw.offset_tau_s),
+        speed_tau_s=MIN_TAU_S + jax.nn.softplus(raw.speed_tau_s),
+        position_smoothing=jax.nn.sigmoid(raw.position_smoothing),
     )
 
 
@@ -216,6 +273,7 @@ _PRESET_BUILDERS = {
     "pure-pursuit": lambda: Params.create(Settings(), lookahead_m=2.0, weights=0.0),
     "constant-velocity": lambda: Params.create(Settings(model="cv"), weights=1.0),
     "ctrv": lambda: Params.create(Settings(model="ctrv"), weights=1.0),
+    "frenet": lambda: Params.create(Settings(model="frenet"), weights=1.0, offset_tau_s=1.0),
     "default": lambda: Params.create(
         Settings(),
         lookahead_m=1.0,

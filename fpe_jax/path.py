@@ -7,10 +7,17 @@ so the two see exactly the same resampled points.
 from __future__ import annotations
 
 import bisect
+import hashlib
 
 import numpy as np
 
 from fpe_jax.errors import InputError
+
+
+def waypoints_sha256(waypoints_xy_m) -> str:
+    """Content hash of waypoints (K, 2) [m]: sha256 of their float64 bytes, row-major."""
+    xy = np.ascontiguousarray(np.asarray(waypoints_xy_m, dtype=np.float64))
+    return hashlib.sha256(xy.tobytes()).hexdigest()
 
 
 def wrap_angle(a):

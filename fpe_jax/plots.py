@@ -25,6 +25,7 @@ COLORS = {
     "pure-pursuit": "tab:blue",
     "constant-velocity": "tab:brown",
     "ctrv": "tab:gray",
+    "frenet": "tab:olive",
 }
 # The thesis's names for the presets it describes.
 APPROACH = {
@@ -34,6 +35,7 @@ APPROACH = {
     "seed": "approach 4: 0.7 blend as written (seed)",
     "seed-measured-speed": "approach 4 with measured speed",
     "ctrv": "constant turn rate and velocity",
+    "frenet": "frenet (track speed held, offset decays)",
     "fitted": "fitted",
 }
 
@@ -454,3 +456,32 @@ def plot_drive(
     )
     save(fig, out)
     return m
+
+
+def line_figure(params, length_m: float, closed: bool, *, title: str):
+    """The line model's learned profile against arc length: the line's offset from the
+    centerline [m] and the speed profile [m/s], uncovered stretches shaded."""
+    v = params.physical()
+    off, speed, cov = (
+        np.asarray(v[k]) for k in ("line_offset_m", "line_speed_mps", "line_coverage")
+    )
+    s = np.arange(len(off)) * (length_m / (len(off) if closed else len(off) - 1))
+    fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    for ax, y, label in ((axes[0], off, "line offset m (left +)"), (axes[1], speed, "speed m/s")):
+        ax.plot(s, y, color=color("fitted"))
+        ax.fill_between(
+            s,
+            0,
+            1,
+            where=cov <= 0,
+            color="0.85",
+            transform=ax.get_xaxis_transform(),
+            label="not covered by the fit drives",
+        )
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[1].set_xlabel("arc length along the centerline [m]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig

@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fpe_jax.drive import Drive
-from fpe_jax.estimate import estimate_state
+from fpe_jax.estimate import estimate_state, estimate_track_frame
 from fpe_jax.history import history_windows
 from fpe_jax.params import Params
 from fpe_jax.rollout import State, rollout
@@ -105,7 +105,13 @@ def _states_from_windows(windows: dict, track: Track) -> State:
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
     )
     p = jnp.stack([states.x_m, states.y_m], axis=1)
-    return dataclasses.replace(states, s_m=arclength_along(track, p))
+    s_m = arclength_along(track, p)
+    s_fit, sdot, offset, age = jax.vmap(estimate_track_frame, in_axes=(0, 0, 0, 0, None))(
+        windows["t_s"], windows["xy_m"], windows["valid"], s_m, track
+    )
+    return dataclasses.replace(
+        states, s_m=s_m, s_fit_m=s_fit, sdot_mps=sdot, offset_m=offset, sdot_age_s=age
+    )
 
 
 def states_from_drive(params: Params, drive: Drive, track: Track) -> State:

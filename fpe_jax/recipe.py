@@ -3,8 +3,7 @@
 out = "levine.json"            # paths are relative to the recipe's folder
 waypoints = "../../shared/data/levine/levine-waypoints.csv"
 holdout = 0.4                  # or [[test_drives]] for separate held-out drives
-fit = ["lookahead", "weights", "delay", "speed"]
-blend = "auto"
+model = "line"                 # or "blend" (then also fit = [...] and blend = "auto")
 solver = "bfgs"                # or "lm"
 
 [settings]                     # the car and the prediction grid (default: F1TENTH, 10 x 0.1 s)
@@ -48,6 +47,7 @@ TOP_KEYS = {
     "waypoints",
     "holdout",
     "fit",
+    "model",
     "blend",
     "solver",
     "drives",
@@ -68,6 +68,7 @@ class Recipe:
     holdout: float
     fit: tuple[str, ...] | None
     blend: str
+    model: str | None
     solver: str | None
     settings: dict  # {"[settings] key": (Settings field, value)}, see config.apply_settings
 
@@ -140,6 +141,7 @@ def load_recipe(path) -> Recipe:
         holdout=float(spec.get("holdout", 0.3)),
         fit=tuple(fit) if fit is not None else None,
         blend=spec.get("blend", "auto"),
+        model=spec.get("model"),
         solver=spec.get("solver"),
         settings={f"[settings] {k}": (k, v) for k, v in table.items()},
     )

@@ -29,6 +29,10 @@ class State(eqx.Module):
         yaw_rate_rps: yaw rate [rad/s].
         course_rad: direction of motion [rad] (differs from yaw when sliding or noisy).
         s_m: arc length hint [m]: where on the track the car is (from a windowed projection).
+        s_fit_m, sdot_mps, offset_m: the track-frame estimate (`estimate_track_frame`): arc
+            length [m], along-track speed [m/s] and lateral offset [m] at the newest stamp,
+            and sdot_age_s, how old the speed is [s] (the window's middle); None: the frenet
+            and line rollouts take them from x, y, v and the course.
     """
 
     x_m: Float[Array, ""]
@@ -38,6 +42,10 @@ class State(eqx.Module):
     yaw_rate_rps: Float[Array, ""] | None = None
     course_rad: Float[Array, ""] | None = None
     s_m: Float[Array, ""] | None = None
+    s_fit_m: Float[Array, ""] | None = None
+    sdot_mps: Float[Array, ""] | None = None
+    offset_m: Float[Array, ""] | None = None
+    sdot_age_s: Float[Array, ""] | None = None
 
     def __post_init__(self):
         # omitted fields: no turn, moving along the body heading
@@ -247,9 +255,112 @@ def rollout_seed(params: Params, state: State, track: Track) -> Float[Array, "H 
     return jnp.stack([xs, ys, yaws], axis=-1)
 
 
+def profile_at(values: Float[Array, " P"], s_m, track: Track):
+    """A line profile (P,) at arc length s [m], linear between its P evenly spread points.
+
+    On a loop point i sits at s = i * L / P and the profile wraps; on an open path point i sits
+    at s = i * L / (P - 1) and the profile is held beyond the ends.
+    """
+    p = values.shape[0]
+    if track.closed:
+        u = s_m * (p / track.length_m)
+        u_floor = jnp.floor(u)
+        i = u_floor.astype(jnp.int32) % p
+        j, f = (i + 1) % p, u - u_floor
+    else:
+        u = jnp.clip(s_m / track.length_m, 0.0, 1.0) * (p - 1)
+        i = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, p - 2)
+        j, f = i + 1, u - i
+    return values[i] + f * (values[j] - values[i])
+
+
+MIN_PROFILE_SPEED_MPS = 0.2  # a profile slower than this is no speed reference (ratio held at 1)
+MAX_SPEED_RATIO = 3.0  # the profile may at most triple or cut to 0 the current speed
+# Where the fit drives never went the offset decays as the frenet preset's does: a fitted time
+# constant describes how the car holds a line it knows, not the centerline.
+FALLBACK_TAU_S = 1.0
+
+
+def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+    """Frenet rollout: along-track speed and a lateral offset that decays toward the line.
+
+    s0, d0 = the car's arc length and signed offset from the path (left positive), between the
+    newest observation's projection and the track-frame estimate (`position_smoothing`); its
+    along-track speed v0 is the track-frame estimate's (without one: v cos(course - heading)).
+    Without a line profile ("frenet") the speed is held and the offset decays to 0:
+    d(t) = d0 exp(-t / offset_tau_s). With one ("line") the offset decays toward the learned
+    line l(s): d(t) = l(s(t)) + (d0 - l(s0)) exp(-t / offset_tau_s), and the speed follows the
+    profile's shape scaled to the car's own: v(t) = v0 (1 + (v_p(s(t)) / v_p(s_ref) - 1)
+    (1 - exp(-t / speed_tau_s))), s_ref where the speed was measured, so the car keeps its pace
+    and brakes where the profile brakes. Where the profile's coverage c(s) is 0 both fall back
+    (line 0, ratio 1, the offset's time constant FALLBACK_TAU_S). The yaw is the path heading
+    turned by the offset's slope.
+    """
+    p0 = jnp.stack([state.x_m, state.y_m])
+    s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
+    h0 = track.heading_at(s0)
+    c0 = track.point_at(s0)
+    d0 = (p0[1] - c0[1]) * jnp.cos(h0) - (p0[0] - c0[0]) * jnp.sin(h0)
+    v0 = state.v_mps * jnp.cos(state.course_rad - h0)
+    age = jnp.zeros_like(v0)
+    if state.s_fit_m is not None:  # the track-frame estimate; NaN (an export's input): absent
+        ok = jnp.isfinite(state.s_fit_m)
+        w = jnp.where(ok, params.position_smoothing, 0.0)
+        fit_s = jnp.where(ok, state.s_fit_m, s0)
+        fit_d = jnp.where(ok, state.offset_m, d0)
+        s0, d0 = s0 + w * (fit_s - s0), d0 + w * (fit_d - d0)
+        v0, age = jnp.where(ok, state.sdot_mps, v0), jnp.where(ok, state.sdot_age_s, age)
+    dts = _step_times(params)
+    t_end = jnp.cumsum(dts)
+    has_line = params.line_offset_m.shape[0] > 0  # static: the line model
+    tau = params.offset_tau_s
+
+    def line(s):  # the line's offset [m] and the speed profile [m/s] at s, coverage applied
+        c = profile_at(params.line_coverage, s, track)
+        return (
+            c * profile_at(params.line_offset_m, s, track),
+            c,
+            profile_at(params.line_speed_mps, s, track),
+        )
+
+    if has_line:
+        l0, c_now, _ = line(s0)
+        tau = c_now * tau + (1.0 - c_now) * FALLBACK_TAU_S
+        # the measured speed is the window's average: the profile's shape from where the car
+        # was then (s0 - v0 age) carries it to now and over the horizon
+        _, cov0, vp0 = line(s0 - v0 * age)
+        ok0 = cov0 * (vp0 > MIN_PROFILE_SPEED_MPS)
+        vp0 = jnp.maximum(vp0, MIN_PROFILE_SPEED_MPS)
+
+        def step(s, inp):
+            dt, t0 = inp
+            _, c, vp = line(s)
+            ratio = jnp.clip(vp / vp0, 0.0, MAX_SPEED_RATIO)
+            ratio = 1.0 + ok0 * c * (ratio - 1.0)
+            v = v0 * (1.0 + (ratio - 1.0) * -jnp.expm1(-(t0 + age) / params.speed_tau_s))
+            s = s + v * dt
+            return s, s
+
+        _, s = jax.lax.scan(step, s0, (dts, t_end - dts))
+        l_s = jax.vmap(lambda x: line(x)[0])(s)
+    else:
+        s, l0, l_s = s0 + v0 * t_end, 0.0, 0.0
+    d = l_s + (d0 - l0) * jnp.exp(-t_end / tau)
+    heading = jax.vmap(track.heading_at)(s)
+    xy = jax.vmap(track.point_at)(s)
+    xs = xy[:, 0] - d * jnp.sin(heading)
+    ys = xy[:, 1] + d * jnp.cos(heading)
+    ds = jnp.diff(s, prepend=s0)
+    dd = jnp.diff(d, prepend=d0)
+    yaws = wrap_angle(heading + jnp.arctan(dd / jnp.maximum(ds, 1e-3)))
+    return _emit(xs, ys, yaws)
+
+
 def rollout(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
     """Dispatch on the static `params.settings.model`."""
     model = params.settings.model
+    if model in ("frenet", "line"):
+        return rollout_frenet(params, state, track)
     if model == "seed":
         return rollout_seed(params, state, track)
     if model == "cv":

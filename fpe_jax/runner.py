@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fpe_jax.config import read_config
+from fpe_jax.config import LINE_KEYS, check_waypoints, read_config
 from fpe_jax.errors import InputError
 from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
 from fpe_jax.path import build_path
@@ -41,7 +41,12 @@ WINDOW_BEHIND_M = 2.0
 WINDOW_AHEAD_M = 4.0
 LOCAL_PROJECTION_ITERS = 2
 BLEND_MODES = ("position", "heading")
-MODELS = ("blend", "seed", "cv", "ctrv")
+MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
+TRACK_FRAME_ITERS = 3  # fpe_jax.estimate.estimate_track_frame's project_local iterations
+MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.rollout's
+MAX_SPEED_RATIO = 3.0
+MIN_TAU_S = 0.01
+FALLBACK_TAU_S = 1.0
 
 _PI = math.pi
 _TWO_PI = 2 * math.pi
@@ -91,6 +96,7 @@ class RunnerPath:
         tangent = np.stack([np.cos(p["heading_rad"]), np.sin(p["heading_rad"])], axis=1)
         rows = np.concatenate([xy, ab, tangent, tangent[nxt]], axis=1)
         self._rows = [tuple(row) for row in rows.tolist()]
+        self._heading = p["heading_rad"].tolist()
         self._all_segments = np.arange(m if self.closed else m - 1)
         n_back = int(np.ceil(WINDOW_BEHIND_M / self.ds_m))
         n_ahead = int(np.ceil(WINDOW_AHEAD_M / self.ds_m))
@@ -114,11 +120,20 @@ class RunnerPath:
         ax, ay, abx, aby = self._rows[i][:4]
         return ax + f * abx, ay + f * aby
 
-    def project_local(self, x_m: float, y_m: float, s_hint_m: float) -> float:
+    def heading_at(self, s_m: float) -> float:
+        """Path heading [rad] at arc length s [m] (Track.heading_at)."""
+        i, f = self.locate(s_m)
+        j = (i + 1) % self._m if self.closed else i + 1
+        h0 = self._heading[i]
+        return _wrap(h0 + f * _wrap(self._heading[j] - h0))
+
+    def project_local(
+        self, x_m: float, y_m: float, s_hint_m: float, iters: int = LOCAL_PROJECTION_ITERS
+    ) -> float:
         """Arc length [m] near s_hint by Newton steps along the interpolated path tangent
         (Track.project_local)."""
         s = s_hint_m
-        for _ in range(LOCAL_PROJECTION_ITERS):
+        for _ in range(iters):
             i, f = self.locate(s)
             ax, ay, abx, aby, t0x, t0y, t1x, t1y = self._rows[i]
             g = 1.0 - f
@@ -177,6 +192,14 @@ def check_config(cfg: dict, source: str) -> dict:
     for key in ("lookahead_m", "lookahead_gain_s", "delay_s", "speed_weight", "speed_mps"):
         if not _is_number(p[key]):
             raise InputError(source, f"params.{key} is {p[key]!r}", "a finite number")
+    for key in ("offset_tau_s", "speed_tau_s"):
+        if key in p and not (_is_number(p[key]) and p[key] >= MIN_TAU_S):
+            raise InputError(source, f"params.{key} is {p[key]!r}", f"a number >= {MIN_TAU_S}")
+    w = p.get("position_smoothing", 0.0)
+    if not (_is_number(w) and 0.0 <= w <= 1.0):
+        raise InputError(source, f"params.position_smoothing is {w!r}", "a number in [0, 1]")
+    if st["model"] == "line" and not all(all(map(_is_number, p[k])) for k in LINE_KEYS):
+        raise InputError(source, "params.line_* hold non-numbers", "finite numbers")
     w = p["weights"]
     if not (isinstance(w, list) and len(w) == st["horizon"] and all(map(_is_number, w))):
         raise InputError(source, f"params.weights is {w!r}", "settings.horizon finite numbers")
@@ -226,6 +249,10 @@ class Runner:
         self._delay_s = float(p["delay_s"])
         self._speed_weight = float(p["speed_weight"])
         self._typical_speed_mps = float(p["speed_mps"])
+        self._offset_tau_s = float(p.get("offset_tau_s", 1.0))
+        self._speed_tau_s = float(p.get("speed_tau_s", 0.5))
+        self._smoothing = float(p.get("position_smoothing", 0.0))
+        self._line = [[float(v) for v in p[k]] for k in LINE_KEYS] if self.model == "line" else None
         self._history = deque(maxlen=int(st["history"]))  # distinct (t, x, y, yaw), oldest first
         self.path = RunnerPath(waypoints_xy_m, source="waypoints")
         if self.model == "seed":
@@ -236,7 +263,9 @@ class Runner:
     def from_config(cls, config_path, waypoints_path) -> Runner:
         """Runner from a tuned config JSON and a waypoint file (any form fpe_jax.io reads)."""
         cfg = read_config(config_path)
-        return cls(cfg, load_waypoints_xy(waypoints_path), source=str(config_path))
+        xy = load_waypoints_xy(waypoints_path)
+        check_waypoints(cfg, config_path, xy, waypoints_path)
+        return cls(cfg, xy, source=str(config_path))
 
     def reset(self) -> None:
         """Forget the history and the track position (a new drive starts)."""
@@ -288,6 +317,8 @@ class Runner:
         ex, ey = est[0], est[1]
         s_prev = path.project(ex, ey) if self._s_m is None else self._s_m
         self._s_m = path.project_window(ex, ey, s_prev)
+        if self.model in ("frenet", "line"):
+            return self._frenet(self._track_frame(self._s_m), est)
         if self.blend == "heading":
             w = self._weights
             return self._bicycle(est, self._s_m, [1.0 - wk for wk in [w[0], *w]])
@@ -342,7 +373,94 @@ class Runner:
             )
         return x, y, yaw, math.hypot(vx, vy), rate, course
 
+    def _track_frame(self, s_hint_m: float) -> tuple[float, float, float, float]:
+        """(s, ds/dt, d, age) [m, m/s, m, s]: fpe_jax.estimate.estimate_track_frame."""
+        path = self.path
+        t_new = self._history[-1][0]
+        obs = [o for o in self._history if t_new - o[0] <= MAX_SPAN_S]
+        ss, ds = [0.0] * len(obs), [0.0] * len(obs)
+        s = s_hint_m
+        for k in range(len(obs) - 1, -1, -1):
+            _, x, y, _ = obs[k]
+            s = path.project_local(x, y, s, TRACK_FRAME_ITERS)
+            cx, cy = path.point_at(s)
+            h = path.heading_at(s)
+            ss[k], ds[k] = s, (y - cy) * math.cos(h) - (x - cx) * math.sin(h)
+        n = len(obs)
+        pairs = [(i, j, obs[j][0] - obs[i][0]) for j in range(n) for i in range(j)]
+        pairs = [p for p in pairs if p[2] >= MIN_PAIR_DT_S]
+        sdot = _median([(ss[j] - ss[i]) / dt for i, j, dt in pairs])
+        ddot = _median([(ds[j] - ds[i]) / dt for i, j, dt in pairs])
+        ahead = [t_new - o[0] for o in obs]
+        s_now = ss[-1] + _median([sk + sdot * a - ss[-1] for sk, a in zip(ss, ahead)])
+        d_now = _median([dk + ddot * a for dk, a in zip(ds, ahead)])
+        return s_now, sdot, d_now, _median(ahead)
+
     # ---- rollouts (fpe_jax.rollout), each -> (H, 3) ----------------------------------------------
+
+    def _profile_at(self, values: list[float], s_m: float) -> float:
+        """fpe_jax.rollout.profile_at."""
+        p, length = len(values), self.path.length_m
+        if self.path.closed:
+            u = s_m * (p / length)
+            u_floor = math.floor(u)
+            i = u_floor % p
+            j, f = (i + 1) % p, u - u_floor
+        else:
+            u = min(max(s_m / length, 0.0), 1.0) * (p - 1)
+            i = min(max(math.floor(u), 0), p - 2)
+            j, f = i + 1, u - i
+        return values[i] + f * (values[j] - values[i])
+
+    def _line_at(self, s_m: float) -> tuple[float, float, float]:
+        offset, speed, coverage = self._line
+        c = self._profile_at(coverage, s_m)
+        return c * self._profile_at(offset, s_m), c, self._profile_at(speed, s_m)
+
+    def _frenet(self, frame, est) -> np.ndarray:
+        """fpe_jax.rollout.rollout_frenet from the track-frame estimate and the state."""
+        s_fit, v0, d_fit, age = frame
+        path = self.path
+        # the newest (outlier-free) position's own arc length and offset
+        s0 = path.project_local(est[0], est[1], self._s_m)
+        cx, cy = path.point_at(s0)
+        h = path.heading_at(s0)
+        d0 = (est[1] - cy) * math.cos(h) - (est[0] - cx) * math.sin(h)
+        w = self._smoothing
+        s0, d0 = s0 + w * (s_fit - s0), d0 + w * (d_fit - d0)
+        t, s_all, d_all = 0.0, [], []
+        l0, tau = 0.0, self._offset_tau_s
+        if self._line is not None:
+            l0, c_now, _ = self._line_at(s0)
+            tau = c_now * tau + (1.0 - c_now) * FALLBACK_TAU_S
+            _, cov0, vp0 = self._line_at(s0 - v0 * age)
+            ok0 = cov0 * (1.0 if vp0 > MIN_PROFILE_SPEED_MPS else 0.0)
+            vp0 = max(vp0, MIN_PROFILE_SPEED_MPS)
+        s = s0
+        for dt in self._times():
+            if self._line is None:
+                t += dt
+                s = s0 + v0 * t
+                line = 0.0
+            else:
+                _, c, vp = self._line_at(s)
+                ratio = min(max(vp / vp0, 0.0), MAX_SPEED_RATIO)
+                ratio = 1.0 + ok0 * c * (ratio - 1.0)
+                v = v0 * (1.0 + (ratio - 1.0) * -math.expm1(-(t + age) / self._speed_tau_s))
+                s = s + v * dt
+                t += dt
+                line = self._line_at(s)[0]
+            s_all.append(s)
+            d_all.append(line + (d0 - l0) * math.exp(-t / tau))
+        rows, s_prev, d_prev = [], s0, d0
+        for k, (s, d) in enumerate(zip(s_all, d_all)):
+            h = path.heading_at(s)
+            cx, cy = path.point_at(s)
+            yaw = _wrap(h + math.atan((d - d_prev) / max(s - s_prev, 1e-3)))
+            s_prev, d_prev = s, d
+            if k:
+                rows.append([cx - d * math.sin(h), cy + d * math.cos(h), yaw])
+        return np.array(rows)
 
     def _speed(self, v_mps: float) -> float:
         """Rollout speed [m/s]: the measured one shrunk toward the typical one."""

@@ -80,6 +80,7 @@ class Driver:
     raceline_speed_scale: float = 0.9  # raceline speeds (at the grip limit) x this, clipped
     speed_gain_1ps: float = 2.0  # P-controller: a = gain * (v_target - v) [1/s]
     speed_preview_s: float = 0.3  # the target speed is read this far ahead on the path
+    speed_factor: float = 1.0  # the target speed profile x this (1.0: drives bit-identical)
     stops_per_min: float = 0.0  # Poisson rate of stops (brake to 0, wait, go on)
     stop_wait_s: tuple[float, float] = (1.0, 3.0)
     stop_brake_mps2: float = 3.0
@@ -453,7 +454,7 @@ def _drive(ref, start, offset_m, stop_times_s, stop_waits_s, veh: Vehicle, drv: 
             steer_cmd = math.atan(2.0 * lwb * lateral / max(gx * gx + gy * gy, 1e-6))
             steer_cmd = min(max(steer_cmd, -d_max), d_max)
         # Speed: profile read slightly ahead; stops override it.
-        v_target = vref[(i + int(v * drv.speed_preview_s / spacing)) % n_ref]
+        v_target = vref[(i + int(v * drv.speed_preview_s / spacing)) % n_ref] * drv.speed_factor
         brake = a_max
         if mode == "drive" and next_stop < len(stop_times_s) and t >= stop_times_s[next_stop]:
             mode, stop_k = "brake", next_stop

@@ -38,16 +38,22 @@ def test_demo_pipeline_on_a_short_drive_writes_everything(tmp_path):
         "params.yaml",
         "trajectory.png",
         "error_vs_horizon.png",
-        "weights.png",
+        "line.png",
         "report.md",
     }
     for f in res.files:
         assert f.is_file() and f.parent == tmp_path / "demo"
-    for name in ("trajectory.png", "error_vs_horizon.png", "weights.png"):
+    for name in ("trajectory.png", "error_vs_horizon.png", "line.png"):
         assert _is_png(tmp_path / "demo" / name), name
     cfg = json.loads((tmp_path / "demo" / "config.json").read_text())
     assert cfg["schema_version"] == 1 and len(cfg["params"]["weights"]) == 10
     assert cfg["uncertainty"]["frame"] == "track"
+    assert cfg["settings"]["model"] == "line" and cfg["line"]["waypoints"].endswith("waypoints.csv")
+    # the written waypoints are the ones the line belongs to
+    from fpe_jax.config import check_waypoints
+
+    wp = np.loadtxt(tmp_path / "demo" / "waypoints.csv", delimiter=",", skiprows=1)
+    check_waypoints(cfg, "config.json", wp, "waypoints.csv")
     assert set(res.result.report) >= {"fitted", "seed", "seed-measured-speed", "linear"}
     assert [c[0] for c in res.checks] == [c[0] for c in demo_checks(res.result, 0.3)]
     report = (tmp_path / "demo" / "report.md").read_text()

@@ -264,3 +264,43 @@ def test_yaml_floats_stay_floats(value):
     assert type(yaml.safe_load(_yaml_scalar(value))) is float
     assert yaml.safe_load(_yaml_scalar(value)) == value
     assert yaml.safe_load(_yaml_scalar([value, value])) == [value, value]
+
+
+def test_line_model_exports_its_profile_to_every_format(case, tmp_path):
+    """A line-model config: the ROS 2 file carries the profile arrays, the StableHLO artifact
+    and the runner predict what the JAX path does (track-frame inputs given, and omitted)."""
+    from fpe_jax.line import learn_line
+    from fpe_jax.path import waypoints_sha256
+
+    drive, track = case["drive"], case["track"]
+    wp = np.loadtxt(case["tmp"] / "wp.csv", delimiter=",")
+    params = Params.create(
+        Settings(model="line"),
+        delay_s=0.2,
+        offset_tau_s=0.9,
+        speed_tau_s=0.2,
+        **learn_line([drive], track),
+    )
+    cfg = params_to_config(params, line={"waypoints_sha256": waypoints_sha256(wp)})
+    write_config(tmp_path / "line.json", cfg)
+    out = tmp_path / "car"
+    argv = ["export", str(tmp_path / "line.json"), "--format", "all", "--out", str(out)]
+    assert main([*argv, "--waypoints", str(case["tmp"] / "wp.csv")]) == 0
+    ros = yaml.safe_load((out / "params.yaml").read_text())["future_pose_estimator"]
+    ros = ros["ros__parameters"]
+    for key in ("line_offset_m", "line_speed_mps", "line_coverage"):
+        assert ros[key] == cfg["params"][key]
+    assert ros["offset_decay_s"] == 0.9 and ros["model"] == "line"
+    states = jax.tree.map(lambda a: a[::7], states_from_drive(params, drive, track))
+    want = np.asarray(predict_batch(params, states, track))
+    f = load(out / "predictor.stablehlo")
+    got = f(**{n: np.asarray(getattr(states, n)) for n, _ in INPUTS})
+    assert np.max(np.abs(got - want)) <= TOL_M
+    runner = Runner.from_config(out / "config.json", case["tmp"] / "wp.csv")
+    rows = [
+        runner.update(t, x, y, yaw) for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad)
+    ]
+    assert np.max(np.abs(np.stack(rows)[::7, :, :2] - want[..., :2])) <= TOL_M
+    # without the track-frame inputs: the position, speed and course stand in
+    plain = f(*(np.asarray(getattr(states, n)) for n in ("x_m", "y_m", "yaw_rad", "v_mps")))
+    assert plain.shape == want.shape and np.all(np.isfinite(plain))

@@ -87,11 +87,25 @@ def test_fit_recovers_the_latency_and_beats_the_presets(oval_drives):
     assert np.asarray(res.uncertainty["cov_m2"]).shape == (10, 2, 2)
 
 
-def test_fit_without_latency_fits_no_delay():
+@pytest.mark.parametrize(
+    ("model", "fit"), [("line", None), ("blend", ("delay", "weights", "speed"))]
+)
+def test_fit_without_latency_fits_no_delay(model, fit):
     a = simulate("oval", duration_s=40, latency_s=0.0, seed=21)
     track = Track.from_waypoints(a.centerline_xy_m)
-    res = F.fit([a.drive], [track], blend="position", fit=("delay", "weights", "speed"))
+    res = F.fit([a.drive], [track], model=model, blend="position", fit=fit)
+    assert res.params.settings.model == model
     assert float(res.params.delay_s) <= 0.05
+
+
+def test_line_model_fits_no_speed_and_rejects_blend_values(oval_drives):
+    fit_d, _, track = oval_drives
+    with pytest.raises(InputError, match="lookahead"):
+        F.fit([fit_d.drive], [track], fit=("lookahead", "delay"))
+    res = F.fit([fit_d.drive], [track], fit=("tau",))
+    assert res.params.settings.model == "line" and res.info["fit"] == ["tau"]
+    assert float(res.params.delay_s) == pytest.approx(0.1)  # not freed: the starting value
+    assert "speed_mps" not in res.info["fit"] and len(res.info["waypoints_sha256"]) == 64
 
 
 def test_fit_subset_keeps_the_rest_fixed(oval_drives):

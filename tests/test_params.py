@@ -17,6 +17,7 @@ PRESET_NAMES = (
     "pure-pursuit",
     "constant-velocity",
     "ctrv",
+    "frenet",
     "default",
 )
 FITTED = ("lookahead_m", "lookahead_gain_s", "weights", "delay_s", "speed_weight", "speed_mps")
@@ -98,6 +99,9 @@ def test_create_broadcasts_weights_and_reports_physical_values():
         "delay_s": 0.05,
         "speed_weight": 1.0,
         "speed_mps": 1.0,
+        "offset_tau_s": 1.0,
+        "speed_tau_s": 0.5,
+        "position_smoothing": 0.0,
     }
     with pytest.raises(ValueError):
         Params.create(Settings(horizon=4), weights=np.ones(3))
@@ -215,3 +219,20 @@ def test_reparametrisation_grad_and_vmap():
 def test_stack_params_requires_shared_settings():
     with pytest.raises(ValueError, match="same Settings"):
         stack_params([interior(), interior(Settings(blend="heading"))])
+
+
+def test_frenet_preset_holds_the_track_speed_and_decays_the_offset():
+    from fpe_jax.rollout import State, rollout
+    from fpe_jax.track import Track
+
+    p = presets["frenet"]
+    assert p.settings.model == "frenet" and float(p.offset_tau_s) == 1.0
+    straight = Track.from_waypoints(np.stack([np.linspace(0, 50, 51), np.zeros(51)], 1))
+    # 0.4 m left of a straight line, 3 m/s along it: x advances 0.3 m a step, y decays
+    st = State(x_m=jnp.array(5.0), y_m=jnp.array(0.4), yaw_rad=jnp.array(0.2), v_mps=jnp.array(3.0))
+    st = dataclasses.replace(st, course_rad=jnp.array(0.0))
+    out = np.asarray(rollout(p, st, straight))
+    t = np.arange(1, 11) * 0.1
+    np.testing.assert_allclose(out[:, 0], 5.0 + 3.0 * t, atol=1e-9)
+    np.testing.assert_allclose(out[:, 1], 0.4 * np.exp(-t / 1.0), atol=1e-9)
+    assert np.all(out[:, 2] < 0) and np.all(np.abs(out[:, 2]) < 0.2)  # heading back to the line

@@ -109,6 +109,14 @@ def test_mirrored_constants_match_the_jax_modules():
     assert runner.WINDOW_AHEAD_M == window["ahead_m"].default
     local = inspect.signature(Track.project_local).parameters
     assert runner.LOCAL_PROJECTION_ITERS == local["iters"].default
+    from fpe_jax import rollout
+
+    assert runner.MIN_PROFILE_SPEED_MPS == rollout.MIN_PROFILE_SPEED_MPS
+    assert runner.MAX_SPEED_RATIO == rollout.MAX_SPEED_RATIO
+    assert runner.FALLBACK_TAU_S == rollout.FALLBACK_TAU_S
+    assert runner.MIN_TAU_S == params.MIN_TAU_S
+    src = inspect.getsource(__import__("fpe_jax.estimate").estimate.estimate_track_frame)
+    assert f"iters={runner.TRACK_FRAME_ITERS}" in src
 
 
 # ---- parity with the JAX predictor -----------------------------------------------------------
@@ -120,6 +128,7 @@ SIM_CONFIGS = [
     "pure-pursuit",
     "constant-velocity",
     "ctrv",
+    "frenet",
     "default",
     "heading-blend",
     "shrunk-speed",
@@ -140,6 +149,35 @@ def test_parity_on_levine(levine, name):
     p = get_params(name)
     _, pred_jax = predict_drive(p, drive, Track.from_waypoints(wp))
     assert_parity(run_drive(Runner(params_to_config(p), wp), drive), pred_jax)
+
+
+def line_params(wp, drive, upto_s: float) -> Params:
+    """A line-model Params learned from the drive's first upto_s seconds (the rest of the track
+    uncovered when that is less than a lap: the fallback is tested too)."""
+    from fpe_jax.line import learn_line
+
+    profile = learn_line([drive.slice_time(-np.inf, upto_s)], Track.from_waypoints(wp))
+    return Params.create(
+        Settings(model="line"),
+        delay_s=0.12,
+        offset_tau_s=0.8,
+        speed_tau_s=0.3,
+        position_smoothing=0.6,
+        **profile,
+    )
+
+
+@pytest.mark.parametrize("case", ["sim", "sim-partial", "levine"])
+def test_parity_of_the_line_model(sim_drive, levine, case):
+    from fpe_jax.path import waypoints_sha256
+
+    wp, drive = levine if case == "levine" else sim_drive
+    p = line_params(wp, drive, 4.0 if case == "sim-partial" else np.inf)
+    cov = np.asarray(p.line_coverage)
+    assert (cov.min() == 0.0) == (case == "sim-partial")
+    _, pred_jax = predict_drive(p, drive, Track.from_waypoints(wp))
+    cfg = params_to_config(p, line={"waypoints_sha256": waypoints_sha256(wp)})
+    assert_parity(run_drive(Runner(cfg, wp), drive), pred_jax)
 
 
 def test_reset_starts_a_new_drive(sim_drive):

@@ -98,7 +98,9 @@ def main() -> None:
         if (DATA / "levine").is_dir():
             case = levine_case(DATA, holdout=0.4)
             say("Levine: fitting on the first 60 % (auto blend)")
-            res = fit_case(case, blend="auto", progress=lambda m: say(f"Levine: {m}"))
+            res = fit_case(
+                case, model="blend", blend="auto", progress=lambda m: say(f"Levine: {m}")
+            )
             say("Levine: drawing")
             sections += figure(
                 case,
@@ -113,7 +115,9 @@ def main() -> None:
             say(f"note: {DATA / 'levine'} not found; the Levine figure is left out")
         case = simulated_case("hairpin", fit_s=60.0, test_s=40.0, latency_s=LATENCY_S)
         say("hairpin: fitting (position blend)")
-        res = fit_case(case, blend="position", progress=lambda m: say(f"hairpin: {m}"))
+        res = fit_case(
+            case, model="blend", blend="position", progress=lambda m: say(f"hairpin: {m}")
+        )
         say("hairpin: drawing")
         sections += figure(
             case,

@@ -7,7 +7,8 @@ point (as the fit measures residuals). Ideal coverage for a 2-D Gaussian: 39.3 %
 86.5 % (2 sigma).
 
 Cases: the real Levine lap (fit first 60 %, test last 40 %), and simulated hairpin and oval drives
-(60 s fit drive, separate 40 s test drive, latency 0.3 s; position blend).
+(60 s fit drive, separate 40 s test drive, latency 0.3 s); the fitted model is `fpe fit`'s
+default, the line model (its covariance from cross-fitted residuals).
 
 Run:  .venv/bin/python experiments/uncertainty/run.py   (about 1.5 minutes on the 2-core machine)
 Writes experiments/results/uncertainty.md and experiments/results/uncertainty.png.
@@ -119,7 +120,7 @@ def main() -> None:
         for track in ("hairpin", "oval"):
             cases.append((simulated_case(track, latency_s=LATENCY_S), "position"))
         for case, blend in cases:
-            say(f"{case.name}: fitting ({blend} blend)")
+            say(f"{case.name}: fitting the line model")
             r = fit_case(case, blend=blend, progress=lambda m, n=case.name: say(f"{n}: {m}"))
             say(f"{case.name}: per-step coverage")
             track = case.track()
@@ -173,7 +174,9 @@ def markdown(runs, seconds: float) -> str:
         "Regenerate: `.venv/bin/python experiments/uncertainty/run.py` (this run: "
         f"{seconds / 60:.1f} min).",
         "",
-        "The covariance is fitted per step on the training part, in the track frame "
+        "Fitted model: `fpe fit`'s default line model. The covariance is fitted per step on "
+        "the training part (for the line model from cross-fitted residuals: each half of the "
+        "fit drive predicted with the line learned on the other half), in the track frame "
         "(along-track, cross-track), and drawn rotated by the path heading at each predicted "
         "point. Coverage: the fraction of held-out targets inside the ellipse (ideal for a 2-D "
         "Gaussian: 39.3 % at 1 sigma, 86.5 % at 2 sigma). Levine: fit first 60 %, test last "

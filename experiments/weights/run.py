@@ -146,12 +146,19 @@ def main() -> None:
                 test_seed=TEST_SEED,
             )
             say(f"{TRACK}, latency {lat:.1f} s: fitting")
-            r = fit_case(case, blend="position", progress=lambda m, a=lat: say(f"{a:.1f} s: {m}"))
+            r = fit_case(
+                case,
+                model="blend",
+                blend="position",
+                progress=lambda m, a=lat: say(f"{a:.1f} s: {m}"),
+            )
             sweep.append((lat, r, median_speed(case.fit_drive)))
         if (DATA / "levine").is_dir():
             case = levine_case(DATA, holdout=0.4)
             say("Levine: fitting (auto blend)")
-            levine = fit_case(case, blend="auto", progress=lambda m: say(f"Levine: {m}"))
+            levine = fit_case(
+                case, model="blend", blend="auto", progress=lambda m: say(f"Levine: {m}")
+            )
             levine_v = median_speed(case.fit_drive)
         else:
             say(f"note: {DATA / 'levine'} not found; the Levine fit is left out")
