@@ -11,11 +11,7 @@ import sys
 from pathlib import Path
 
 from fpe_jax.errors import InputError
-
-# names `--fit` and `--solver` accept (fpe_jax.fit's, kept here so `fpe --help` does not import
-# JAX; a test checks they agree)
-FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed")
-SOLVERS = ("bfgs", "lm")
+from fpe_jax.spec import FIT_NAMES, SOLVERS  # JAX-free, so `fpe --help` stays fast
 
 
 def _add_log_flags(p: argparse.ArgumentParser) -> None:

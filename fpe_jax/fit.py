@@ -29,18 +29,12 @@ from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track
 from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
 from fpe_jax.predict import predict, predict_batch, states_from_drive
 from fpe_jax.rollout import State
+from fpe_jax.spec import DEFAULT_FIT as DEFAULT_FIT
+from fpe_jax.spec import DEFAULT_SOLVER as DEFAULT_SOLVER
+from fpe_jax.spec import FIT_GROUPS as FIT_GROUPS
+from fpe_jax.spec import SOLVERS as SOLVERS
 from fpe_jax.track import Track
 
-# What `--fit` may name, and the Params fields each name frees.
-FIT_GROUPS = {
-    "lookahead": ("lookahead_m", "lookahead_gain_s"),
-    "lookahead_m": ("lookahead_m",),
-    "gain": ("lookahead_gain_s",),
-    "weights": ("weights",),
-    "delay": ("delay_s",),
-    "speed": ("speed_weight", "speed_mps"),
-}
-DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")
 PARAM_FIELDS = (
     "lookahead_m",
     "lookahead_gain_s",
@@ -61,8 +55,6 @@ WEIGHT_SMOOTHING_M2 = 0.01
 # Both solvers are optimistix's. BFGS is the default: in experiments/results/solvers.md it ends
 # at an equal or lower loss on every drive (LM up to 2e-5 relative higher) in comparable
 # time. An LM step needs the full Jacobian (~18 forward passes), a BFGS step one gradient.
-SOLVERS = ("bfgs", "lm")
-DEFAULT_SOLVER = "bfgs"
 MAX_STEPS = {"bfgs": 1000, "lm": 200}  # BFGS counts line-search trials too
 # BFGS minimises loss / (target points x BFGS_LOSS_UNIT_M2). Its first inverse Hessian is the
 # identity, so this unit sets the first steps' length: on the raw sum (~1e4 on a 10-minute
