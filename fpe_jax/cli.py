@@ -7,11 +7,16 @@ raises `InputError`; `main` prints it as one line on stderr and exits with statu
 from __future__ import annotations
 
 import argparse
+import errno
+import math
+import os
+import signal
 import sys
 from pathlib import Path
 
+from fpe_jax import spec  # JAX-free, so `fpe --help` stays fast
 from fpe_jax.errors import InputError
-from fpe_jax.spec import FIT_NAMES, SOLVERS  # JAX-free, so `fpe --help` stays fast
+from fpe_jax.spec import FIT_NAMES, SOLVERS
 
 
 def _add_log_flags(p: argparse.ArgumentParser) -> None:
@@ -239,7 +244,7 @@ def _fit_inputs(args):
         r = load_recipe(args.logs[0])
         out = args.out or r.out
         opts = dict(
-            holdout=args.holdout or r.holdout,
+            holdout=r.holdout if args.holdout is None else args.holdout,
             fit=r.fit,
             blend=args.blend or r.blend,
             solver=args.solver or r.solver,
@@ -257,9 +262,19 @@ def _fit_inputs(args):
         args.log = log
         tests.append((_load_drive_from_args(args), wp, log))
     opts = dict(
-        holdout=args.holdout or 0.3, fit=None, blend=args.blend or "auto", solver=args.solver
+        holdout=0.3 if args.holdout is None else args.holdout,
+        fit=None,
+        blend=args.blend or "auto",
+        solver=args.solver,
     )
     return drives, tests, args.out, opts
+
+
+def _local_drives(entries):
+    """(drive, waypoints, description) entries in their local frames (see drive.local_frame)."""
+    from fpe_jax.drive import local_frame
+
+    return [(*local_frame(d, wp)[:2], desc) for d, wp, desc in entries]
 
 
 def cmd_fit(args) -> int:
@@ -267,11 +282,9 @@ def cmd_fit(args) -> int:
     from fpe_jax.config import params_to_config, write_config
     from fpe_jax.progress import Progress
 
-    fit_names = tuple(f.strip() for f in args.fit.split(",") if f.strip()) if args.fit else None
-    if fit_names:
-        bad = [f for f in fit_names if f not in FIT_NAMES]
-        if bad:
-            raise InputError("--fit", f"unknown {', '.join(bad)}", f"names from {FIT_NAMES}")
+    fit_names = None if args.fit is None else spec.check_fit_names(args.fit, "--fit", "value")
+    if args.holdout is not None:
+        spec.check_fraction(args.holdout, "--holdout", "value")
     if args.out is None and not args.logs[0].endswith(".toml"):
         raise InputError("--out", "missing", "CONFIG.json to write")
     if args.out:
@@ -279,6 +292,7 @@ def cmd_fit(args) -> int:
     with Progress() as say:
         say("reading drives")
         drives, tests, out, opts = _fit_inputs(args)
+        drives, tests = _local_drives(drives), _local_drives(tests)
         if out is None:
             raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
         io.check_output_path(out, args.force)
@@ -331,20 +345,23 @@ def cmd_evaluate(args) -> int:
     jax.config.update("jax_enable_x64", True)
     from fpe_jax import io
     from fpe_jax.config import load_params, read_config
+    from fpe_jax.drive import local_frame
     from fpe_jax.fit import Dataset, evaluate, format_table, make_targets
     from fpe_jax.track import Track
 
     params = load_params(preset=args.preset, config=args.config)
     cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2") if args.config else None
     name = args.config or args.preset
-    drive = _load_drive_from_args(args)
-    track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
+    drive, wp, _, _ = local_frame(
+        _load_drive_from_args(args), io.load_waypoints(args.waypoints).xy_m
+    )
+    track = Track.from_waypoints(wp)
     data = Dataset(drive, track, make_targets(drive, params.settings))
     if len(data.targets.rows) == 0:
         raise InputError(args.log, "no prediction has a target", "a longer drive")
     metrics = evaluate(params, [data], cov)
-    if args.json:
-        print(json.dumps(metrics, indent=2))
+    if args.json:  # strict JSON: a metric without a value is null, never NaN
+        print(json.dumps(_finite_or_null(metrics), indent=2, allow_nan=False))
     else:
         print(format_table({name: metrics}))
         if cov is not None:
@@ -353,6 +370,17 @@ def cmd_evaluate(args) -> int:
                 f"2-sigma {metrics['coverage_2sigma']:.1%} (ideal 86.5 %)"
             )
     return 0
+
+
+def _finite_or_null(v):
+    """A JSON-ready copy of nested dicts/lists with every NaN or infinity replaced by None."""
+    if isinstance(v, dict):
+        return {k: _finite_or_null(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_finite_or_null(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
 
 
 def cmd_presets(args) -> int:
@@ -364,8 +392,11 @@ def cmd_presets(args) -> int:
 
 
 def cmd_predict(args) -> int:
+    import numpy as np
+
     from fpe_jax import io
     from fpe_jax.config import load_params, read_config
+    from fpe_jax.drive import local_frame
     from fpe_jax.fit import covariance_map, path_heading
     from fpe_jax.predict import predict_drive
     from fpe_jax.track import Track
@@ -379,10 +410,15 @@ def cmd_predict(args) -> int:
         cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
     waypoints = io.load_waypoints(args.waypoints)
     drive = _load_drive_from_args(args)
-    track = Track.from_waypoints(waypoints.xy_m)
-    stamps_s, poses = predict_drive(params, drive, track)
+    # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
+    local, wp, t0_s, origin = local_frame(drive, waypoints.xy_m)
+    track = Track.from_waypoints(wp)
+    stamps_s, poses = predict_drive(params, local, track)
     if cov is not None:  # the config's per-step ellipses, turned into the map frame
         cov = covariance_map(cov, path_heading(track, poses[..., :2]))
+    stamps_s = stamps_s + t0_s
+    poses = np.array(poses, dtype=np.float64)  # a writable copy
+    poses[..., :2] += origin
     io.write_predictions(
         args.out, stamps_s, poses, params.settings.dt_s, drive=drive, cov_m2=cov, force=args.force
     )
@@ -518,11 +554,16 @@ def cmd_simulate(args) -> int:
     import dataclasses
     from pathlib import Path
 
-    from fpe_jax import sim
+    from fpe_jax import io, sim
 
     out = Path(args.out)
+    spec.check_simulation(args.duration, args.latency, args.seed, args.stops_per_min, "simulate")
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file", "a folder to write the simulated drive into")
     if out.is_dir() and any(out.iterdir()) and not args.force:  # fail before simulating
         raise InputError(out, "exists and is not empty; pass --force to write into it")
+    if not out.exists():
+        io.check_output_path(out, False)  # its parent exists and is writable
     res = sim.simulate(
         args.track,
         duration_s=args.duration,
@@ -546,20 +587,33 @@ def cmd_simulate(args) -> int:
 def cmd_batch(args) -> int:
     import time
 
+    import numpy as np
+
     from fpe_jax import io
     from fpe_jax.batch import predict_chunked, read_cars, write_poses
     from fpe_jax.config import load_params
+    from fpe_jax.drive import map_origin
     from fpe_jax.track import Track
 
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in (".npy", ".csv"):
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
+    if args.chunk < 1:
+        raise InputError("--chunk", f"{args.chunk} cars per call", "a positive integer")
     params = load_params(preset=args.preset, config=args.config)
-    track = Track.from_waypoints(io.load_waypoints(args.waypoints).xy_m)
-    cars = read_cars(args.states)
+    wp = io.load_waypoints(args.waypoints).xy_m
+    origin = map_origin(wp)  # removed in float64 before the (float32) computation
+    track = Track.from_waypoints(wp - origin)
+    cars = np.array(read_cars(args.states), dtype=np.float64)
+    cars[:, :2] -= origin
     t0 = time.perf_counter()
     poses = predict_chunked(params, cars, track, dtype=args.dtype, chunk=args.chunk)
     wall_s = time.perf_counter() - t0
+    # float32 cannot hold coordinates beyond a kilometre to the millimetre: write float64 then
+    dtype = poses.dtype if np.abs(origin).max() <= 1000.0 else np.float64
+    poses = np.array(poses, dtype=np.float64)  # a writable copy
+    poses[..., :2] += origin
+    poses = poses.astype(dtype)
     write_poses(out, poses, params.settings.dt_s, force=args.force)
     print(
         f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
@@ -626,13 +680,47 @@ def cmd_plot(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = _build_parser().parse_args(argv)
+def _sigterm(signum, frame):
+    # SystemExit unwinds like Ctrl-C does, so atomic writers remove their temporary files
+    raise SystemExit(128 + signum)
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush cannot fail again."""
     try:
-        return args.func(args)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout closed or not a file
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    import threading
+
+    args = _build_parser().parse_args(argv)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _sigterm) if main_thread else None
+    try:
+        rc = args.func(args)
+        sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is reported below
+        return rc
     except InputError as e:
         print(f"fpe: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("fpe: interrupted", file=sys.stderr)
+        return 130
+    except OSError as e:
+        if e.errno == errno.EPIPE:  # the reader went away (`fpe ... | head`): stop quietly
+            _quiet_stdout()
+            return 1
+        if e.errno in (errno.ENOSPC, errno.EBADF, errno.EIO):  # stdout full or closed
+            _quiet_stdout()
+            print(f"fpe: error: cannot write the output ({e.strerror})", file=sys.stderr)
+            return 1
+        raise
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ from fpe_jax.io.logs import (
     pose_rows,
 )
 from fpe_jax.io.tf import TfBuffer
+from fpe_jax.spec import MAX_RATE_HZ, MIN_RATE_HZ
 
 _POSE_EXPECTED = (
     "PoseStamped, PoseWithCovarianceStamped, Odometry, TFMessage or AprilTagDetectionArray"
@@ -263,6 +264,10 @@ def _drive_from_table(path, rate_hz) -> Drive:
             raise InputError(path, f"{what}, so --rate HZ is required", "row k at t = k/HZ s")
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise InputError(path, f"--rate {rate_hz} is not a positive rate", "a rate in Hz > 0")
+        if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:  # 1e-300 would put every row at t = 0
+            raise InputError(
+                path, f"--rate {rate_hz:g} is absurd", f"{MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz"
+            )
         t = np.arange(len(x)) / float(rate_hz)
     elif rate_hz is not None:
         raise InputError(path, "--rate given but the CSV has a time column", "no --rate")
