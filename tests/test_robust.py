@@ -125,3 +125,191 @@ def test_runner_epoch_stamps_and_utm_offsets(drive_rows):
         a = zero.update(t, x, y, yaw)
         b = far.update(t + T_EPOCH_S, x + UTM_M[0], y + UTM_M[1], yaw)
         np.testing.assert_allclose(np.asarray(b) - shift, a, atol=1e-6)
+
+
+# ---- hostile input: one line, exit 2, nothing written ------------------------------------------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_BAD_VALUES = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.text(max_size=5),
+    st.just(float("nan")),
+    st.just(float("inf")),
+    st.just(-1.0),
+    st.just(1e9),
+    st.lists(st.floats(allow_nan=True), max_size=3),
+    st.just([[[[1.0]]]]),
+)
+_FIELDS = [
+    ("params", "lookahead_m"),
+    ("params", "weights"),
+    ("params", "delay_s"),
+    ("params", "speed_weight"),
+    ("params", "speed_mps"),
+    ("settings", "dt_s"),
+    ("settings", "horizon"),
+    ("settings", "max_steer_rad"),
+    ("settings", "model"),
+    ("settings", "history"),
+]
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and 1 <= len(err.strip().splitlines()) <= 3, err
+    return err
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(field=st.sampled_from(_FIELDS), value=_BAD_VALUES)
+def test_tampered_config_is_one_line_everywhere(tmp_path, capsys, field, value):
+    from fpe_jax.spec import SECTIONS
+
+    rule = next(r for r in SECTIONS[field[0]] if r.key == field[1])
+    cfg = params_to_config(presets["default"])
+    cfg[field[0]][field[1]] = value
+    try:
+        from fpe_jax.spec import check_value
+
+        check_value(rule, value, cfg, "x", "y")
+        return  # a valid value drawn by chance
+    except ValueError:
+        pass
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(cfg))
+    wp = tmp_path / "wp.csv"
+    wp.write_text("x,y\n0,0\n10,0\n10,10\n0,10\n")
+    out = tmp_path / "pred.csv"
+    for argv in (
+        ["predict", "d.csv", "--waypoints", str(wp), "--config", str(path), "--out", str(out)],
+        ["evaluate", "d.csv", "--waypoints", str(wp), "--config", str(path), "--json"],
+        ["batch", "c.npy", "--waypoints", str(wp), "--config", str(path), "--out", str(out)],
+        ["export", str(path), "--format", "json", "--out", str(tmp_path / "e.json")],
+    ):
+        capsys.readouterr()
+        assert cli.main(argv) == 2
+        assert str(path) in _one_line_error(capsys)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "wp.csv"]
+
+
+def test_config_cross_field_rules(tmp_path, capsys):
+    cfg = params_to_config(presets["default"])
+    for mutate, words in (
+        (lambda c: c["settings"].update(max_steer_rad=1.6), "settings.max_steer_rad"),
+        (lambda c: c.update(uncertainty={"frame": "track", "cov_m2": [[[1, 0], [0, 1]]]}), "steps"),
+        (lambda c: c["params"].update(weights=0.5), "params.weights"),
+        (lambda c: c["params"].update(lookahead_m=0.1), "params.lookahead_m"),
+        (lambda c: c["settings"].update(extra=1), "unknown key settings.extra"),
+    ):
+        bad = json.loads(json.dumps(cfg))
+        mutate(bad)
+        p = tmp_path / "c.json"
+        p.write_text(json.dumps(bad))
+        capsys.readouterr()
+        assert cli.main(["export", str(p), "--format", "json", "--out", str(tmp_path / "o")]) == 2
+        assert words in _one_line_error(capsys)
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 10_000 + "]" * 10_000)
+    assert cli.main(["export", str(deep), "--format", "json", "--out", str(tmp_path / "o")]) == 2
+    assert "nested too deeply" in _one_line_error(capsys)
+
+
+@pytest.mark.parametrize(
+    "flags, words",
+    [
+        (["--holdout", "0"], "--holdout"),
+        (["--holdout", "1.5"], "--holdout"),
+        (["--fit", ""], "--fit"),
+        (["--fit", "delay,nonsense"], "nonsense"),
+    ],
+)
+def test_fit_flags_are_checked_before_any_work(tmp_path, capsys, flags, words):
+    argv = ["fit", "absent.csv", "--waypoints", "absent.csv", "--out", str(tmp_path / "c.json")]
+    assert cli.main([*argv, *flags]) == 2
+    assert words in _one_line_error(capsys)
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "body, words",
+    [
+        ('out = "../../x.json"\n[[drives]]\npath = "a.csv"', "leaves the recipe's folder"),
+        ('out = 5\n[[drives]]\npath = "a.csv"', "out is 5"),
+        ('holdout = "abc"\n[[drives]]\npath = "a.csv"', "holdout is 'abc'"),
+        ("drives = [1, 2]", "drives[0] is 1"),
+        ('[[drives]]\nsimulate = "oval"', "drives[0].simulate"),
+        ("[[drives]]\nsimulate = { track = 'oval', speed = 3 }", "unknown drives[0].simulate"),
+        ("[[drives]]\nsimulate = { duration_s = 1e12 }", "duration_s"),
+        ('solver = "adam"\n[[drives]]\npath = "a.csv"', "solver is 'adam'"),
+    ],
+)
+def test_bad_recipes_are_one_line(tmp_path, capsys, body, words):
+    sub = tmp_path / "r"
+    sub.mkdir()
+    recipe = sub / "r.toml"
+    recipe.write_text(body + "\n")
+    assert cli.main(["fit", str(recipe)]) == 2
+    assert words in _one_line_error(capsys)
+    assert [p.name for p in sub.iterdir()] == ["r.toml"]
+
+
+def test_non_utf8_recipe(tmp_path, capsys):
+    recipe = tmp_path / "r.toml"
+    recipe.write_bytes(b"out = '\xff\xfe'\n")
+    assert cli.main(["fit", str(recipe)]) == 2
+    assert "not UTF-8" in _one_line_error(capsys)
+
+
+def test_outputs_checked_before_work_and_never_replaced(tmp_path, capsys):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        import os
+
+        if not os.access(ro, os.W_OK):  # root can write anywhere: nothing to check then
+            argv = ["fit", "absent.csv", "--waypoints", "absent.csv", "--out", str(ro / "c.json")]
+            assert cli.main(argv) == 2
+            assert "not writable" in _one_line_error(capsys)
+    finally:
+        ro.chmod(0o755)
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps(params_to_config(presets["default"])))
+    for out in (tmp_path / "missing" / "o.json", tmp_path):
+        assert cli.main(["export", str(cfg), "--format", "json", "--out", str(out)]) == 2
+        _one_line_error(capsys)
+    demo = tmp_path / "demo"
+    demo.mkdir()
+    (demo / "report.md").write_text("mine")
+    assert cli.main(["demo", "--out", str(demo)]) == 2
+    assert "report.md" in _one_line_error(capsys)
+    assert (demo / "report.md").read_text() == "mine"
+
+
+def test_simulate_values_are_one_line(tmp_path, capsys):
+    for flags in (
+        ["--seed", "-1"],
+        ["--track", "random:-1"],
+        ["--stops-per-min", "nan"],
+        ["--duration", "1e12"],
+        ["--latency", "5", "--duration", "3"],
+    ):
+        assert cli.main(["simulate", "--out", str(tmp_path / "s"), *flags]) == 2
+        _one_line_error(capsys)
+    assert not (tmp_path / "s").exists()
+
+
+def test_atomic_writer_leaves_nothing_on_failure(tmp_path):
+    from fpe_jax.io import atomic_output
+
+    target = tmp_path / "x.json"
+    (tmp_path / "x.json.tmp").write_text("a user's file")
+    with pytest.raises(KeyboardInterrupt), atomic_output(target, False) as tmp:
+        tmp.write_text("half")
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.json.tmp"]
