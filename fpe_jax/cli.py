@@ -193,6 +193,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "demo", help="simulate, fit, compare with every preset, plot and export (~1 min)"
     )
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
+    p.add_argument("--force", action="store_true", help="replace the demo's files in --out")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("plot", help="draw a drive with its 1 s predictions (trajectory overlay)")
@@ -634,7 +635,7 @@ def cmd_demo(args) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
     with Progress() as say:
-        res = run_demo(out, progress=say)
+        res = run_demo(out, progress=say, force=args.force)
     case, result = res.case, res.result
     p = result.params.physical()
     print(f"demo: {case.description}")

@@ -34,11 +34,12 @@ from fpe_jax.io.logs import (
     pose_rows,
 )
 from fpe_jax.io.tf import TfBuffer
-from fpe_jax.spec import MAX_RATE_HZ, MIN_RATE_HZ
 
 _POSE_EXPECTED = (
     "PoseStamped, PoseWithCovarianceStamped, Odometry, TFMessage or AprilTagDetectionArray"
 )
+
+MIN_RATE_HZ, MAX_RATE_HZ = 1e-3, 1e6  # a --rate outside this is a unit mistake
 
 
 def _topic_list(topics) -> str:
