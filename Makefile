@@ -14,7 +14,7 @@ $(VENV)/.installed: pyproject.toml
 $(VENV): $(VENV)/.installed
 
 demo: $(VENV)
-	$(BIN)/fpe demo --out out/demo
+	$(BIN)/fpe demo --out out/demo --force
 
 test: $(VENV)
 	$(BIN)/ruff check .

@@ -642,24 +642,18 @@ def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) ->
     Written to a temporary file in the target's folder and renamed into place, so a failure
     never leaves a partial file; an existing file is replaced only with `force`.
     """
+    from fpe_jax.io.writers import atomic_output
+
     target = Path(path)
-    if not target.parent.is_dir():
-        raise InputError(target, f"its folder {str(target.parent)!r} does not exist")
-    if target.exists() and not force:
-        raise InputError(target, "exists; pass --force to overwrite")
     suffix = target.suffix.lower()
     if suffix not in (".npy", ".csv"):
         raise InputError(target, f"unknown output type {suffix!r}", "OUT.npy or OUT.csv")
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.part")
-    try:
+    with atomic_output(target, force) as tmp:
         if suffix == ".npy":
-            with open(tmp, "wb") as f:
+            with open(tmp, "xb") as f:
                 np.save(f, poses)
         else:
             _write_poses_csv(tmp, poses, dt_s)
-        os.replace(tmp, target)
-    finally:
-        tmp.unlink(missing_ok=True)
     return target
 
 

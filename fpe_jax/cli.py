@@ -7,16 +7,16 @@ raises `InputError`; `main` prints it as one line on stderr and exits with statu
 from __future__ import annotations
 
 import argparse
+import errno
+import math
+import os
+import signal
 import sys
 from pathlib import Path
 
+from fpe_jax import spec  # JAX-free, so `fpe --help` stays fast
 from fpe_jax.errors import InputError
-
-# names `--fit` and `--solver` accept (fpe_jax.fit's, kept here so `fpe --help` does not import
-# JAX; a test checks they agree)
-FIT_NAMES = ("lookahead", "lookahead_m", "gain", "weights", "delay", "speed", "tau", "smoothing")
-FIT_MODELS = ("line", "blend")
-SOLVERS = ("bfgs", "lm")
+from fpe_jax.spec import FIT_MODELS, FIT_NAMES, SOLVERS
 
 
 def _add_log_flags(p: argparse.ArgumentParser) -> None:
@@ -277,6 +277,7 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
     _add_run_flags(p)
+    p.add_argument("--force", action="store_true", help="replace the demo's files in --out")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("plot", help="draw a drive with its 1 s predictions (trajectory overlay)")
@@ -329,7 +330,7 @@ def _fit_inputs(args, say=lambda msg: None):
         r = load_recipe(args.logs[0])
         out = args.out or r.out
         opts = dict(
-            holdout=args.holdout or r.holdout,
+            holdout=r.holdout if args.holdout is None else args.holdout,
             fit=r.fit,
             blend=args.blend or r.blend,
             model=args.model or r.model,
@@ -351,7 +352,7 @@ def _fit_inputs(args, say=lambda msg: None):
         args.log = log
         tests.append((_load_drive_from_args(args), wp, log))
     opts = dict(
-        holdout=args.holdout or 0.3,
+        holdout=0.3 if args.holdout is None else args.holdout,
         fit=None,
         blend=args.blend or "auto",
         model=args.model,
@@ -361,15 +362,20 @@ def _fit_inputs(args, say=lambda msg: None):
     return drives, tests, args.out, opts
 
 
+def _local_drives(entries):
+    """(drive, waypoints, description) entries in their local frames (see drive.local_frame)."""
+    from fpe_jax.drive import local_frame
+
+    return [(*local_frame(d, wp)[:2], desc) for d, wp, desc in entries]
+
+
 def cmd_fit(args) -> int:
     from fpe_jax import io
     from fpe_jax.config import params_to_config, write_config
 
-    fit_names = tuple(f.strip() for f in args.fit.split(",") if f.strip()) if args.fit else None
-    if fit_names:
-        bad = [f for f in fit_names if f not in FIT_NAMES]
-        if bad:
-            raise InputError("--fit", f"unknown {', '.join(bad)}", f"names from {FIT_NAMES}")
+    fit_names = None if args.fit is None else spec.check_fit_names(args.fit, "--fit", "value")
+    if args.holdout is not None:
+        spec.check_fraction(args.holdout, "--holdout", "value")
     if args.out is None and not args.logs[0].endswith(".toml"):
         raise InputError("--out", "missing", "CONFIG.json to write")
     if args.out:
@@ -377,6 +383,7 @@ def cmd_fit(args) -> int:
     with _progress(args) as say:
         say("reading drives")
         drives, tests, out, opts = _fit_inputs(args, say)
+        drives, tests = _local_drives(drives), _local_drives(tests)
         if out is None:
             raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
         io.check_output_path(out, args.force)
@@ -441,6 +448,7 @@ def cmd_evaluate(args) -> int:
     with _progress(args) as say:
         say("loading JAX")
         _start_jax(args)
+        from fpe_jax.drive import local_frame
         from fpe_jax.fit import Dataset, evaluate, make_targets
         from fpe_jax.track import Track
 
@@ -448,8 +456,9 @@ def cmd_evaluate(args) -> int:
         params, waypoints = _load_predictor(args)
         cfg = read_config(args.config) if args.config else {}
         cov = (cfg.get("uncertainty") or {}).get("cov_m2")
-        drive = _load_drive_from_args(args)
-        track = Track.from_waypoints(waypoints.xy_m)
+        # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
+        drive, wp, _, _ = local_frame(_load_drive_from_args(args), waypoints.xy_m)
+        track = Track.from_waypoints(wp)
         data = Dataset(drive, track, make_targets(drive, params.settings))
         if len(data.targets.rows) == 0:
             raise InputError(args.log, "no prediction has a target", "a longer drive")
@@ -458,8 +467,8 @@ def cmd_evaluate(args) -> int:
     from fpe_jax.fit import format_table
 
     name = args.config or args.preset
-    if args.json:
-        print(json.dumps(metrics, indent=2))
+    if args.json:  # strict JSON: a metric without a value is null, never NaN
+        print(json.dumps(_finite_or_null(metrics), indent=2, allow_nan=False))
     else:
         print(format_table({name: metrics}))
         if cov is not None:
@@ -489,6 +498,17 @@ def cmd_cache(args) -> int:
     return 0
 
 
+def _finite_or_null(v):
+    """A JSON-ready copy of nested dicts/lists with every NaN or infinity replaced by None."""
+    if isinstance(v, dict):
+        return {k: _finite_or_null(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_finite_or_null(x) for x in v]
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
 def cmd_presets(args) -> int:
     from fpe_jax.config import PRESET_DOCS  # JAX-free
 
@@ -498,6 +518,8 @@ def cmd_presets(args) -> int:
 
 
 def cmd_predict(args) -> int:
+    import numpy as np
+
     from fpe_jax import io
     from fpe_jax.config import read_config
 
@@ -507,6 +529,7 @@ def cmd_predict(args) -> int:
     with _progress(args) as say:
         say("loading JAX")
         _start_jax(args)
+        from fpe_jax.drive import local_frame
         from fpe_jax.fit import covariance_map, path_heading
         from fpe_jax.predict import predict_rows, states_from_drive
         from fpe_jax.track import Track
@@ -517,12 +540,17 @@ def cmd_predict(args) -> int:
         if args.config:
             cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
         drive = _load_drive_from_args(args)
-        track = Track.from_waypoints(waypoints.xy_m)
+        # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
+        local, wp, t0_s, origin = local_frame(drive, waypoints.xy_m)
+        track = Track.from_waypoints(wp)
         say(f"predicting {len(drive.t_s)} observations")
-        states = states_from_drive(params, drive, track)
-        stamps_s, poses = drive.t_s.copy(), predict_rows(params, states, track)
+        states = states_from_drive(params, local, track)
+        poses = predict_rows(params, states, track)
         if cov is not None:  # the config's per-step ellipses, turned into the map frame
             cov = covariance_map(cov, path_heading(track, poses[..., :2], states))
+        stamps_s = local.t_s + t0_s
+        poses = np.array(poses, dtype=np.float64)  # a writable copy
+        poses[..., :2] += origin
         say(f"writing {args.out}")
         io.write_predictions(
             args.out,
@@ -665,11 +693,16 @@ def cmd_simulate(args) -> int:
     import dataclasses
     from pathlib import Path
 
-    from fpe_jax import sim
+    from fpe_jax import io, sim
 
     out = Path(args.out)
+    spec.check_simulation(args.duration, args.latency, args.seed, args.stops_per_min, "simulate")
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file", "a folder to write the simulated drive into")
     if out.is_dir() and any(out.iterdir()) and not args.force:  # fail before simulating
         raise InputError(out, "exists and is not empty; pass --force to write into it")
+    if not out.exists():
+        io.check_output_path(out, False)  # its parent exists and is writable
     res = sim.simulate(
         args.track,
         duration_s=args.duration,
@@ -693,21 +726,29 @@ def cmd_simulate(args) -> int:
 def cmd_batch(args) -> int:
     import time
 
+    import numpy as np
+
     from fpe_jax import io
 
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in (".npy", ".csv"):
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
+    if args.chunk < 1:
+        raise InputError("--chunk", f"{args.chunk} cars per call", "a positive integer")
     with _progress(args) as say:
         say("loading JAX")
         _start_jax(args, x64=False)  # the predictor runs in --dtype (batch.py pins it)
         from fpe_jax.batch import predict_chunked, read_cars, write_poses
+        from fpe_jax.drive import map_origin
         from fpe_jax.track import Track
 
         say("reading the cars and waypoints")
         params, waypoints = _load_predictor(args)
-        track = Track.from_waypoints(waypoints.xy_m)
-        cars = read_cars(args.states)
+        wp = waypoints.xy_m
+        origin = map_origin(wp)  # removed in float64 before the (float32) computation
+        track = Track.from_waypoints(wp - origin)
+        cars = np.array(read_cars(args.states), dtype=np.float64)
+        cars[:, :2] -= origin
         say(f"predicting {len(cars)} cars")
         t0 = time.perf_counter()
         poses = predict_chunked(
@@ -719,6 +760,11 @@ def cmd_batch(args) -> int:
             progress=lambda done, n: say.count("predicting cars", done, n),
         )
         wall_s = time.perf_counter() - t0
+        # float32 cannot hold coordinates beyond a kilometre to the millimetre: write float64 then
+        dtype = poses.dtype if np.abs(origin).max() <= 1000.0 else np.float64
+        poses = np.array(poses, dtype=np.float64)  # a writable copy
+        poses[..., :2] += origin
+        poses = poses.astype(dtype)
         say(f"writing {out}")
         write_poses(out, poses, params.settings.dt_s, force=args.force)
     print(
@@ -741,7 +787,7 @@ def cmd_demo(args) -> int:
         from fpe_jax.demo import run_demo
         from fpe_jax.fit import format_fitted, format_table
 
-        res = run_demo(out, progress=say)
+        res = run_demo(out, progress=say, force=args.force)
     case, result = res.case, res.result
     p = result.params.physical()
     print(f"demo: {case.description}")
@@ -788,13 +834,47 @@ def cmd_plot(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = _build_parser().parse_args(argv)
+def _sigterm(signum, frame):
+    # SystemExit unwinds like Ctrl-C does, so atomic writers remove their temporary files
+    raise SystemExit(128 + signum)
+
+
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush cannot fail again."""
     try:
-        return args.func(args)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout closed or not a file
+        pass
+
+
+def main(argv: list[str] | None = None) -> int:
+    import threading
+
+    args = _build_parser().parse_args(argv)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _sigterm) if main_thread else None
+    try:
+        rc = args.func(args)
+        sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is reported below
+        return rc
     except InputError as e:
         print(f"fpe: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("fpe: interrupted", file=sys.stderr)
+        return 130
+    except OSError as e:
+        if e.errno == errno.EPIPE:  # the reader went away (`fpe ... | head`): stop quietly
+            _quiet_stdout()
+            return 1
+        if e.errno in (errno.ENOSPC, errno.EBADF, errno.EIO):  # stdout full or closed
+            _quiet_stdout()
+            print(f"fpe: error: cannot write the output ({e.strerror})", file=sys.stderr)
+            return 1
+        raise
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -19,11 +19,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 from pathlib import Path
 from typing import Any
 
 from fpe_jax.errors import InputError
+from fpe_jax.spec import (
+    LINE_KEYS,
+    OPTIONAL_PARAM_KEYS,
+    PARAM_KEYS,
+    SCHEMA_VERSION,
+    SETTING_KEYS,
+    check_config,
+)
 
 # built-in presets (fpe_jax.params builds them) and their one-line docs: kept here, JAX-free,
 # so that `fpe presets` answers without importing JAX
@@ -39,21 +46,6 @@ PRESET_DOCS = {
     "default": "the differentiable position blend; the fitter's starting point for --model blend",
 }
 
-SCHEMA_VERSION = 1
-PARAM_KEYS = ("lookahead_m", "lookahead_gain_s", "weights", "delay_s", "speed_weight", "speed_mps")
-OPTIONAL_PARAM_KEYS = ("offset_tau_s", "speed_tau_s", "position_smoothing")
-LINE_KEYS = ("line_offset_m", "line_speed_mps", "line_coverage")
-SETTING_KEYS = (
-    "dt_s",
-    "horizon",
-    "wheelbase_m",
-    "max_steer_rad",
-    "blend",
-    "model",
-    "min_lookahead_m",
-    "history",
-)
-
 
 def read_config(path) -> dict[str, Any]:
     """Read and check a config JSON (no JAX). Raises InputError naming what is wrong."""
@@ -61,44 +53,12 @@ def read_config(path) -> dict[str, Any]:
     if not path.is_file():
         raise InputError(path, "no such config file", "a JSON config written by `fpe fit`")
     try:
-        cfg = json.loads(path.read_text())
+        cfg = json.loads(path.read_bytes().decode("utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(path, f"not valid JSON ({e})", "a JSON config") from None
-    if not isinstance(cfg, dict) or "schema_version" not in cfg:
-        raise InputError(path, "missing 'schema_version'", f"schema_version {SCHEMA_VERSION}")
-    version = cfg["schema_version"]
-    if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
-        raise InputError(
-            path,
-            f"schema_version {version!r} is not supported (newer than this fpe-jax?)",
-            f"schema_version <= {SCHEMA_VERSION}; upgrade fpe-jax to read it",
-        )
-    for section, keys in (("params", PARAM_KEYS), ("settings", SETTING_KEYS)):
-        if not isinstance(cfg.get(section), dict):
-            raise InputError(path, f"missing section '{section}'", f"keys {', '.join(keys)}")
-        missing = [k for k in keys if k not in cfg[section]]
-        if missing:
-            raise InputError(path, f"'{section}' lacks {', '.join(missing)}", "every key present")
-    horizon = cfg["settings"]["horizon"]
-    if len(cfg["params"]["weights"]) != horizon:
-        raise InputError(
-            path, f"{len(cfg['params']['weights'])} weights for horizon {horizon}", "H weights"
-        )
-    if cfg["settings"]["model"] == "line":
-        missing = [k for k in LINE_KEYS if not isinstance(cfg["params"].get(k), list)]
-        if (
-            missing
-            or not isinstance(cfg.get("line"), dict)
-            or "waypoints_sha256" not in cfg["line"]
-        ):
-            what = ", ".join(f"params.{k}" for k in missing) or "line.waypoints_sha256"
-            raise InputError(path, f"model 'line' without {what}", "a config written by `fpe fit`")
-        sizes = {len(cfg["params"][k]) for k in LINE_KEYS}
-        if len(sizes) != 1 or 0 in sizes:
-            raise InputError(path, "line profile arrays differ in size", "P values each, P > 0")
-    cfg.setdefault("uncertainty", None)
-    cfg.setdefault("provenance", {})
-    return cfg
+    except RecursionError:
+        raise InputError(path, "nested too deeply", "a JSON config written by `fpe fit`") from None
+    return check_config(cfg, path)
 
 
 def config_to_params(cfg: dict[str, Any]):
@@ -146,12 +106,9 @@ def params_to_config(params, *, uncertainty=None, provenance=None, line=None) ->
 
 def write_config(path, cfg: dict[str, Any], *, force: bool = False) -> None:
     """Write a config JSON; refuses to overwrite an existing file unless force."""
-    path = Path(path)
-    if path.exists() and not force:
-        raise InputError(path, "exists", "a new path, or --force to overwrite")
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(cfg, indent=2) + "\n")
-    os.replace(tmp, path)
+    from fpe_jax.io.writers import write_text
+
+    write_text(path, json.dumps(cfg, indent=2) + "\n", force=force)
 
 
 def load_params(

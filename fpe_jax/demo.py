@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from fpe_jax.drive import Drive
+from fpe_jax.errors import InputError
 
 LATENCY_S = 0.3  # the thesis measured ~0.4 s of AprilTag delay; the simulator's default is 0.3
 F1TENTH_TRACKS = ("Austin", "Catalunya", "Monza", "Silverstone", "Spielberg")
@@ -309,17 +310,25 @@ def run_demo(
     test_seed: int = DEMO_TEST_SEED,
     blend: str = DEMO_BLEND,
     progress: Callable[[str], None] = lambda msg: None,
+    force: bool = False,
 ) -> DemoResult:
     """Simulate, fit, evaluate against every preset, check, plot and export into `out_dir`.
 
-    Files (overwritten on every run: the folder is the demo's own output): config.json (the
-    tuned config), params.yaml (ROS 2 parameters), waypoints.csv (the centerline, x,y [m]),
-    trajectory.png, error_vs_horizon.png, line.png (weights.png for the blend model), report.md
-    (the table and the checks).
+    Files (DEMO_FILES; existing ones are replaced only with `force`, checked before any work):
+    config.json (the tuned config), params.yaml (ROS 2 parameters), waypoints.csv (the
+    centerline, x,y [m]), trajectory.png, error_vs_horizon.png, line.png (weights.png for the
+    blend model), report.md (the table and the checks).
     """
+    from fpe_jax.io.writers import check_output_paths
+
     t0 = time.perf_counter()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
+    if not out.exists():
+        check_output_paths([out], force)  # its parent exists and is writable
+        out.mkdir()
+    check_output_paths([out / name for name in DEMO_FILES], force)
     progress(f"simulating a {fit_s:g} s fit drive and a {test_s:g} s test drive on '{track}'")
     case = simulated_case(
         track,
@@ -331,24 +340,35 @@ def run_demo(
     )
     result = fit_case(case, blend=blend, progress=progress)
     checks = demo_checks(result, latency_s)
-    files = write_demo_outputs(out, case, result, checks, progress)
+    files = write_demo_outputs(out, case, result, checks, progress, force)
     return DemoResult(case, result, checks, files, time.perf_counter() - t0)
 
 
-def write_demo_outputs(out: Path, case: Case, result, checks, progress) -> list[Path]:
+DEMO_FILES = (
+    "waypoints.csv",
+    "config.json",
+    "params.yaml",
+    "trajectory.png",
+    "error_vs_horizon.png",
+    "line.png",
+    "report.md",
+)
+
+
+def write_demo_outputs(
+    out: Path, case: Case, result, checks, progress, force: bool = False
+) -> list[Path]:
     """Config, ROS 2 parameters, waypoints, plots and report.md of a finished demo fit."""
     from fpe_jax import plots
     from fpe_jax.config import params_to_config, write_config
     from fpe_jax.export import export_config
     from fpe_jax.fit import provenance
+    from fpe_jax.io.writers import write_text, write_xy_csv
     from fpe_jax.params import presets
 
     progress("writing the tuned config and the ROS 2 parameters")
-    waypoints = out / "waypoints.csv"
     # every digit: a line-model config is tied to the exact waypoint values (sha256)
-    np.savetxt(
-        waypoints, case.waypoints_xy_m, fmt="%.17g", delimiter=",", header="x,y", comments=""
-    )
+    waypoints = write_xy_csv(out / "waypoints.csv", case.waypoints_xy_m, fmt="%.17g", force=force)
     cfg_path = out / "config.json"
     sources = [f"fit:{case.description}", f"test:{case.description}"]
     cfg = params_to_config(
@@ -357,9 +377,9 @@ def write_demo_outputs(out: Path, case: Case, result, checks, progress) -> list[
         provenance=provenance(result, sources, {"pose": None, "truth": None}),
         line=_line_section(result, waypoints),
     )
-    write_config(cfg_path, cfg, force=True)
+    write_config(cfg_path, cfg, force=force)
     files = [waypoints, cfg_path]
-    files += export_config(cfg_path, "ros2", out / "params.yaml", waypoints=waypoints, force=True)
+    files += export_config(cfg_path, "ros2", out / "params.yaml", waypoints=waypoints, force=force)
 
     progress("predicting the test drive for the plots")
     track = case.track()
@@ -379,13 +399,13 @@ def write_demo_outputs(out: Path, case: Case, result, checks, progress) -> list[
         title=f"Demo: 1 s predictions on the test drive ({case.name}, latency "
         f"{case.latency_s:g} s); zoom where the hand-set blend turns earliest",
     )
-    files.append(plots.save(fig, out / "trajectory.png"))
+    files.append(plots.save(fig, out / "trajectory.png", force=force))
     fig = plots.error_vs_horizon_figure(
         {case.name: result.report},
         dt_s=dt_s,
         title=f"Demo: mean error vs horizon on the test drive ({case.name})",
     )
-    files.append(plots.save(fig, out / "error_vs_horizon.png"))
+    files.append(plots.save(fig, out / "error_vs_horizon.png", force=force))
     if last == "line.png":
         fig = plots.line_figure(
             result.params,
@@ -399,9 +419,9 @@ def write_demo_outputs(out: Path, case: Case, result, checks, progress) -> list[
             title="Demo: fitted per-step weights vs the thesis's 0.7^i",
             latency_s=case.latency_s,
         )
-    files.append(plots.save(fig, out / last))
+    files.append(plots.save(fig, out / last, force=force))
     report = out / "report.md"
-    report.write_text(demo_report(case, result, checks))
+    write_text(report, demo_report(case, result, checks), force=force)
     files.append(report)
     return files
 

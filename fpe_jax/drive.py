@@ -10,6 +10,8 @@ from typing import Any
 
 import numpy as np
 
+from fpe_jax.path import map_origin as map_origin  # re-exported: drives' local frames
+
 
 @dataclasses.dataclass(frozen=True)
 class Drive:
@@ -72,3 +74,31 @@ class Drive:
                 truth_v_mps=None if self.truth_v_mps is None else self.truth_v_mps[tk],
             )
         return Drive(**kw, meta=dict(self.meta, time_range_s=(t0_s, t1_s)))
+
+    def shifted(self, t0_s: float, origin_xy_m) -> Drive:
+        """The same drive with `t0_s` [s] subtracted from every stamp and `origin_xy_m` (2,) [m]
+        from every position (in float64), so epoch stamps and UTM-sized coordinates become small
+        numbers before anything is cast to float32."""
+        o = np.asarray(origin_xy_m, dtype=np.float64)
+        kw: dict[str, Any] = dict(
+            t_s=np.asarray(self.t_s, dtype=np.float64) - t0_s,
+            xy_m=np.asarray(self.xy_m, dtype=np.float64) - o,
+            yaw_rad=self.yaw_rad,
+        )
+        if self.truth_t_s is not None:
+            kw.update(
+                truth_t_s=np.asarray(self.truth_t_s, dtype=np.float64) - t0_s,
+                truth_xy_m=np.asarray(self.truth_xy_m, dtype=np.float64) - o,
+                truth_yaw_rad=self.truth_yaw_rad,
+                truth_v_mps=self.truth_v_mps,
+            )
+        return Drive(**kw, meta=dict(self.meta, origin_t_s=t0_s, origin_xy_m=o.tolist()))
+
+
+def local_frame(drive: Drive, waypoints_xy_m) -> tuple[Drive, np.ndarray, float, np.ndarray]:
+    """(drive, waypoints (K, 2) [m]) in a local frame: time from the drive's first stamp, positions
+    from `map_origin(waypoints)`. Returns (drive, waypoints, t0_s, origin_xy_m (2,))."""
+    origin = map_origin(waypoints_xy_m)
+    t0 = float(drive.t_s[0]) if len(drive.t_s) else 0.0
+    wp = np.asarray(waypoints_xy_m, dtype=np.float64) - origin
+    return drive.shifted(t0, origin), wp, t0, origin

@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import re
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ import numpy as np
 
 from fpe_jax.config import read_config, write_config
 from fpe_jax.errors import InputError
+from fpe_jax.io.writers import check_output_paths, write_bytes
 
 FORMATS = ("json", "ros2", "stablehlo", "all")
 DEFAULT_NODE = "future_pose_estimator"
@@ -220,7 +220,7 @@ def export_stablehlo(
 
     out = Path(out)
     sidecar = out.with_name(out.name + ".json")
-    _check_free([out, sidecar], force)
+    check_output_paths([out, sidecar], force)
     with jax.enable_x64(True):
         params = config_to_params(cfg)
         track = Track.from_waypoints(np.asarray(waypoints_xy_m, dtype=np.float64))
@@ -255,8 +255,8 @@ def export_stablehlo(
         },
         "config": cfg,
     }
-    _write_atomic(out, blob)
-    _write_atomic(sidecar, (json.dumps(meta, indent=2) + "\n").encode())
+    write_bytes(out, blob, force=force)
+    write_bytes(sidecar, (json.dumps(meta, indent=2) + "\n").encode(), force=force)
     return out, sidecar
 
 
@@ -332,18 +332,6 @@ def load(path) -> ExportedPredictor:
 # ---- files ---------------------------------------------------------------------------------------
 
 
-def _check_free(paths: list[Path], force: bool) -> None:
-    for p in paths:
-        if p.exists() and not force:
-            raise InputError(p, "exists", "a new path, or --force to overwrite")
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
 def export_config(
     config_path,
     fmt: str,
@@ -369,9 +357,9 @@ def export_config(
     """
     if fmt not in FORMATS:
         raise InputError("--format", f"unknown format {fmt!r}", f"one of {', '.join(FORMATS)}")
-    from fpe_jax.runner import check_config, load_waypoints_xy  # JAX-free
+    from fpe_jax.runner import load_waypoints_xy  # JAX-free
 
-    cfg = check_config(read_config(config_path), str(config_path))
+    cfg = read_config(config_path)  # every value checked (fpe_jax.spec)
     if fmt in ("stablehlo", "all") and waypoints is None:
         raise InputError(
             "--waypoints", "the stablehlo predictor bakes the track in", "--waypoints FILE"
@@ -390,10 +378,13 @@ def export_config(
         if out.exists() and not out.is_dir():
             raise InputError(out, "is not a folder", "a folder for config.json, params.yaml, ...")
         targets = {k: out / name for k, name in ALL_FILES.items()}
-        _check_free([*targets.values(), out / (ALL_FILES["stablehlo"] + ".json")], force)
-        out.mkdir(parents=True, exist_ok=True)
+        if not out.exists():
+            check_output_paths([out], force)  # its parent exists and is writable
+            out.mkdir()
+        check_output_paths([*targets.values(), out / (ALL_FILES["stablehlo"] + ".json")], force)
     else:
         targets = {fmt: out}
+        check_output_paths([out], force)
     written = []
     if "stablehlo" in targets:  # first: the slowest, and the only one that can fail late
         written += export_stablehlo(
@@ -402,7 +393,6 @@ def export_config(
     if "json" in targets:
         written.append(export_json(cfg, targets["json"], force=force))
     if "ros2" in targets:
-        _check_free([targets["ros2"]], force)
-        _write_atomic(targets["ros2"], text.encode())
+        write_bytes(targets["ros2"], text.encode(), force=force)
         written.append(targets["ros2"])
     return written

@@ -43,20 +43,12 @@ from fpe_jax.predict import (
     states_from_drive,
 )
 from fpe_jax.rollout import State
+from fpe_jax.spec import DEFAULT_FIT as DEFAULT_FIT
+from fpe_jax.spec import DEFAULT_SOLVER as DEFAULT_SOLVER
+from fpe_jax.spec import FIT_GROUPS as FIT_GROUPS
+from fpe_jax.spec import SOLVERS as SOLVERS
 from fpe_jax.track import Track, project_rollout
 
-# What `--fit` may name, and the Params fields each name frees.
-FIT_GROUPS = {
-    "lookahead": ("lookahead_m", "lookahead_gain_s"),
-    "lookahead_m": ("lookahead_m",),
-    "gain": ("lookahead_gain_s",),
-    "weights": ("weights",),
-    "delay": ("delay_s",),
-    "speed": ("speed_weight", "speed_mps"),
-    "tau": ("offset_tau_s", "speed_tau_s"),
-    "smoothing": ("position_smoothing",),
-}
-DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")  # of the blend model
 # the groups each fitted model reads, and its default: the line model has no memorised speed
 MODEL_FIT = {
     "blend": (("lookahead", "lookahead_m", "gain", "weights", "delay", "speed"), DEFAULT_FIT),
@@ -91,8 +83,6 @@ WEIGHT_SMOOTHING_M2 = 0.01
 # Both solvers are optimistix's. BFGS is the default: in experiments/results/solvers.md it ends
 # at an equal or lower loss on every drive (LM up to 2e-5 relative higher) in comparable
 # time. An LM step needs the full Jacobian (~18 forward passes), a BFGS step one gradient.
-SOLVERS = ("bfgs", "lm")
-DEFAULT_SOLVER = "bfgs"
 MAX_STEPS = {"bfgs": 1000, "lm": 200}  # BFGS counts line-search trials too
 # BFGS minimises loss / (target points x BFGS_LOSS_UNIT_M2). Its first inverse Hessian is the
 # identity, so this unit sets the first steps' length: on the raw sum (~1e4 on a 10-minute

@@ -19,14 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-BLEND_MODES = ("position", "heading")
-MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
-LINE_KEYS = ("line_offset_m", "line_speed_mps", "line_coverage")
-MIN_TAU_S = 0.01  # time constants stay above this: exp(-t / tau) must not underflow to 0/0
-
-
-def _is_int(x) -> bool:
-    return isinstance(x, int | np.integer) and not isinstance(x, bool)
+from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported for users of params
+from fpe_jax.spec import LINE_KEYS as LINE_KEYS
+from fpe_jax.spec import MIN_TAU_S as MIN_TAU_S
+from fpe_jax.spec import MODELS as MODELS
+from fpe_jax.spec import check_settings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,22 +56,8 @@ class Settings:
     history: int = 10
 
     def __post_init__(self):
-        checks = [
-            (self.blend in BLEND_MODES, f"blend must be one of {BLEND_MODES}, got {self.blend!r}"),
-            (self.model in MODELS, f"model must be one of {MODELS}, got {self.model!r}"),
-            (self.dt_s > 0 and self.horizon >= 1, "dt_s must be > 0 and horizon >= 1"),
-            (self.wheelbase_m > 0 and self.max_steer_rad > 0, "wheelbase, max_steer must be > 0"),
-            (self.history >= 2, "history must be >= 2 observations"),
-            # Fix (tests/test_params.py): these were accepted and failed later or silently: a
-            # float horizon/history breaks array shapes, a steering limit >= pi/2 makes
-            # tan(steer) flip sign, a negative minimum lookahead lets the goal fall behind the car.
-            (_is_int(self.horizon) and _is_int(self.history), "horizon, history must be integers"),
-            (self.max_steer_rad < 0.5 * np.pi, "max_steer_rad must be < pi / 2"),
-            (self.min_lookahead_m >= 0, "min_lookahead_m must be >= 0"),
-        ]
-        for ok, msg in checks:
-            if not ok:
-                raise ValueError(f"Settings: {msg}")
+        # the rules of fpe_jax.spec (an InputError, i.e. a ValueError, naming the field)
+        check_settings(dataclasses.asdict(self), "Settings")
 
 
 class Params(eqx.Module):

@@ -14,9 +14,20 @@ import numpy as np
 from fpe_jax.errors import InputError
 
 
+def map_origin(xy_m) -> np.ndarray:
+    """(2,) origin [m] of a local frame for (K, 2) points [m]: the whole metres at or below their
+    lower-left corner. Subtracting it (in float64) makes map coordinates small before they enter
+    float32; being whole metres, equal shapes at different offsets get equal local coordinates."""
+    xy = np.asarray(xy_m, dtype=np.float64)
+    return np.floor(xy.min(axis=0)) if xy.size else np.zeros(2)
+
+
 def waypoints_sha256(waypoints_xy_m) -> str:
-    """Content hash of waypoints (K, 2) [m]: sha256 of their float64 bytes, row-major."""
-    xy = np.ascontiguousarray(np.asarray(waypoints_xy_m, dtype=np.float64))
+    """Content hash of waypoints (K, 2) [m]: sha256 of their float64 bytes, row-major, in their
+    local frame (`map_origin` subtracted), so the same file hashes alike before and after the
+    commands move it to its local frame (a whole-metre shift changes nothing the line means)."""
+    xy = np.asarray(waypoints_xy_m, dtype=np.float64)
+    xy = np.ascontiguousarray(xy - map_origin(xy))
     return hashlib.sha256(xy.tobytes()).hexdigest()
 
 

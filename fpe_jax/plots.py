@@ -44,12 +44,19 @@ def color(name: str) -> str:
     return COLORS.get(name, "tab:green")  # a config: drawn like the fitted one
 
 
-def save(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Write a figure as PNG and free it; returns the path."""
+def save(fig, path: str | Path, dpi: int = 110, *, force: bool = True) -> Path:
+    """Write a figure (format from the suffix) atomically and free it; returns the path.
+
+    `force=False` refuses to replace an existing file."""
+    from fpe_jax.io.writers import atomic_output
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    try:
+        with atomic_output(path, force) as tmp, open(tmp, "xb") as f:
+            fig.savefig(f, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
+    finally:
+        plt.close(fig)
     return path
 
 

@@ -1,6 +1,6 @@
 """Fit recipes (TOML): which drives, which waypoints, what to fit, where the config goes.
 
-out = "levine.json"            # paths are relative to the recipe's folder
+out = "levine.json"            # relative to the recipe's folder, and inside it (or absolute)
 waypoints = "../../shared/data/levine/levine-waypoints.csv"
 holdout = 0.4                  # or [[test_drives]] for separate held-out drives
 model = "line"                 # or "blend" (then also fit = [...] and blend = "auto")
@@ -27,6 +27,7 @@ import dataclasses
 import tomllib
 from pathlib import Path
 
+from fpe_jax import spec as S
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 
@@ -42,19 +43,88 @@ DRIVE_KEYS = {
     "tag_to_base",
     "drop_outside_tf",
 }
-TOP_KEYS = {
-    "out",
-    "waypoints",
-    "holdout",
-    "fit",
-    "model",
-    "blend",
-    "solver",
-    "drives",
-    "test_drives",
-    "settings",
-}
+TOP_KEYS = {"out", "waypoints", "holdout", "fit", "model", "blend", "solver", "drives"}
+TOP_KEYS |= {"test_drives", "settings"}
 SETTINGS_KEYS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")  # params.USER_SETTINGS
+SIMULATE_KEYS = {"track", "duration_s", "latency_s", "seed", "raceline", "half_width_m"}
+_STR, _BOOL = "a string", "true or false"
+
+
+def _check(ok: bool, source, field: str, value, expected: str) -> None:
+    if not ok:
+        raise InputError(source, f"{field} is {S.short(value)}", expected)
+
+
+def _check_entry(entry, source, field: str) -> None:
+    """The types and ranges of one [[drives]] entry, before anything is loaded."""
+    _check(isinstance(entry, dict), source, field, entry, "a table of drive keys")
+    unknown = set(entry) - DRIVE_KEYS
+    if unknown:
+        raise InputError(source, f"unknown drive keys {sorted(unknown)}", f"{sorted(DRIVE_KEYS)}")
+    for key in ("path", "pose_topic", "truth_topic", "waypoints"):
+        if key in entry:
+            _check(
+                isinstance(entry[key], str) and entry[key],
+                source,
+                f"{field}.{key}",
+                entry[key],
+                _STR,
+            )
+    for key in ("log_time", "drop_outside_tf"):
+        if key in entry:
+            _check(isinstance(entry[key], bool), source, f"{field}.{key}", entry[key], _BOOL)
+    if "rate_hz" in entry:
+        S.check_rate(entry["rate_hz"], source, f"{field}.rate_hz")
+    if "tag_id" in entry:
+        v = entry["tag_id"]
+        _check(S.is_int(v) and v >= 0, source, f"{field}.tag_id", v, "an integer >= 0")
+    if "simulate" in entry:
+        sim = entry["simulate"]
+        _check(
+            isinstance(sim, dict),
+            source,
+            f"{field}.simulate",
+            sim,
+            'a table such as { track = "oval", duration_s = 60 }',
+        )
+        unknown = set(sim) - SIMULATE_KEYS
+        if unknown:
+            raise InputError(
+                source,
+                f"unknown {field}.simulate keys {sorted(unknown)}",
+                f"{sorted(SIMULATE_KEYS)}",
+            )
+        for key in ("track", "raceline"):
+            if key in sim:
+                _check(isinstance(sim[key], str), source, f"{field}.simulate.{key}", sim[key], _STR)
+        if "half_width_m" in sim:
+            S.number_check(source, f"{field}.simulate.half_width_m", 0.0, 100.0, open_lo=True)(
+                sim["half_width_m"]
+            )
+        S.check_simulation(
+            sim.get("duration_s", 60.0),
+            sim.get("latency_s", 0.3),
+            sim.get("seed", 0),
+            0.0,
+            source,
+            f"{field}.simulate.",
+        )
+
+
+def _confined(base: Path, rel, source, field: str) -> Path:
+    """`base / rel`; a relative path must stay inside the recipe's folder."""
+    _check(isinstance(rel, str) and rel, source, field, rel, _STR)
+    p = Path(rel)
+    if p.is_absolute():
+        return p
+    full = base / p
+    if not full.resolve().is_relative_to(base.resolve()):
+        raise InputError(
+            source,
+            f"{field} = {rel!r} leaves the recipe's folder",
+            "a path inside it, or an absolute path",
+        )
+    return full
 
 
 @dataclasses.dataclass
@@ -77,9 +147,6 @@ def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
     from fpe_jax import io
     from fpe_jax.io.apriltag import parse_tag_to_base
 
-    unknown = set(entry) - DRIVE_KEYS
-    if unknown:
-        raise InputError(source, f"unknown drive keys {sorted(unknown)}", f"{sorted(DRIVE_KEYS)}")
     if "simulate" in entry:
         from fpe_jax.sim import simulate
 
@@ -112,7 +179,11 @@ def load_recipe(path) -> Recipe:
     if not path.is_file():
         raise InputError(path, "no such recipe file", "a TOML recipe such as fit/levine.toml")
     try:
-        spec = tomllib.loads(path.read_text())
+        spec = tomllib.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise InputError(
+            path, f"not UTF-8 text ({e.reason} at byte {e.start})", "a TOML recipe"
+        ) from None
     except tomllib.TOMLDecodeError as e:
         raise InputError(path, f"not valid TOML ({e})", "a TOML recipe") from None
     unknown = set(spec) - TOP_KEYS
@@ -120,26 +191,39 @@ def load_recipe(path) -> Recipe:
         raise InputError(path, f"unknown keys {sorted(unknown)}", f"{sorted(TOP_KEYS)}")
     if not spec.get("drives"):
         raise InputError(path, "no [[drives]]", "at least one [[drives]] entry")
+    # every value is checked before any drive is read or simulated
     table = spec.get("settings", {})
     if not isinstance(table, dict) or set(table) - set(SETTINGS_KEYS):
         bad = sorted(set(table) - set(SETTINGS_KEYS)) if isinstance(table, dict) else table
         raise InputError(path, f"[settings] has {bad!r}", f"keys from {', '.join(SETTINGS_KEYS)}")
     base = path.parent
+    for key in ("drives", "test_drives"):
+        entries = spec.get(key, [])
+        _check(isinstance(entries, list), path, key, entries, f"[[{key}]] tables")
+        for i, e in enumerate(entries):
+            _check_entry(e, path, f"{key}[{i}]")
     wp = spec.get("waypoints")
+    if wp is not None:
+        _check(isinstance(wp, str) and wp, path, "waypoints", wp, _STR)
+    holdout = S.check_fraction(spec.get("holdout", 0.3), path, "holdout")
+    fit = spec.get("fit")
+    if fit is not None:
+        _check(isinstance(fit, list), path, "fit", fit, f"a list of names from {S.FIT_NAMES}")
+        fit = S.check_fit_names(fit, path, "fit")
+    if "model" in spec:
+        S.check_choice(spec["model"], S.FIT_MODELS, path, "model")
+    S.check_choice(spec.get("blend", "auto"), S.FIT_BLENDS, path, "blend")
+    S.check_choice(spec.get("solver", S.DEFAULT_SOLVER), S.SOLVERS, path, "solver")
+    out = _confined(base, spec["out"], path, "out") if "out" in spec else None
     drives = [_load_entry(e, base, wp, path) for e in spec["drives"]]
     tests = [_load_entry(e, base, wp, path) for e in spec.get("test_drives", [])]
-    fit = spec.get("fit")
-    from fpe_jax.cli import SOLVERS
-
-    if spec.get("solver", SOLVERS[0]) not in SOLVERS:
-        raise InputError(path, f"solver = {spec['solver']!r}", f"one of {', '.join(SOLVERS)}")
     return Recipe(
         source=path,
-        out=base / spec["out"] if "out" in spec else None,
+        out=out,
         drives=drives,
         test_drives=tests,
-        holdout=float(spec.get("holdout", 0.3)),
-        fit=tuple(fit) if fit is not None else None,
+        holdout=holdout,
+        fit=fit,
         blend=spec.get("blend", "auto"),
         model=spec.get("model"),
         solver=spec.get("solver"),

@@ -34,18 +34,18 @@ from fpe_jax.config import LINE_KEYS, check_waypoints, read_config
 from fpe_jax.errors import InputError
 from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
 from fpe_jax.path import build_path
+from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported: the runner's modes
+from fpe_jax.spec import MODELS as MODELS
+from fpe_jax.spec import check_config
 
 # The same constants as fpe_jax.estimate, fpe_jax.params and fpe_jax.track (which import JAX, so
 # they cannot be imported here); tests/test_runner.py checks that they agree.
 WINDOW_BEHIND_M = 2.0
 WINDOW_AHEAD_M = 4.0
 LOCAL_PROJECTION_ITERS = 2
-BLEND_MODES = ("position", "heading")
-MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
 TRACK_FRAME_ITERS = 3  # fpe_jax.estimate.estimate_track_frame's project_local iterations
 MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.rollout's
 MAX_SPEED_RATIO = 3.0
-MIN_TAU_S = 0.01
 FALLBACK_TAU_S = 1.0
 
 _PI = math.pi
@@ -177,44 +177,6 @@ class RunnerPath:
             return s
         half = 0.5 * self.length_m
         return s_hint_m + ((s - s_hint_m + half) % self.length_m - half)
-
-
-def _is_number(v) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-
-
-def check_config(cfg: dict, source: str) -> dict:
-    """Check the values of a config (read_config checks only that the keys exist); returns it.
-
-    Raises InputError naming the value, for a wrong type, a non-finite number or an unknown mode.
-    """
-    p, st = cfg["params"], cfg["settings"]
-    for key in ("lookahead_m", "lookahead_gain_s", "delay_s", "speed_weight", "speed_mps"):
-        if not _is_number(p[key]):
-            raise InputError(source, f"params.{key} is {p[key]!r}", "a finite number")
-    for key in ("offset_tau_s", "speed_tau_s"):
-        if key in p and not (_is_number(p[key]) and p[key] >= MIN_TAU_S):
-            raise InputError(source, f"params.{key} is {p[key]!r}", f"a number >= {MIN_TAU_S}")
-    w = p.get("position_smoothing", 0.0)
-    if not (_is_number(w) and 0.0 <= w <= 1.0):
-        raise InputError(source, f"params.position_smoothing is {w!r}", "a number in [0, 1]")
-    if st["model"] == "line" and not all(all(map(_is_number, p[k])) for k in LINE_KEYS):
-        raise InputError(source, "params.line_* hold non-numbers", "finite numbers")
-    w = p["weights"]
-    if not (isinstance(w, list) and len(w) == st["horizon"] and all(map(_is_number, w))):
-        raise InputError(source, f"params.weights is {w!r}", "settings.horizon finite numbers")
-    for key, allowed in (("blend", BLEND_MODES), ("model", MODELS)):
-        if st[key] not in allowed:
-            raise InputError(source, f"settings.{key} is {st[key]!r}", f"one of {allowed}")
-    for key, least in (("horizon", 1), ("history", 2)):
-        if not (_is_number(st[key]) and isinstance(st[key], int) and st[key] >= least):
-            raise InputError(source, f"settings.{key} is {st[key]!r}", f"an integer >= {least}")
-    for key in ("dt_s", "wheelbase_m", "max_steer_rad"):
-        if not (_is_number(st[key]) and st[key] > 0):
-            raise InputError(source, f"settings.{key} is {st[key]!r}", "a positive number")
-    if not (_is_number(st["min_lookahead_m"]) and st["min_lookahead_m"] >= 0):
-        raise InputError(source, f"settings.min_lookahead_m is {st['min_lookahead_m']!r}", ">= 0")
-    return cfg
 
 
 class Runner:

@@ -30,6 +30,7 @@ import numpy as np
 
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
+from fpe_jax.spec import check_simulation
 from fpe_jax.tracks import builtin_track, is_builtin, loop_arclength, loop_curvature, resample_loop
 
 SIM_VERSION = "1.0"
@@ -199,11 +200,7 @@ def simulate(
     Returns:
         A `SimResult`; detections stamped after `duration_s` are not recorded.
     """
-    if not (0 < duration_s <= MAX_DURATION_S):  # NaN fails too
-        expected = f"a positive number of seconds, at most {MAX_DURATION_S:.0f}"
-        raise InputError("duration", f"{duration_s!r} s", expected)
-    if not (latency_s >= 0 and math.isfinite(latency_s)):
-        raise InputError("latency", f"{latency_s!r} s", "a non-negative number of seconds")
+    check_simulation(duration_s, latency_s, seed, driver.stops_per_min)
     name, center, hw, ref_xy, ref_v = _resolve_track(track, raceline, half_width_m)
     rng_drive, rng_offset, rng_sensor = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)
@@ -711,6 +708,7 @@ def write_simulation(
     import json
 
     from fpe_jax.io import write_drive_mcap
+    from fpe_jax.io.writers import write_text, write_xy_csv
 
     layout = layout or ("map" if res.ego_t_s is None else "apriltag")
     if layout not in ("map", "apriltag"):
@@ -746,8 +744,7 @@ def write_simulation(
         topics = dict(pose=POSE_TOPIC, odom=ODOM_TOPIC, tf=TF_TOPIC, frames=[MAP_FRAME, CAR_FRAME])
     else:
         mcap, topics = _write_apriltag_layout(res, out / "drive.mcap", odom, force)
-    waypoints = out / "waypoints.csv"
-    np.savetxt(waypoints, res.centerline_xy_m, fmt="%.6f", delimiter=",", header="x,y", comments="")
+    waypoints = write_xy_csv(out / "waypoints.csv", res.centerline_xy_m, force=force)
     scenario = out / "scenario.json"
     summary = dict(
         topics=topics,
@@ -756,7 +753,7 @@ def write_simulation(
         n_outliers=d.meta["n_outliers"],
         n_dropped=d.meta["n_dropped"],
     )
-    scenario.write_text(json.dumps(res.scenario | summary, indent=2) + "\n")
+    write_text(scenario, json.dumps(res.scenario | summary, indent=2) + "\n", force=force)
     return [mcap, waypoints, scenario]
 
 

@@ -48,7 +48,10 @@ def builtin_track(name: str) -> tuple[np.ndarray, float]:
     if name in ("oval", "hairpin"):
         return _read_builtin(name)
     if is_builtin(name):
-        return _random_loop(int(name.partition(":")[2]), half_width_m=1.1), 1.1
+        seed = int(name.partition(":")[2])
+        if seed < 0:  # SeedSequence needs a non-negative seed
+            raise InputError(name, f"seed {seed} is negative", "random:SEED with SEED >= 0")
+        return _random_loop(seed, half_width_m=1.1), 1.1
     raise InputError(name, "unknown built-in track", "oval, hairpin or random:SEED")
 
 

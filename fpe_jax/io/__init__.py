@@ -3,7 +3,8 @@
 Readers: `load_drive` (ROS 2 MCAP, rosbag2 folders, ROS 1 bags, CSV) -> `Drive`;
 `load_waypoints` (CSV variants, nav_msgs/Path in a log) -> `Waypoints`; `describe_log`.
 Writers: `write_predictions` (CSV / MCAP), `write_drive_mcap` (simulated drives),
-`write_drive_csv` (a drive's observations), `check_output_path`. AprilTag detections plus the
+`write_drive_csv` (a drive's observations), `check_output_path`; every file goes through the
+one atomic writer `atomic_output` (`write_text`, `write_bytes`). AprilTag detections plus the
 log's TF are composed into map-frame poses by `fpe_jax.io.apriltag` (TF math: `fpe_jax.io.tf`).
 Every bad input raises `fpe_jax.errors.InputError`.
 """
@@ -11,19 +12,27 @@ Every bad input raises `fpe_jax.errors.InputError`.
 from fpe_jax.io.drives import describe_log, load_drive
 from fpe_jax.io.waypoints import Waypoints, load_waypoints
 from fpe_jax.io.writers import (
+    atomic_output,
     check_output_path,
+    check_output_paths,
+    write_bytes,
     write_drive_csv,
     write_drive_mcap,
     write_predictions,
+    write_text,
 )
 
 __all__ = [
     "Waypoints",
+    "atomic_output",
     "check_output_path",
+    "check_output_paths",
     "describe_log",
     "load_drive",
     "load_waypoints",
+    "write_bytes",
     "write_drive_csv",
     "write_drive_mcap",
     "write_predictions",
+    "write_text",
 ]

@@ -590,11 +590,11 @@ def write_apriltag_mcap(path, *, odom: dict | None = None, force: bool = False, 
     (`odom` as in `fpe_jax.io.write_drive_mcap`) as a ROS 2 MCAP. Returns the path."""
     from pathlib import Path
 
-    from fpe_jax.io.writers import _atomic_output, _odom_events, _write_ros2_mcap
+    from fpe_jax.io.writers import _odom_events, _write_ros2_mcap, atomic_output
 
     events = apriltag_events(path, **layout)
     if odom is not None:
         events += _odom_events(path, odom)
-    with _atomic_output(path, force) as tmp:
+    with atomic_output(path, force) as tmp:
         _write_ros2_mcap(tmp, events)
     return Path(path)

@@ -39,6 +39,8 @@ _POSE_EXPECTED = (
     "PoseStamped, PoseWithCovarianceStamped, Odometry, TFMessage or AprilTagDetectionArray"
 )
 
+MIN_RATE_HZ, MAX_RATE_HZ = 1e-3, 1e6  # a --rate outside this is a unit mistake
+
 
 def _topic_list(topics) -> str:
     return ", ".join(topics) if topics else "none"
@@ -263,6 +265,10 @@ def _drive_from_table(path, rate_hz) -> Drive:
             raise InputError(path, f"{what}, so --rate HZ is required", "row k at t = k/HZ s")
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise InputError(path, f"--rate {rate_hz} is not a positive rate", "a rate in Hz > 0")
+        if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:  # 1e-300 would put every row at t = 0
+            raise InputError(
+                path, f"--rate {rate_hz:g} is absurd", f"{MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz"
+            )
         t = np.arange(len(x)) / float(rate_hz)
     elif rate_hz is not None:
         raise InputError(path, "--rate given but the CSV has a time column", "no --rate")

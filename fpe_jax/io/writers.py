@@ -1,8 +1,10 @@
 """Writing files: predictions (CSV or ROS 2 MCAP) and simulated drives (ROS 2 MCAP).
 
-Every writer goes through `_atomic_output`: it writes a hidden temporary file next to the target
-and renames it into place only when writing succeeded, so a failure never leaves a half-written
-file, and an existing file is only replaced with `force`.
+Every file fpe-jax writes goes through `atomic_output` (or `write_text` / `write_bytes` on top of
+it): it writes a uniquely named hidden temporary file next to the target and renames it into
+place only when writing succeeded, so a failure, Ctrl-C or SIGTERM (the CLI turns it into
+KeyboardInterrupt) never leaves a half-written or temporary file, and an existing file is only
+replaced with `force`. `check_output_path` runs the same checks before any slow work starts.
 """
 
 from __future__ import annotations
@@ -27,8 +29,8 @@ _ZERO_COV = [0.0] * 36  # mcap_ros2 wants a list (not an array) for float64[36]
 def check_output_path(path, force: bool) -> Path:
     """Fail early (before any work) if `path` cannot be written as asked.
 
-    Raises InputError if its folder does not exist, if it is a folder, or if it exists and `force`
-    is false. Returns the path as a `Path`.
+    Raises InputError if its folder does not exist or cannot be written (read-only folder or file
+    system), if it is a folder, or if it exists and `force` is false. Returns it as a `Path`.
     """
     p = Path(path)
     if not p.parent.is_dir():
@@ -37,12 +39,24 @@ def check_output_path(path, force: bool) -> Path:
         raise InputError(p, "is a folder", "a file name to write")
     if p.exists() and not force:
         raise InputError(p, "exists; pass --force to overwrite")
+    if not os.access(p.parent, os.W_OK | os.X_OK):
+        raise InputError(p, f"its folder {str(p.parent)!r} is not writable", "a writable folder")
     return p
 
 
+def check_output_paths(paths, force: bool) -> None:
+    """`check_output_path` for each of several targets (all checked before any is written)."""
+    for p in paths:
+        check_output_path(p, force)
+
+
 @contextlib.contextmanager
-def _atomic_output(path, force: bool) -> Iterator[Path]:
-    """Yield a temporary path in the target's folder; rename it to `path` if the body succeeds."""
+def atomic_output(path, force: bool) -> Iterator[Path]:
+    """Yield a temporary path in the target's folder; rename it to `path` if the body succeeds.
+
+    The temporary file is removed on every failure, KeyboardInterrupt included. A failure to
+    write (disk full, permissions) is an InputError naming the target.
+    """
     target = check_output_path(path, force)
     # Our own unique name (not mkstemp) so the file gets the user's umask permissions.
     tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.part")
@@ -51,8 +65,29 @@ def _atomic_output(path, force: bool) -> Iterator[Path]:
         if target.exists() and not force:  # appeared while we were writing
             raise InputError(target, "exists; pass --force to overwrite")
         os.replace(tmp, target)
+    except OSError as e:
+        raise InputError(target, f"cannot be written ({e.strerror or e})") from None
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def write_bytes(path, data: bytes, *, force: bool = False) -> Path:
+    """Write `data` to `path` atomically (see `atomic_output`); returns the path."""
+    with atomic_output(path, force) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def write_text(path, text: str, *, force: bool = False) -> Path:
+    """Write UTF-8 `text` to `path` atomically (see `atomic_output`); returns the path."""
+    return write_bytes(path, text.encode("utf-8"), force=force)
+
+
+def write_xy_csv(path, xy_m, *, fmt: str = "%.6f", force: bool = False) -> Path:
+    """Write (K, 2) points x [m], y [m] as CSV with header `x,y` (`fmt`: 6 decimals), atomically."""
+    with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
+        np.savetxt(f, xy_m, fmt=fmt, delimiter=",", header="x,y", comments="")
+    return Path(path)
 
 
 def _write_ros2_mcap(tmp: Path, events: list[tuple[int, str, str, dict]]) -> None:
@@ -181,7 +216,7 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
         events += _odom_events(path, odom)
     if tf is not None:
         events += _tf_events(path, tf)
-    with _atomic_output(path, force) as tmp:
+    with atomic_output(path, force) as tmp:
         _write_ros2_mcap(tmp, events)
     return Path(path)
 
@@ -248,7 +283,7 @@ def write_predictions(
             cols += [c[:, 0, 0], c[:, 0, 1], c[:, 1, 1]]
             fmt += ["%.9g"] * 3
             header += ",cov_xx_m2,cov_xy_m2,cov_yy_m2"
-        with _atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
+        with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
             np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",", header=header, comments="")
         return Path(path)
 
@@ -266,7 +301,7 @@ def write_predictions(
     if drive is not None:
         obs = dict(t_s=drive.t_s, xy_m=drive.xy_m, yaw_rad=drive.yaw_rad)
         events += _pose_events(path, obs, OBSERVATION_TOPIC)
-    with _atomic_output(path, force) as tmp:
+    with atomic_output(path, force) as tmp:
         _write_ros2_mcap(tmp, events)
     return Path(path)
 
@@ -283,6 +318,6 @@ def write_drive_csv(path, drive, *, force: bool = False) -> Path:
     if np.isfinite(drive.yaw_rad).all():
         cols.append(drive.yaw_rad)
         header += ",yaw"
-    with _atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
+    with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
         np.savetxt(f, np.column_stack(cols), fmt="%.9f", delimiter=",", header=header, comments="")
     return Path(path)

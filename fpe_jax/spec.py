@@ -1,0 +1,340 @@
+"""The JAX-free spec: model, blend, fit-group and solver names, the config schema and every check
+of a config's values.
+
+Imported by params (Settings), config, recipe, export, the CLI and the NumPy runner, so one table
+of rules decides what a valid value is everywhere. Each failure is an `InputError` naming the file
+and the field (`settings.dt_s`), what it is and what was expected.
+
+To add a config field, add one `Rule` to PARAM_RULES or SETTING_RULES; `check_config` and
+`check_settings` pick it up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from fpe_jax.errors import InputError
+
+SCHEMA_VERSION = 1
+BLEND_MODES = ("position", "heading")
+MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
+MIN_TAU_S = 0.01  # time constants stay above this: exp(-t / tau) must not underflow to 0/0
+# `--fit` names -> the Params fields they free (fpe_jax.fit fits these groups)
+FIT_GROUPS = {
+    "lookahead": ("lookahead_m", "lookahead_gain_s"),
+    "lookahead_m": ("lookahead_m",),
+    "gain": ("lookahead_gain_s",),
+    "weights": ("weights",),
+    "delay": ("delay_s",),
+    "speed": ("speed_weight", "speed_mps"),
+    "tau": ("offset_tau_s", "speed_tau_s"),
+    "smoothing": ("position_smoothing",),
+}
+FIT_NAMES = tuple(FIT_GROUPS)
+DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")
+SOLVERS = ("bfgs", "lm")  # optimistix BFGS on the robust loss (default), LM on the residuals
+DEFAULT_SOLVER = SOLVERS[0]
+FIT_BLENDS = ("auto", *BLEND_MODES)
+FIT_MODELS = ("line", "blend")  # the models `fpe fit --model` fits (fpe_jax.fit.MODEL_FIT)
+
+
+def is_number(v) -> bool:
+    """A finite real number (int or float, NumPy scalars included; not bool, not a string)."""
+    if isinstance(v, bool) or not hasattr(v, "__float__") or isinstance(v, str | bytes):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
+def is_int(v) -> bool:
+    """An integer (Python or NumPy), not bool."""
+    return isinstance(v, int | np.integer) and not isinstance(v, bool)
+
+
+@dataclasses.dataclass(frozen=True)
+class Rule:
+    """What one config field may hold.
+
+    kind: "number" (finite real), "int", "choice" (one of `choices`), "weights" (a list of
+    settings.horizon numbers), "array" (a non-empty list of numbers). lo / hi: inclusive bounds
+    unless lo_open / hi_open; a bound given as a string names another field of the same config
+    (`"settings.min_lookahead_m"`). optional: the key may be absent (configs written before it).
+    """
+
+    key: str
+    kind: str = "number"
+    lo: float | str | None = None
+    hi: float | str | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    choices: tuple[str, ...] = ()
+    unit: str = ""
+    optional: bool = False
+
+    def expected(self) -> str:
+        if self.kind == "choice":
+            return f"one of {', '.join(self.choices)}"
+        what = {
+            "number": "a finite number",
+            "int": "an integer",
+            "weights": "a list of settings.horizon finite numbers",
+            "array": "a non-empty list of finite numbers",
+        }[self.kind]
+        lo = "" if self.lo is None else f"{'>' if self.lo_open else '>='} {self.lo}"
+        hi = "" if self.hi is None else f"{'<' if self.hi_open else '<='} {self.hi}"
+        rng = " and ".join(r for r in (lo, hi) if r)
+        each = " each" if self.kind in ("weights", "array") else ""
+        return f"{what}{each} {rng}{' ' + self.unit if self.unit and rng else ''}".strip()
+
+
+PARAM_RULES = (
+    Rule("lookahead_m", lo="settings.min_lookahead_m", hi=1000.0, unit="m"),
+    Rule("lookahead_gain_s", lo=0.0, hi=100.0, unit="s"),
+    Rule("weights", "weights", lo=0.0, hi=1.0),
+    Rule("delay_s", lo=0.0, hi=10.0, unit="s"),
+    Rule("speed_weight", lo=0.0, hi=1.0),
+    Rule("speed_mps", lo=0.0, hi=200.0, unit="m/s"),
+    Rule("offset_tau_s", lo=MIN_TAU_S, hi=1000.0, unit="s", optional=True),
+    Rule("speed_tau_s", lo=MIN_TAU_S, hi=1000.0, unit="s", optional=True),
+    Rule("position_smoothing", lo=0.0, hi=1.0, optional=True),
+)
+# the line model's profile along the track (`fpe_jax.line`), P values each; required for it
+LINE_RULES = (
+    Rule("line_offset_m", "array", lo=-1000.0, hi=1000.0, unit="m"),
+    Rule("line_speed_mps", "array", lo=0.0, hi=200.0, unit="m/s"),
+    Rule("line_coverage", "array", lo=0.0, hi=1.0),
+)
+SETTING_RULES = (
+    Rule("dt_s", lo=0.0, hi=10.0, lo_open=True, unit="s"),
+    Rule("horizon", "int", lo=1, hi=10_000),
+    Rule("wheelbase_m", lo=0.0, hi=100.0, lo_open=True, unit="m"),
+    # >= pi/2 makes tan(steer) flip sign
+    Rule("max_steer_rad", lo=0.0, hi=0.5 * math.pi, lo_open=True, hi_open=True, unit="rad"),
+    Rule("blend", "choice", choices=BLEND_MODES),
+    Rule("model", "choice", choices=MODELS),
+    Rule("min_lookahead_m", lo=0.0, hi=1000.0, unit="m"),
+    Rule("history", "int", lo=2, hi=10_000),
+)
+PARAM_KEYS = tuple(r.key for r in PARAM_RULES if not r.optional)
+OPTIONAL_PARAM_KEYS = tuple(r.key for r in PARAM_RULES if r.optional)
+LINE_KEYS = tuple(r.key for r in LINE_RULES)
+SETTING_KEYS = tuple(r.key for r in SETTING_RULES)
+SECTIONS = {"params": PARAM_RULES, "settings": SETTING_RULES}
+
+
+def _bound(b, cfg: dict) -> float | None:
+    if isinstance(b, str):
+        section, key = b.split(".")
+        v = cfg.get(section, {}).get(key)
+        return float(v) if is_number(v) else None
+    return b
+
+
+def _in_range(x: float, rule: Rule, cfg: dict) -> bool:
+    lo, hi = _bound(rule.lo, cfg), _bound(rule.hi, cfg)
+    if lo is not None and (x <= lo if rule.lo_open else x < lo):
+        return False
+    return not (hi is not None and (x >= hi if rule.hi_open else x > hi))
+
+
+def short(v, n: int = 40) -> str:
+    """A value as an error message shows it: repr cut to n characters, containers by size."""
+    s = repr(v) if not isinstance(v, list | dict) else type(v).__name__ + f" of {len(v)}"
+    return s if len(s) <= n else s[: n - 3] + "..."
+
+
+def check_value(rule: Rule, v, cfg: dict, source, field: str) -> None:
+    """Raise InputError(source, "field is v", expected) unless `v` satisfies `rule`."""
+    bad = InputError(source, f"{field} is {short(v)}", rule.expected())
+    if rule.kind == "choice":
+        if not (isinstance(v, str) and v in rule.choices):
+            raise bad
+        return
+    if rule.kind == "array":
+        ok = isinstance(v, list) and v and all(is_number(x) for x in v)
+        if not ok or not all(_in_range(float(x), rule, cfg) for x in v):
+            raise bad
+        return
+    if rule.kind == "weights":
+        horizon = cfg.get("settings", {}).get("horizon")
+        if not isinstance(v, list) or not all(is_number(w) for w in v):
+            raise bad
+        if is_int(horizon) and len(v) != horizon:
+            raise InputError(
+                source,
+                f"{field} is a list of {len(v)} for settings.horizon {horizon}",
+                f"{horizon} weights",
+            )
+        if not all(_in_range(float(w), rule, cfg) for w in v):
+            raise bad
+        return
+    if not is_number(v) or (rule.kind == "int" and not is_int(v)):
+        raise bad
+    if not _in_range(float(v), rule, cfg):
+        raise bad
+
+
+def check_settings(values: dict, source="Settings") -> None:
+    """Check settings values alone (Settings.__post_init__)."""
+    cfg = {"settings": values}
+    for rule in SETTING_RULES:
+        check_value(rule, values[rule.key], cfg, source, f"settings.{rule.key}")
+
+
+def _check_uncertainty(unc, horizon: int, source) -> None:
+    """null, or {"frame": "track", "cov_m2": (H, 2, 2) symmetric positive semi-definite [m^2]}."""
+    if unc is None:
+        return
+    want = f'null or {{"frame": "track", "cov_m2": {horizon} x 2 x 2 numbers}}'
+    if not isinstance(unc, dict) or unc.get("frame") != "track" or "cov_m2" not in unc:
+        raise InputError(source, f"uncertainty is {short(unc)}", want)
+    cov = unc["cov_m2"]
+    if not isinstance(cov, list) or len(cov) != horizon:
+        n = len(cov) if isinstance(cov, list) else short(cov)
+        raise InputError(source, f"uncertainty.cov_m2 has {n} steps", f"{horizon} (the horizon)")
+    for h, c in enumerate(cov):
+        ok = (
+            isinstance(c, list)
+            and len(c) == 2
+            and all(isinstance(r, list) and len(r) == 2 and all(map(is_number, r)) for r in c)
+        )
+        if ok:
+            (a, b), (b2, d) = c
+            ok = a >= 0 and d >= 0 and abs(b - b2) <= 1e-9 * max(1.0, abs(a), abs(d))
+            ok = ok and a * d - b * b >= -1e-9 * max(1.0, a * d)
+        if not ok:
+            raise InputError(
+                source,
+                f"uncertainty.cov_m2[{h}] is {short(c)}",
+                "a symmetric positive semi-definite 2 x 2 matrix of finite numbers [m^2]",
+            )
+
+
+def check_config(cfg: Any, source) -> dict:
+    """Check a parsed config: schema version, sections, keys, every value and the cross-field
+    rules (weights and uncertainty match the horizon). Returns it with `uncertainty` and
+    `provenance` defaulted. Raises InputError naming the file and the field."""
+    if not isinstance(cfg, dict) or "schema_version" not in cfg:
+        raise InputError(source, "missing 'schema_version'", f"schema_version {SCHEMA_VERSION}")
+    version = cfg["schema_version"]
+    if not is_int(version) or version > SCHEMA_VERSION or version < 1:
+        raise InputError(
+            source,
+            f"schema_version {short(version)} is not supported (newer than this fpe-jax?)",
+            f"schema_version <= {SCHEMA_VERSION}; upgrade fpe-jax to read it",
+        )
+    line_model = isinstance(cfg.get("settings"), dict) and cfg["settings"].get("model") == "line"
+    rules = dict(SECTIONS, params=PARAM_RULES + (LINE_RULES if line_model else ()))
+    for section, section_rules in rules.items():
+        keys = [r.key for r in section_rules]
+        if not isinstance(cfg.get(section), dict):
+            raise InputError(source, f"missing section '{section}'", f"keys {', '.join(keys)}")
+        missing = [r.key for r in section_rules if not r.optional and r.key not in cfg[section]]
+        if missing:
+            what = f"'{section}' lacks {', '.join(missing)}"
+            if line_model and set(missing) <= set(LINE_KEYS):
+                what = f"model 'line' without {', '.join(f'params.{k}' for k in missing)}"
+            raise InputError(source, what, "every key present (a config written by `fpe fit`)")
+        unknown = sorted(set(cfg[section]) - set(keys))
+        if unknown:
+            raise InputError(
+                source, f"unknown key {section}.{unknown[0]}", f"keys {', '.join(keys)}"
+            )
+    # settings first: the params' rules refer to them (horizon, min_lookahead_m)
+    for section in ("settings", "params"):
+        for rule in rules[section]:
+            if rule.key in cfg[section]:
+                v = cfg[section][rule.key]
+                check_value(rule, v, cfg, source, f"{section}.{rule.key}")
+    if line_model:
+        sizes = {len(cfg["params"][k]) for k in LINE_KEYS}
+        if len(sizes) != 1:
+            raise InputError(source, "line profile arrays differ in size", "P values each")
+        line = cfg.get("line")
+        if not (isinstance(line, dict) and isinstance(line.get("waypoints_sha256"), str)):
+            what = "model 'line' without line.waypoints_sha256"
+            raise InputError(source, what, "a config written by `fpe fit`")
+    cfg.setdefault("uncertainty", None)
+    _check_uncertainty(cfg["uncertainty"], cfg["settings"]["horizon"], source)
+    cfg.setdefault("provenance", {})
+    if not isinstance(cfg["provenance"], dict):
+        raise InputError(source, f"provenance is {short(cfg['provenance'])}", "an object")
+    return cfg
+
+
+def check_choice(value, choices, source, field: str) -> None:
+    """Raise InputError unless `value` is one of `choices` (strings)."""
+    if not (isinstance(value, str) and value in choices):
+        raise InputError(source, f"{field} is {short(value)}", f"one of {', '.join(choices)}")
+
+
+def check_fraction(value, source, field: str) -> float:
+    """A held-out fraction strictly between 0 and 1."""
+    if not is_number(value) or not 0.0 < float(value) < 1.0:
+        raise InputError(source, f"{field} is {short(value)}", "a fraction in (0, 1) such as 0.3")
+    return float(value)
+
+
+def check_fit_names(names, source, field: str) -> tuple[str, ...]:
+    """A non-empty list of --fit group names."""
+    if isinstance(names, str):
+        names = [n.strip() for n in names.split(",")]
+    if (
+        not isinstance(names, list | tuple)
+        or not names
+        or not all(isinstance(n, str) and n for n in names)
+    ):
+        raise InputError(source, f"{field} is {short(names)}", f"names from {FIT_NAMES}")
+    bad = [n for n in names if n not in FIT_GROUPS]
+    if bad:
+        raise InputError(source, f"{field}: unknown {', '.join(bad)}", f"names from {FIT_NAMES}")
+    return tuple(names)
+
+
+def number_check(
+    source, field: str, lo: float | None = None, hi: float | None = None, *, open_lo=False
+) -> Callable[[Any], float]:
+    """A checker for one flag: finite number within [lo, hi] (lo exclusive if open_lo)."""
+
+    rule = Rule(field, lo=lo, hi=hi, lo_open=open_lo)
+
+    def check(v) -> float:
+        check_value(rule, v, {}, source, field)
+        return float(v)
+
+    return check
+
+
+MAX_DURATION_S = 7200.0  # two hours: the closed-loop simulator keeps its rows in Python lists
+
+
+def check_rate(v, source, field: str) -> float:
+    """A sample rate [Hz]: a finite positive number (io.drives checks its plausible range)."""
+    return number_check(source, field, 0.0, open_lo=True)(v)
+
+
+def check_simulation(
+    duration_s, latency_s, seed, stops_per_min, source="simulate", prefix=""
+) -> None:
+    """The simulator's numbers: duration in (0, a day] s, latency in [0, duration) s, an integer
+    seed >= 0, stops per minute in [0, 60]."""
+    duration_s = number_check(source, f"{prefix}duration_s", 0.0, MAX_DURATION_S, open_lo=True)(
+        duration_s
+    )
+    latency_s = number_check(source, f"{prefix}latency_s", 0.0)(latency_s)
+    if latency_s >= duration_s:
+        raise InputError(
+            source,
+            f"{prefix}latency_s {latency_s:g} s is not below the duration {duration_s:g} s",
+            "a latency shorter than the drive (no detection would be recorded)",
+        )
+    if not (is_int(seed) and seed >= 0):
+        raise InputError(source, f"{prefix}seed is {short(seed)}", "an integer >= 0")
+    number_check(source, f"{prefix}stops_per_min", 0.0, 60.0)(stops_per_min)
