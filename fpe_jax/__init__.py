@@ -55,7 +55,7 @@ if TYPE_CHECKING:  # static analysers and IDEs see the real imports
     from fpe_jax.errors import InputError
     from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
     from fpe_jax.predict import predict, predict_batch, predict_drive, stack_params
-    from fpe_jax.rollout import State
+    from fpe_jax.state import State
     from fpe_jax.track import Track
 
 

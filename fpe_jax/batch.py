@@ -55,8 +55,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from fpe_jax.errors import InputError
 from fpe_jax.params import Params
-from fpe_jax.predict import predict_batch
-from fpe_jax.rollout import State
+from fpe_jax.predict import pad_rows, predict_batch
+from fpe_jax.state import State
 from fpe_jax.track import Track
 
 DTYPES = {"float32": np.float32, "float64": np.float64}
@@ -461,6 +461,18 @@ class BatchPredictor:
             info.update(dataclasses.asdict(plan))
         return out
 
+    def compile_seconds(self, cars, chunk: int) -> float:
+        """Seconds to compile, ahead of time, the chunk function for `chunk` cars (`cars` as for
+        `__call__`): compile time apart from running, for benchmarks."""
+        import time
+
+        names, table = _car_table(cars[:chunk], self.dtype)
+        with self._precision():
+            block = jnp.asarray(pad_rows(table, chunk))
+            t0 = time.perf_counter()
+            _predict_block.lower(names, self._static, self._dynamic, block).compile()
+            return time.perf_counter() - t0
+
     def _run(self, names, table, c, progress):
         """Yield (start, stop, poses, ok) per chunk, as NumPy, in order.
 
@@ -478,7 +490,7 @@ class BatchPredictor:
             stop = min(start + c, n)
             rows = chunk_size(stop - start, c, self._n_devices)  # c, or smaller for a tail
             with self._precision():  # config contexts are per thread
-                block = _pad_rows(table[start:stop], rows)
+                block = pad_rows(table[start:stop], rows)
                 if self.mesh is not None:
                     block = shard.shard_along_axis0(block, self.mesh)
                 poses, ok = _predict_block(names, self._static, self._dynamic, jnp.asarray(block))
@@ -511,7 +523,7 @@ class BatchPredictor:
         xy = table[rows][:, [names.index("x_m"), names.index("y_m")]]
         s = np.empty(len(rows), dtype=self.dtype)
         for start in range(0, len(rows), _SLOW_BATCH):
-            pts = _pad_rows(xy[start : start + _SLOW_BATCH], _SLOW_BATCH)
+            pts = pad_rows(xy[start : start + _SLOW_BATCH], _SLOW_BATCH)
             res = np.asarray(_project_exhaustive(self._track, jnp.asarray(pts)))
             s[start : start + _SLOW_BATCH] = res[: min(_SLOW_BATCH, len(rows) - start)]
         return s
@@ -542,13 +554,6 @@ def predict_chunked(
     """
     predictor = BatchPredictor(params, track, dtype=dtype, chunk=chunk, grid=grid, mesh=mesh)
     return predictor(cars, out=out, progress=progress, info=info)
-
-
-def _pad_rows(a: np.ndarray, rows: int) -> np.ndarray:
-    """Pad along axis 0 to `rows` by repeating the first row: padded cars are real, finite cars."""
-    if a.shape[0] == rows:
-        return a
-    return np.concatenate([a, np.repeat(a[:1], rows - a.shape[0], axis=0)])
 
 
 def _store(out: np.ndarray, start: int, stop: int, result, n_sets) -> None:

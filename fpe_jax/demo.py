@@ -201,45 +201,6 @@ def fit_case(
     )
 
 
-@dataclasses.dataclass(frozen=True)
-class Heldout:
-    """Predictions on a case's test drive, aligned with their targets.
-
-    Attributes:
-        rows: (N,) indices of the prediction times in the test drive.
-        origin_xy_m: (N, 2) the observation each prediction starts from [m].
-        target_xy_m: (N, H, 2) where the car was at stamp + h * dt [m] (truth when the drive
-            has it, else later observations).
-        mask: (N, H) True where the target exists.
-        pred_xy_m: name -> (N, H, 2) predicted positions [m].
-    """
-
-    rows: np.ndarray
-    origin_xy_m: np.ndarray
-    target_xy_m: np.ndarray
-    mask: np.ndarray
-    pred_xy_m: dict[str, np.ndarray]
-
-
-def heldout_predictions(drive: Drive, track, params_by_name: dict) -> Heldout:
-    """Predict from every observation of `drive` that has targets, for each named Params.
-
-    Uses the same targets (and, for equal shapes, the same compiled code) as `fit.evaluate`.
-    """
-    from fpe_jax.fit import Dataset, make_targets, predict_targets
-
-    settings = next(iter(params_by_name.values())).settings
-    data = Dataset(drive, track, make_targets(drive, settings))
-    preds = {n: predict_targets(p, data)[..., :2] for n, p in params_by_name.items()}
-    return Heldout(
-        rows=data.targets.rows,
-        origin_xy_m=drive.xy_m[data.targets.rows],
-        target_xy_m=data.targets.xy_m,
-        mask=data.targets.mask,
-        pred_xy_m=preds,
-    )
-
-
 def fde_ratio(report: dict, baseline: str = "seed-measured-speed") -> float:
     """Fitted FDE over a baseline's FDE on the same held-out data (< 1: the fit is better)."""
     return report["fitted"]["fde_m"] / report[baseline]["fde_m"]
@@ -362,7 +323,7 @@ def write_demo_outputs(
     from fpe_jax import plots
     from fpe_jax.config import params_to_config, write_config
     from fpe_jax.export import export_config
-    from fpe_jax.fit import provenance
+    from fpe_jax.fit import heldout_predictions, provenance
     from fpe_jax.io.writers import write_text, write_xy_csv
     from fpe_jax.params import presets
 

@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from fpe_jax.history import MIN_PAIR_DT_S, OUTLIER_M
-from fpe_jax.rollout import State
+from fpe_jax.state import State
 from fpe_jax.track import wrap_angle
 
 

@@ -167,7 +167,7 @@ def _predictor(params, track):
     import jax.numpy as jnp
 
     from fpe_jax.predict import predict_batch
-    from fpe_jax.rollout import State
+    from fpe_jax.state import State
 
     def f(x_m, y_m, yaw_rad, v_mps, yaw_rate_rps, course_rad, s_m, s_fit_m, *frame):
         states = State(

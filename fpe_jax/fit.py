@@ -42,11 +42,11 @@ from fpe_jax.predict import (
     row_blocks,
     states_from_drive,
 )
-from fpe_jax.rollout import State
 from fpe_jax.spec import DEFAULT_FIT as DEFAULT_FIT
 from fpe_jax.spec import DEFAULT_SOLVER as DEFAULT_SOLVER
 from fpe_jax.spec import FIT_GROUPS as FIT_GROUPS
 from fpe_jax.spec import SOLVERS as SOLVERS
+from fpe_jax.state import State
 from fpe_jax.track import Track, project_rollout
 
 # the groups each fitted model reads, and its default: the line model has no memorised speed
@@ -342,6 +342,43 @@ def predict_targets(params: Params, dataset: Dataset) -> np.ndarray:
     return predict_rows(params, dataset.states(params), dataset.track)
 
 
+@dataclasses.dataclass(frozen=True)
+class Heldout:
+    """Predictions on a case's test drive, aligned with their targets.
+
+    Attributes:
+        rows: (N,) indices of the prediction times in the test drive.
+        origin_xy_m: (N, 2) the observation each prediction starts from [m].
+        target_xy_m: (N, H, 2) where the car was at stamp + h * dt [m] (truth when the drive
+            has it, else later observations).
+        mask: (N, H) True where the target exists.
+        pred_xy_m: name -> (N, H, 2) predicted positions [m].
+    """
+
+    rows: np.ndarray
+    origin_xy_m: np.ndarray
+    target_xy_m: np.ndarray
+    mask: np.ndarray
+    pred_xy_m: dict[str, np.ndarray]
+
+
+def heldout_predictions(drive: Drive, track, params_by_name: dict) -> Heldout:
+    """Predict from every observation of `drive` that has targets, for each named Params.
+
+    Uses the same targets (and, for equal shapes, the same compiled code) as `fit.evaluate`.
+    """
+    settings = next(iter(params_by_name.values())).settings
+    data = Dataset(drive, track, make_targets(drive, settings))
+    preds = {n: predict_targets(p, data)[..., :2] for n, p in params_by_name.items()}
+    return Heldout(
+        rows=data.targets.rows,
+        origin_xy_m=drive.xy_m[data.targets.rows],
+        target_xy_m=data.targets.xy_m,
+        mask=data.targets.mask,
+        pred_xy_m=preds,
+    )
+
+
 def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
     """Metrics (see `metrics.summarize`) of params over datasets, plus coverage when cov given."""
     errs, res, masks = [], [], []
@@ -433,7 +470,11 @@ def split_drive(drive: Drive, holdout: float) -> tuple[Drive, Drive]:
     return drive.slice_time(-np.inf, t_split), drive.slice_time(t_split, np.inf)
 
 
-def _datasets(drives: Sequence[Drive], tracks: Sequence[Track], settings: Settings, what: str):
+def make_datasets(
+    drives: Sequence[Drive], tracks: Sequence[Track], settings: Settings, what: str
+) -> list[Dataset]:
+    """One `Dataset` per (drive, track) pair; `what` names the part in the error raised when a
+    drive has no usable prediction ("training", "held-out")."""
     out = []
     for drv, trk in zip(drives, tracks, strict=True):
         targets = make_targets(drv, settings)
@@ -520,8 +561,8 @@ def fit(
     init = init or presets["default"]
     settings = init.settings
     fit = tuple(fit) if fit else MODEL_FIT.get(settings.model, MODEL_FIT["blend"])[1]
-    train = _datasets(train_d, tracks, settings, "training")
-    test = _datasets(test_d, test_tracks, settings, "held-out")
+    train = make_datasets(train_d, tracks, settings, "training")
+    test = make_datasets(test_d, test_tracks, settings, "held-out")
     if "speed" in fit:  # start the typical speed where the data is
         v = np.concatenate([np.asarray(d.states(init).v_mps) for d in train])
         init = dataclasses.replace(init, speed_mps=jnp.asarray(max(float(np.median(v)), 0.1)))
@@ -534,7 +575,7 @@ def fit(
         inner = [split_drive(d, 0.25) for d in train_d]
         # the inner fit masks the training targets after the inner split instead of slicing the
         # drives: the same shapes as the final fit, so the chosen mode's solver compiles once
-        inner_val = _datasets([p[1] for p in inner], tracks, settings, "validation")
+        inner_val = make_datasets([p[1] for p in inner], tracks, settings, "validation")
         inner_fit = [_before(d, v.drive.t_s[0], settings.dt_s) for d, v in zip(train, inner_val)]
         for mode in modes:
             progress(f"choosing the blend mode: fitting '{mode}' on the inner split")

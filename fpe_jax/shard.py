@@ -51,7 +51,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from fpe_jax.params import Params
 from fpe_jax.predict import predict_batch
-from fpe_jax.rollout import State
+from fpe_jax.state import State
 from fpe_jax.track import Track
 
 AXIS = "cars"

@@ -111,7 +111,7 @@ def test_line_model_fits_no_speed_and_rejects_blend_values(oval_drives):
 def test_fit_subset_keeps_the_rest_fixed(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
-    data = F._datasets([fit_d.drive], [track], init.settings, "training")
+    data = F.make_datasets([fit_d.drive], [track], init.settings, "training")
     p, info = F.fit_params(data, init, fit=("delay",), max_steps=30)
     assert float(p.lookahead_m) == pytest.approx(float(init.lookahead_m), abs=1e-9)
     np.testing.assert_allclose(np.asarray(p.weights), np.asarray(init.weights), atol=1e-9)
@@ -123,7 +123,7 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
     """BFGS on the scalar loss and LM on the residuals: one objective, one minimum."""
     fit_d, _, track = oval_drives
     init = presets["default"]
-    data = F._datasets([fit_d.drive.slice_time(0, 30)], [track], init.settings, "training")
+    data = F.make_datasets([fit_d.drive.slice_time(0, 30)], [track], init.settings, "training")
     fits = {s: F.fit_params(data, init, fit=("delay", "speed"), solver=s) for s in F.SOLVERS}
     (p_bfgs, i_bfgs), (p_lm, i_lm) = fits["bfgs"], fits["lm"]
     assert i_bfgs["converged"] and i_lm["converged"]
@@ -145,7 +145,7 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
 def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
-    (d,) = F._datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
+    (d,) = F.make_datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
     cut = 15.0
     inner = F._before(d, cut, init.settings.dt_s)
     assert inner.targets.mask.shape == d.targets.mask.shape  # same shapes as the final fit
@@ -166,7 +166,7 @@ def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
 def test_residual_gradient_matches_finite_differences(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
-    data = F._datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
+    data = F.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
     raw = F.unconstrain(init)
     groups = [(data.states(init), track, jnp.asarray(data.targets.xy_m), data.targets.mask)]
 
@@ -188,7 +188,7 @@ def test_bfgs_objective_derivative_equals_autodiff_of_the_loss(oval_drives):
     equal plain autodiff of `_loss`."""
     fit_d, _, track = oval_drives
     init = presets["default"]
-    data = F._datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
+    data = F.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
     raw = F.unconstrain(init)
     free, fixed = eqx.partition(raw, F._free_mask(raw, F.DEFAULT_FIT))
     xy, mask = jnp.asarray(data.targets.xy_m), jnp.asarray(data.targets.mask)

@@ -109,7 +109,7 @@ def test_fit_epoch_stamps_and_utm_offsets(tmp_path, drive_rows, capsys):
     cfgs = []
     for log, wp in ((zlog, zwp), (flog, fwp)):
         out = log.with_name("cfg.json")
-        argv = f"fit {log} --waypoints {wp} --out {out} --fit delay,speed --holdout 0.4".split()
+        argv = f"fit {log} --waypoints {wp} --out {out} --fit delay,tau --holdout 0.4".split()
         assert cli.main(argv) == 0
         cfgs.append(read_config(out)["params"])
     for k, v in cfgs[0].items():

@@ -183,16 +183,7 @@ def _chunk_compile_s(predictor, cars, chunk: int) -> float:
     """Seconds to compile (ahead of time) the predictor's chunk function at this chunk size:
     compile time measured apart from running (a first call's time minus a steady call's is
     too noisy on a shared machine)."""
-    import jax.numpy as jnp
-
-    from fpe_jax.batch import _car_table, _pad_rows, _predict_block
-
-    names, table = _car_table(cars[:chunk], predictor.dtype)
-    with predictor._precision():
-        block = jnp.asarray(_pad_rows(table, chunk))
-        t0 = time.perf_counter()
-        _predict_block.lower(names, predictor._static, predictor._dynamic, block).compile()
-        return time.perf_counter() - t0
+    return predictor.compile_seconds(cars, chunk)
 
 
 def bench_core(track, sizes, dtypes) -> list[dict]:

@@ -24,9 +24,9 @@ jax.config.update("jax_enable_x64", True)
 from fpe_jax.demo import simulated_case, study_cases  # noqa: E402
 from fpe_jax.fit import (  # noqa: E402
     SOLVERS,
-    _datasets,
     evaluate,
     fit_params,
+    make_datasets,
 )
 from fpe_jax.params import presets  # noqa: E402
 
@@ -42,8 +42,8 @@ def main() -> None:
     long = simulated_case("oval", name="oval, 10 min", fit_s=600.0)  # the studies' other defaults
     for case in [*study_cases(DATA, print), long]:
         track = case.track()
-        train = _datasets([case.fit_drive], [track], init.settings, "training")
-        test = _datasets([case.test_drive], [track], init.settings, "held-out")
+        train = make_datasets([case.fit_drive], [track], init.settings, "training")
+        test = make_datasets([case.test_drive], [track], init.settings, "held-out")
         for solver in SOLVERS:
             params, info = fit_params(train, init, solver=solver)
             fde = evaluate(params, test)["fde_m"]

@@ -1,0 +1,44 @@
+"""`State`: the leading car's state at prediction time, the named data the estimator produces
+and every rollout consumes (below both, so the estimator does not import the rollout)."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+
+class State(eqx.Module):
+    """The leading car's state at prediction time (scalars; add a leading axis for batches).
+
+    Attributes:
+        x_m, y_m: position [m] (the newest observation).
+        yaw_rad: heading of the car body [rad].
+        v_mps: speed [m/s].
+        yaw_rate_rps: yaw rate [rad/s].
+        course_rad: direction of motion [rad] (differs from yaw when sliding or noisy).
+        s_m: arc length hint [m]: where on the track the car is (from a windowed projection).
+        s_fit_m, sdot_mps, offset_m: the track-frame estimate (`estimate_track_frame`): arc
+            length [m], along-track speed [m/s] and lateral offset [m] at the newest stamp,
+            and sdot_age_s, how old the speed is [s] (the window's middle); None: the frenet
+            and line rollouts take them from x, y, v and the course.
+    """
+
+    x_m: Float[Array, ""]
+    y_m: Float[Array, ""]
+    yaw_rad: Float[Array, ""]
+    v_mps: Float[Array, ""]
+    yaw_rate_rps: Float[Array, ""] | None = None
+    course_rad: Float[Array, ""] | None = None
+    s_m: Float[Array, ""] | None = None
+    s_fit_m: Float[Array, ""] | None = None
+    sdot_mps: Float[Array, ""] | None = None
+    offset_m: Float[Array, ""] | None = None
+    sdot_age_s: Float[Array, ""] | None = None
+
+    def __post_init__(self):
+        # omitted fields: no turn, moving along the body heading
+        if self.yaw_rate_rps is None:
+            self.yaw_rate_rps = jnp.zeros_like(self.x_m)
+        if self.course_rad is None:
+            self.course_rad = self.yaw_rad
