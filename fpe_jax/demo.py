@@ -287,8 +287,11 @@ def run_demo(
     if out.exists() and not out.is_dir():
         raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
     if not out.exists():
-        check_output_paths([out], force)  # its parent exists and is writable
-        out.mkdir()
+        # the outermost missing folder: its parent exists and is writable (`out/demo` on a
+        # fresh checkout has neither folder)
+        first_missing = next(p for p in (out, *out.parents) if p.parent.exists())
+        check_output_paths([first_missing], force)
+        out.mkdir(parents=True)
     check_output_paths([out / name for name in DEMO_FILES], force)
     progress(f"simulating a {fit_s:g} s fit drive and a {test_s:g} s test drive on '{track}'")
     case = simulated_case(

@@ -30,7 +30,8 @@ def short_drive(tmp_path_factory):
 
 
 def test_demo_pipeline_on_a_short_drive_writes_everything(tmp_path):
-    res = run_demo(tmp_path / "demo", fit_s=10.0, test_s=6.0)
+    # `make demo` writes into out/demo, where neither folder exists on a fresh checkout
+    res = run_demo(tmp_path / "out" / "demo", fit_s=10.0, test_s=6.0)
     names = {f.name for f in res.files}
     assert names == {
         "waypoints.csv",
@@ -42,21 +43,21 @@ def test_demo_pipeline_on_a_short_drive_writes_everything(tmp_path):
         "report.md",
     }
     for f in res.files:
-        assert f.is_file() and f.parent == tmp_path / "demo"
+        assert f.is_file() and f.parent == tmp_path / "out" / "demo"
     for name in ("trajectory.png", "error_vs_horizon.png", "line.png"):
-        assert _is_png(tmp_path / "demo" / name), name
-    cfg = json.loads((tmp_path / "demo" / "config.json").read_text())
+        assert _is_png(tmp_path / "out" / "demo" / name), name
+    cfg = json.loads((tmp_path / "out" / "demo" / "config.json").read_text())
     assert cfg["schema_version"] == 1 and len(cfg["params"]["weights"]) == 10
     assert cfg["uncertainty"]["frame"] == "track"
     assert cfg["settings"]["model"] == "line" and cfg["line"]["waypoints"].endswith("waypoints.csv")
     # the written waypoints are the ones the line belongs to
     from fpe_jax.config import check_waypoints
 
-    wp = np.loadtxt(tmp_path / "demo" / "waypoints.csv", delimiter=",", skiprows=1)
+    wp = np.loadtxt(tmp_path / "out" / "demo" / "waypoints.csv", delimiter=",", skiprows=1)
     check_waypoints(cfg, "config.json", wp, "waypoints.csv")
     assert set(res.result.report) >= {"fitted", "seed", "seed-measured-speed", "linear"}
     assert [c[0] for c in res.checks] == [c[0] for c in demo_checks(res.result, 0.3)]
-    report = (tmp_path / "demo" / "report.md").read_text()
+    report = (tmp_path / "out" / "demo" / "report.md").read_text()
     assert "| fitted |" in report and ("PASS" in report or "FAIL" in report)
 
 
