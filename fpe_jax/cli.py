@@ -55,7 +55,7 @@ def _add_predictor_flags(p: argparse.ArgumentParser, *, required: bool) -> None:
     _add_settings_flags(p, "with --preset")
 
 
-# flag -> Settings field of the car and the prediction grid (fpe_jax.params.USER_SETTINGS)
+# flag -> Settings field of the car and the prediction grid (fpe_jax.spec.USER_SETTINGS)
 SETTINGS_FLAGS = {
     "--wheelbase": "wheelbase_m",
     "--max-steer": "max_steer_rad",

@@ -116,7 +116,7 @@ def load_params(
 ):
     """Params from a preset name or a config file (exactly one; default preset: 'default').
 
-    settings: {flag: (Settings field, value)} of user settings (`params.USER_SETTINGS`) for a
+    settings: {flag: (Settings field, value)} of user settings (`spec.USER_SETTINGS`) for a
     preset; a config carries the settings it was fitted with, so they are an error there.
     waypoints: optional (file name, (K, 2) array) the params will run on: a line-model config
     must have been fitted on exactly these (`check_waypoints`).

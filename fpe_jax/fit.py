@@ -42,6 +42,7 @@ from fpe_jax.predict import (
     row_blocks,
     states_from_drive,
 )
+from fpe_jax.spec import BLEND_MODES
 from fpe_jax.spec import DEFAULT_FIT as DEFAULT_FIT
 from fpe_jax.spec import DEFAULT_SOLVER as DEFAULT_SOLVER
 from fpe_jax.spec import FIT_GROUPS as FIT_GROUPS
@@ -54,7 +55,7 @@ MODEL_FIT = {
     "blend": (("lookahead", "lookahead_m", "gain", "weights", "delay", "speed"), DEFAULT_FIT),
     "line": (("delay", "tau", "smoothing"), ("delay", "tau", "smoothing")),
 }
-FIT_MODELS = tuple(MODEL_FIT)
+FIT_MODELS = tuple(MODEL_FIT)  # spec.FIT_MODELS, which the CLI offers without JAX
 DEFAULT_MODEL = "line"
 PARAM_FIELDS = (
     "lookahead_m",
@@ -70,7 +71,7 @@ PARAM_FIELDS = (
     "line_speed_mps",
     "line_coverage",
 )
-BLEND_CHOICES = ("position", "heading")
+BLEND_CHOICES = BLEND_MODES
 BASELINES = ("seed", "seed-measured-speed", "linear", "pure-pursuit", "constant-velocity", "ctrv")
 BASELINES += ("frenet",)
 MIN_HISTORY = 3  # distinct observations needed before a prediction counts

@@ -23,6 +23,7 @@ from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported for users of 
 from fpe_jax.spec import LINE_KEYS as LINE_KEYS
 from fpe_jax.spec import MIN_TAU_S as MIN_TAU_S
 from fpe_jax.spec import MODELS as MODELS
+from fpe_jax.spec import USER_SETTINGS as USER_SETTINGS
 from fpe_jax.spec import check_settings
 
 
@@ -163,11 +164,6 @@ class Params(eqx.Module):
             for key in LINE_KEYS:
                 out[key] = [float(v) for v in np.asarray(getattr(self, key))]
         return out
-
-
-# Settings a user may change on a predictor (flags --wheelbase, --max-steer, --dt, --horizon and
-# a recipe's [settings] table): the car and the prediction grid, never the model's form.
-USER_SETTINGS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")
 
 
 def with_settings(params: Params, **changes) -> Params:

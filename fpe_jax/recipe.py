@@ -45,7 +45,7 @@ DRIVE_KEYS = {
 }
 TOP_KEYS = {"out", "waypoints", "holdout", "fit", "model", "blend", "solver", "drives"}
 TOP_KEYS |= {"test_drives", "settings"}
-SETTINGS_KEYS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")  # params.USER_SETTINGS
+SETTINGS_KEYS = S.USER_SETTINGS
 SIMULATE_KEYS = {"track", "duration_s", "latency_s", "seed", "raceline", "half_width_m"}
 _STR, _BOOL = "a string", "true or false"
 

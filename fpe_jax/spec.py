@@ -41,6 +41,9 @@ SOLVERS = ("bfgs", "lm")  # optimistix BFGS on the robust loss (default), LM on 
 DEFAULT_SOLVER = SOLVERS[0]
 FIT_BLENDS = ("auto", *BLEND_MODES)
 FIT_MODELS = ("line", "blend")  # the models `fpe fit --model` fits (fpe_jax.fit.MODEL_FIT)
+# Settings a user may change on a predictor (flags --wheelbase, --max-steer, --dt, --horizon and
+# a recipe's [settings] table): the car and the prediction grid, never the model's form.
+USER_SETTINGS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")
 
 
 def is_number(v) -> bool:
