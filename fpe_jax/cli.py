@@ -270,6 +270,12 @@ def _build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="stream predictions: observations on stdin, JSON lines out")
     p.add_argument("--config", required=True, help="a tuned config JSON")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
+    p.add_argument(
+        "--rate",
+        type=float,
+        metavar="HZ",
+        help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
+    )
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser(
@@ -308,17 +314,16 @@ def cmd_export(args) -> int:
 
 
 def cmd_run(args) -> int:
-    # NumPy only: this command must work on a car without JAX (tests/test_runner.py checks it)
-    import os
-
+    # NumPy only: this command must work on a car without JAX (tests/test_speed.py checks it)
     from fpe_jax.runner import Runner, run_stream
 
+    rate_hz = None if args.rate is None else spec.check_rate(args.rate, "--rate", "value")
+    if sys.stdin is None:
+        raise InputError("stdin", "is closed", "observation lines on stdin")
+    if sys.stdout is None:  # started with stdout closed: fail before the work, as a write would
+        raise OSError(errno.EBADF, os.strerror(errno.EBADF))
     runner = Runner.from_config(args.config, args.waypoints)
-    try:
-        return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr)
-    except BrokenPipeError:  # the consumer went away: stop quietly
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 1
+    return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr, rate_hz)
 
 
 def _fit_inputs(args, say=lambda msg: None):
@@ -842,8 +847,9 @@ def _sigterm(signum, frame):
 def _quiet_stdout() -> None:
     """Point stdout at /dev/null so the interpreter's final flush cannot fail again."""
     try:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    except (OSError, ValueError):  # stdout closed or not a file
+        fd = sys.stdout.fileno() if sys.stdout is not None else 1
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)
+    except (OSError, ValueError, AttributeError):  # stdout not a file (a test's capture)
         pass
 
 
@@ -855,7 +861,8 @@ def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _sigterm) if main_thread else None
     try:
         rc = args.func(args)
-        sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is reported below
+        if sys.stdout is not None:  # None when started with stdout closed
+            sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is reported below
         return rc
     except InputError as e:
         print(f"fpe: error: {e}", file=sys.stderr)

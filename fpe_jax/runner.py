@@ -559,91 +559,40 @@ def load_waypoints_xy(path) -> np.ndarray:
 # ---- streaming over text lines (`fpe run`) -------------------------------------------------------
 
 
-def _number(value, what: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | str):
-        raise InputError("observation", f"{what} is {value!r}", "a number")
-    try:
-        return float(value)
-    except ValueError:
-        raise InputError("observation", f"{what} is {value!r}", "a number") from None
+def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) -> int:
+    """Predict for every usable observation line of `lines` (parsed by `fpe_jax.io.stream`),
+    writing one JSON line to `out` for each: {"stamp": t, "poses": [[x, y, yaw] x H]}, flushed
+    at once (a car's process pipes into it).
 
-
-def _csv_header(cells: list[str]) -> tuple[int, int, int, int | None]:
-    """Column indices of t, x, y and yaw (None if absent) from a CSV header line."""
-    from fpe_jax.io.tables import T_NAMES, X_NAMES, Y_NAMES, YAW_NAMES
-
-    names = [c.lower() for c in cells]
-    found = []
-    for what, options in (("t", T_NAMES), ("x", X_NAMES), ("y", Y_NAMES), ("yaw", YAW_NAMES)):
-        idx = next((names.index(o) for o in options if o in names), None)
-        if idx is None and what != "yaw":
-            raise InputError("header", f"no {what} column in {','.join(cells)!r}", "t,x,y[,yaw]")
-        found.append(idx)
-    return found[0], found[1], found[2], found[3]
-
-
-def parse_observation(text: str, columns=None) -> tuple[float, float, float, float | None]:
-    """(t [s], x [m], y [m], yaw [rad] or None) from a JSON object line ({"t", "x", "y", "yaw"})
-    or a CSV line (t,x,y[,yaw], or the columns a header named). Raises InputError."""
-    if text.startswith("{"):
-        try:
-            obj = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise InputError("observation", f"invalid JSON ({e.msg})", '{"t", "x", "y"}') from None
-        if not isinstance(obj, dict) or not {"t", "x", "y"} <= obj.keys():
-            raise InputError("observation", "JSON lacks t, x or y", '{"t", "x", "y"[, "yaw"]}')
-        cells = [obj["t"], obj["x"], obj["y"], obj.get("yaw")]
-    else:
-        raw = [c.strip() for c in text.split(",")]
-        if columns is None:
-            if len(raw) not in (3, 4):
-                raise InputError("observation", f"{len(raw)} columns", "t,x,y[,yaw]")
-            cells = raw + [None] * (4 - len(raw))
-        else:
-            if len(raw) <= max(c for c in columns if c is not None):
-                raise InputError("observation", f"{len(raw)} columns", "as many as the header")
-            cells = [None if c is None else raw[c] for c in columns]
-        if cells[3] == "":
-            cells[3] = None
-    t, x, y = (_number(v, what) for v, what in zip(cells[:3], ("t", "x", "y")))
-    yaw = None if cells[3] is None else _number(cells[3], "yaw")
-    return t, x, y, yaw
-
-
-def run_stream(runner: Runner, lines, out, err) -> int:
-    """Predict for every observation line of `lines`, writing one JSON line to `out` for each:
-    {"stamp": t, "poses": [[x, y, yaw] x H]}, flushed at once (a car's process pipes into it).
-
-    Input lines: CSV `t,x,y[,yaw]` (an optional header as the first line names the columns) or
-    JSON objects {"t", "x", "y"[, "yaw"]}; blank and `#` lines are skipped, and so is a byte-order
-    mark before the first line. A malformed line is reported on `err` with its line number and
-    skipped. Returns 0 at the end of the input.
+    A bad line is reported on `err` with its line number and skipped; where the stamps restart
+    the runner starts a new history. Returns 0 at the end of the input. Raises InputError for a
+    stream laid out wrongly as a whole, and at the end if lines came but none was usable.
     """
-    columns, first = None, True
-    for lineno, line in enumerate(lines, 1):
-        if lineno == 1:  # a byte-order mark would hide the first header name
-            line = line.removeprefix("\ufeff")
-        text = line.strip()
-        if not text or text.startswith("#"):
-            continue
+    from fpe_jax.io.stream import read_observations
+
+    skipped = []
+
+    def warn(msg: str) -> None:
+        skipped.append(msg)
+        print(f"fpe run: {msg}", file=err, flush=True)
+
+    n_written = 0
+    for obs in read_observations(lines, warn, rate_hz):
+        if obs.restart:
+            runner.reset()
+            for o in obs.restart:
+                runner.update(o.t_s, o.x_m, o.y_m, o.yaw_rad)
         try:
-            if first and not text.startswith("{"):
-                head = text.split(",", 1)[0].strip()
-                try:
-                    float(head)
-                except ValueError:  # a header line names the columns
-                    first = False
-                    columns = _csv_header([c.strip() for c in text.split(",")])
-                    continue
-            first = False
-            t, x, y, yaw = parse_observation(text, columns)
-            poses = runner.update(t, x, y, yaw)
-            reply = json.dumps({"stamp": t, "poses": poses.tolist()}, allow_nan=False)
+            poses = runner.update(obs.t_s, obs.x_m, obs.y_m, obs.yaw_rad)
+            reply = json.dumps({"stamp": obs.t_s, "poses": poses.tolist()}, allow_nan=False)
         except (InputError, ValueError) as e:
-            print(f"fpe run: line {lineno}: {e}; skipped", file=err, flush=True)
+            warn(f"line {obs.line}: {e}; skipped")
             continue
         out.write(reply + "\n")
         out.flush()
+        n_written += 1
+    if skipped and not n_written:
+        raise InputError("stdin", f"none of its observations was usable ({len(skipped)} skipped)")
     return 0
 
 

@@ -318,9 +318,26 @@ def number_check(
 MAX_DURATION_S = 7200.0  # two hours: the closed-loop simulator keeps its rows in Python lists
 
 
+MIN_RATE_HZ, MAX_RATE_HZ = 1e-3, 1e6  # a rate outside this is a unit mistake
+
+
 def check_rate(v, source, field: str) -> float:
-    """A sample rate [Hz]: a finite positive number (io.drives checks its plausible range)."""
-    return number_check(source, field, 0.0, open_lo=True)(v)
+    """A sample rate [Hz]: a finite positive number, and not absurd (1e-300 would stamp every row
+    t = 0)."""
+    hz = number_check(source, field, 0.0, open_lo=True)(v)
+    if not MIN_RATE_HZ <= hz <= MAX_RATE_HZ:
+        raise InputError(
+            source, f"{field} {hz:g} is absurd", f"{MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz"
+        )
+    return hz
+
+
+# Observation streams (`fpe run`, fpe_jax.io.stream): a line beyond these is reported and skipped.
+MAX_STAMP_S = 2.0**32  # ROS 1's unsigned seconds end in 2106: beyond is ms, us or ns
+MAX_COORD_M = 1e8  # UTM northings stay below 1e7 m; 1e308 would overflow the estimate
+MAX_YAW_RAD = 1e6  # unwrapped yaw of many laps is fine; 1e308 is not an angle
+MAX_STREAM_GAP_S = 60.0  # a stamp further past the previous one is a glitch ...
+RESTART_LINES = 3  # ... unless this many consecutive lines agree on the new clock
 
 
 def check_simulation(

@@ -15,7 +15,8 @@ import pytest
 from fpe_jax import Drive, Params, Settings, Track, params, predict_drive, presets, runner
 from fpe_jax.config import params_to_config, write_config
 from fpe_jax.errors import InputError
-from fpe_jax.runner import GoalScan, Runner, RunnerPath, parse_observation, run_stream
+from fpe_jax.io.stream import _Skip, parse_line
+from fpe_jax.runner import GoalScan, Runner, RunnerPath, run_stream
 from fpe_jax.sim import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -328,6 +329,7 @@ def test_fpe_run_flushes_each_prediction(tmp_path, sim_drive):
         cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=ROOT
     ) as proc:
         try:
+            proc.stdin.write("t,x,y\n")
             for k in range(3):
                 proc.stdin.write(f"{0.1 * k},{wp[k * 3, 0]},{wp[k * 3, 1]}\n")
                 proc.stdin.flush()
@@ -399,16 +401,21 @@ def test_update_rejects_bad_observations_and_keeps_its_state(sim_drive):
     assert before.shape == (10, 3)
 
 
-def test_parse_observation():
-    assert parse_observation("1.5, 2, 3") == (1.5, 2.0, 3.0, None)
-    assert parse_observation("1.5,2,3,0.25") == (1.5, 2.0, 3.0, 0.25)
-    assert parse_observation("1.5,2,3,") == (1.5, 2.0, 3.0, None)
-    assert parse_observation('{"t": 1, "x": 2, "y": 3, "yaw": null}') == (1.0, 2.0, 3.0, None)
-    assert parse_observation('{"t": 1, "x": 2, "y": 3, "yaw": 0.5}') == (1.0, 2.0, 3.0, 0.5)
-    assert parse_observation("9,1,2,3", columns=(3, 1, 2, None)) == (3.0, 1.0, 2.0, None)
-    for bad in ("1,2", "1,2,3,4,5", "a,2,3", '{"t": 1, "x": true, "y": 2}', "{not json", "[1,2,3]"):
+def test_parse_line():
+    assert parse_line("1.5,2,3,0.25", None, None) == (1.5, 2.0, 3.0, 0.25)
+    assert parse_line("1.5,2,3,", None, None) == (1.5, 2.0, 3.0, None)
+    assert parse_line('{"t": 1, "x": 2, "y": 3, "yaw": null}', None, None) == (1.0, 2.0, 3.0, None)
+    assert parse_line('{"t": 1, "x": 2, "y": 3, "yaw": 0.5}', None, None) == (1.0, 2.0, 3.0, 0.5)
+    assert parse_line("9,1,2,3", (3, 1, 2, None), None) == (3.0, 1.0, 2.0, None)
+    assert parse_line("1,2,0", None, 10.0) == (None, 1.0, 2.0, None)  # x,y,z: z unused
+    assert parse_line('{"x": 1, "y": 2}', None, 10.0) == (None, 1.0, 2.0, None)
+    for bad in ("1,2", "1,2,3,4,5", "a,2,3,4", '{"t": 1, "x": true, "y": 2}', "{not json"):
+        with pytest.raises(_Skip):
+            parse_line(bad, None, None)
+    # the layout of the whole stream is wrong: x,y,z without a rate, a stamp with one
+    for text, rate in (("1.5, 2, 3", None), ('{"t": 1, "x": 2, "y": 3}', 10.0)):
         with pytest.raises(InputError):
-            parse_observation(bad)
+            parse_line(text, None, rate)
 
 
 def test_run_stream_header_names_the_columns(sim_drive):

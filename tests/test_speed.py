@@ -75,7 +75,7 @@ def test_fast_commands_import_no_jax(tmp_path, drive_dir):
     for argv in commands:
         r = subprocess.run(
             [sys.executable, "-c", _NO_JAX, *argv],
-            input="0.0,1.0,2.0\n",
+            input="t,x,y\n0.0,1.0,2.0\n",
             capture_output=True,
             text=True,
             cwd=ROOT,

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from fpe_jax import spec
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.io import apriltag, tables
@@ -38,8 +39,6 @@ from fpe_jax.io.tf import TfBuffer
 _POSE_EXPECTED = (
     "PoseStamped, PoseWithCovarianceStamped, Odometry, TFMessage or AprilTagDetectionArray"
 )
-
-MIN_RATE_HZ, MAX_RATE_HZ = 1e-3, 1e6  # a --rate outside this is a unit mistake
 
 
 def _topic_list(topics) -> str:
@@ -263,13 +262,7 @@ def _drive_from_table(path, rate_hz) -> Drive:
         if rate_hz is None:
             what = "is a header-less x,y,z CSV" if table.header is None else "has no time column"
             raise InputError(path, f"{what}, so --rate HZ is required", "row k at t = k/HZ s")
-        if not (np.isfinite(rate_hz) and rate_hz > 0):
-            raise InputError(path, f"--rate {rate_hz} is not a positive rate", "a rate in Hz > 0")
-        if not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:  # 1e-300 would put every row at t = 0
-            raise InputError(
-                path, f"--rate {rate_hz:g} is absurd", f"{MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz"
-            )
-        t = np.arange(len(x)) / float(rate_hz)
+        t = np.arange(len(x)) / spec.check_rate(rate_hz, path, "--rate")
     elif rate_hz is not None:
         raise InputError(path, "--rate given but the CSV has a time column", "no --rate")
     cols = {"t": t, "xy_m": np.column_stack([x, y])}
