@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from fpe_jax import spec
 from fpe_jax.errors import InputError
 from fpe_jax.params import Params
 from fpe_jax.predict import pad_rows, predict_batch
@@ -352,8 +353,7 @@ def chunk_size(n_cars: int, chunk: int = DEFAULT_CHUNK, multiple: int = 1) -> in
     """The fixed chunk shape for N cars: `chunk`, or the next power of two >= N when N is
     smaller (a single car does not pay for a full chunk), rounded up to a multiple of the device
     count."""
-    if chunk < 1:
-        raise InputError("--chunk", f"chunk size {chunk}", "a positive number of cars")
+    spec.check_chunk(chunk)
     c = min(chunk, 1 << max(n_cars - 1, 0).bit_length())
     return int(math.ceil(c / multiple) * multiple)
 
@@ -567,9 +567,6 @@ def _store(out: np.ndarray, start: int, stop: int, result, n_sets) -> None:
 # ---- files for `fpe batch` ---------------------------------------------------------------------
 
 
-MAX_CARS = 1 << 28  # cars per file (2.7e8 rows of 5 float64 are 10.7 GB): beyond is not a batch
-
-
 def _check_npy_header(p: Path) -> None:
     """Refuse a .npy whose header declares more data than the file holds, or than MAX_CARS rows,
     before anything is allocated (a forged header once asked for 29 TiB)."""
@@ -581,7 +578,7 @@ def _check_npy_header(p: Path) -> None:
             )
             shape, _, dtype = read(f)
             data_start = f.tell()
-    except (ValueError, OSError, EOFError) as e:
+    except Exception as e:  # a forged header fails in numpy's parser in many ways (TokenError...)
         raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
     n_bytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
     available = p.stat().st_size - data_start
@@ -590,8 +587,8 @@ def _check_npy_header(p: Path) -> None:
             p, f"header declares shape {shape} ({n_bytes} bytes) but holds {available}",
             "an intact np.save file",
         )  # fmt: skip
-    if shape and shape[0] > MAX_CARS:
-        raise InputError(p, f"{shape[0]} cars", f"at most {MAX_CARS} per call; split the file")
+    if shape and shape[0] > spec.MAX_CARS:
+        raise InputError(p, f"{shape[0]} cars", f"at most {spec.MAX_CARS} per call; split the file")
 
 
 def read_cars(path) -> np.ndarray:
@@ -609,7 +606,8 @@ def read_cars(path) -> np.ndarray:
             arr = np.load(p, allow_pickle=False)
         except (ValueError, OSError, EOFError) as e:
             raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
-        if arr.ndim != 2 or arr.shape[1] not in (4, 5) or not np.issubdtype(arr.dtype, np.number):
+        real = np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+        if arr.ndim != 2 or arr.shape[1] not in (4, 5) or not real:
             raise InputError(
                 p,
                 f"array of shape {arr.shape} dtype {arr.dtype}",
@@ -633,11 +631,24 @@ def read_cars(path) -> np.ndarray:
         arr = np.column_stack([table.data[:, table.header.index(c)] for c in names])
     if arr.shape[0] == 0:
         raise InputError(p, "holds no cars", "at least one row")
+    if arr.shape[0] > spec.MAX_CARS:
+        raise InputError(p, f"{arr.shape[0]} cars", f"at most {spec.MAX_CARS}; split the file")
     bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
     if bad.size:
         raise InputError(
             p, f"{bad.size} row(s) with NaN or inf, first car index {bad[0]}", "finite numbers"
         )
+    # beyond these a float32 rollout overflows (1e308 becomes inf): refused, not predicted
+    limits = (spec.MAX_COORD_M, spec.MAX_COORD_M, spec.MAX_YAW_RAD, spec.MAX_SPEED_MPS)
+    limits += (spec.MAX_YAW_RATE_RPS,)
+    for c in range(arr.shape[1]):
+        out = np.flatnonzero(np.abs(arr[:, c]) > limits[c])
+        if out.size:
+            raise InputError(
+                p,
+                f"{STATE_COLUMNS[c]} of car {out[0]} is {arr[out[0], c]:g}",
+                f"|{STATE_COLUMNS[c]}| <= {limits[c]:g}",
+            )
     return arr
 
 

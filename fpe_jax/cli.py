@@ -738,8 +738,7 @@ def cmd_batch(args) -> int:
     out = io.check_output_path(args.out, args.force)
     if out.suffix.lower() not in (".npy", ".csv"):
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
-    if args.chunk < 1:
-        raise InputError("--chunk", f"{args.chunk} cars per call", "a positive integer")
+    spec.check_chunk(args.chunk)
     with _progress(args) as say:
         say("loading JAX")
         _start_jax(args, x64=False)  # the predictor runs in --dtype (batch.py pins it)

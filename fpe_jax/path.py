@@ -12,6 +12,7 @@ import hashlib
 import numpy as np
 
 from fpe_jax.errors import InputError
+from fpe_jax.spec import check_track_size
 
 
 def map_origin(xy_m) -> np.ndarray:
@@ -143,6 +144,9 @@ def build_path(
         raise InputError(source, f"waypoints have shape {xy.shape}", "(K, 2) x, y in metres")
     if not np.all(np.isfinite(xy)):
         raise InputError(source, "waypoints contain NaN or inf", "finite x, y")
+    raw_length_m = float(np.hypot(*np.diff(xy, axis=0).T).sum())
+    if raw_length_m > 0.0:  # all points equal: "only 1 distinct waypoints" below says it better
+        check_track_size(len(xy), raw_length_m, source)
     step = min(min_step_m, ds_m * 1.5)
     clean, removed_close, removed_back = _clean_polyline(xy, step, backtrack_tol_m)
     if len(clean) < 3:

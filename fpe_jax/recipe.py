@@ -186,6 +186,10 @@ def load_recipe(path) -> Recipe:
         ) from None
     except tomllib.TOMLDecodeError as e:
         raise InputError(path, f"not valid TOML ({e})", "a TOML recipe") from None
+    except RecursionError:
+        raise InputError(
+            path, "nested too deeply", "a TOML recipe such as fit/levine.toml"
+        ) from None
     unknown = set(spec) - TOP_KEYS
     if unknown:
         raise InputError(path, f"unknown keys {sorted(unknown)}", f"{sorted(TOP_KEYS)}")

@@ -24,6 +24,24 @@ SCHEMA_VERSION = 1
 BLEND_MODES = ("position", "heading")
 MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
 MIN_TAU_S = 0.01  # time constants stay above this: exp(-t / tau) must not underflow to 0/0
+
+# Declared limits on sizes, checked before the work starts (each beyond is one line, exit 2).
+# The estimator keeps 1 s of observations (100 at 100 Hz) and compares every pair: 1000 took
+# 263 s and 8.7 GB for 220 observations.
+MAX_HISTORY = 100
+MAX_WAYPOINTS = 1_000_000  # more is a point cloud, not a reference line
+MIN_TRACK_LENGTH_M, MAX_TRACK_LENGTH_M = 1.0, 100_000.0  # km or mm mistaken for m beyond
+MAX_CARS = 1 << 28  # cars per batch file (2.7e8 rows of 5 float64 are 10.7 GB)
+MAX_CARS_PER_CALL = 1 << 20  # one compiled call holds ~1.2 KB per car: 1.3 GB here
+MAX_SPEED_MPS = 200.0  # any car's speed, fitted or given
+MAX_YAW_RATE_RPS = 100.0
+MAX_COORD_M = 1e8  # UTM northings stay below 1e7 m; 1e308 would overflow the estimate
+MAX_YAW_RAD = 1e6  # unwrapped yaw of many laps is fine; 1e308 is not an angle
+# Observation streams (`fpe run`, fpe_jax.io.stream): a line beyond these is reported and skipped.
+MAX_STAMP_S = 2.0**32  # ROS 1's unsigned seconds end in 2106: beyond is ms, us or ns
+MAX_STREAM_GAP_S = 60.0  # a stamp further past the previous one is a glitch ...
+RESTART_LINES = 3  # ... unless this many consecutive lines agree on the new clock
+
 # `--fit` names -> the Params fields they free (fpe_jax.fit fits these groups)
 FIT_GROUPS = {
     "lookahead": ("lookahead_m", "lookahead_gain_s"),
@@ -103,7 +121,7 @@ PARAM_RULES = (
     Rule("weights", "weights", lo=0.0, hi=1.0),
     Rule("delay_s", lo=0.0, hi=10.0, unit="s"),
     Rule("speed_weight", lo=0.0, hi=1.0),
-    Rule("speed_mps", lo=0.0, hi=200.0, unit="m/s"),
+    Rule("speed_mps", lo=0.0, hi=MAX_SPEED_MPS, unit="m/s"),
     Rule("offset_tau_s", lo=MIN_TAU_S, hi=1000.0, unit="s", optional=True),
     Rule("speed_tau_s", lo=MIN_TAU_S, hi=1000.0, unit="s", optional=True),
     Rule("position_smoothing", lo=0.0, hi=1.0, optional=True),
@@ -111,7 +129,7 @@ PARAM_RULES = (
 # the line model's profile along the track (`fpe_jax.line`), P values each; required for it
 LINE_RULES = (
     Rule("line_offset_m", "array", lo=-1000.0, hi=1000.0, unit="m"),
-    Rule("line_speed_mps", "array", lo=0.0, hi=200.0, unit="m/s"),
+    Rule("line_speed_mps", "array", lo=0.0, hi=MAX_SPEED_MPS, unit="m/s"),
     Rule("line_coverage", "array", lo=0.0, hi=1.0),
 )
 SETTING_RULES = (
@@ -123,7 +141,7 @@ SETTING_RULES = (
     Rule("blend", "choice", choices=BLEND_MODES),
     Rule("model", "choice", choices=MODELS),
     Rule("min_lookahead_m", lo=0.0, hi=1000.0, unit="m"),
-    Rule("history", "int", lo=2, hi=10_000),
+    Rule("history", "int", lo=2, hi=MAX_HISTORY),
 )
 PARAM_KEYS = tuple(r.key for r in PARAM_RULES if not r.optional)
 OPTIONAL_PARAM_KEYS = tuple(r.key for r in PARAM_RULES if r.optional)
@@ -332,12 +350,26 @@ def check_rate(v, source, field: str) -> float:
     return hz
 
 
-# Observation streams (`fpe run`, fpe_jax.io.stream): a line beyond these is reported and skipped.
-MAX_STAMP_S = 2.0**32  # ROS 1's unsigned seconds end in 2106: beyond is ms, us or ns
-MAX_COORD_M = 1e8  # UTM northings stay below 1e7 m; 1e308 would overflow the estimate
-MAX_YAW_RAD = 1e6  # unwrapped yaw of many laps is fine; 1e308 is not an angle
-MAX_STREAM_GAP_S = 60.0  # a stamp further past the previous one is a glitch ...
-RESTART_LINES = 3  # ... unless this many consecutive lines agree on the new clock
+def check_chunk(chunk) -> int:
+    """Cars per compiled call (`fpe batch --chunk`): an integer in [1, MAX_CARS_PER_CALL]."""
+    if not (is_int(chunk) and 1 <= chunk <= MAX_CARS_PER_CALL):
+        raise InputError(
+            "--chunk", f"{short(chunk)} cars per call", f"an integer from 1 to {MAX_CARS_PER_CALL}"
+        )
+    return int(chunk)
+
+
+def check_track_size(n_waypoints: int, length_m: float, source) -> None:
+    """Waypoints within the declared limits: at most MAX_WAYPOINTS, and a polyline between
+    MIN_TRACK_LENGTH_M and MAX_TRACK_LENGTH_M long (the resampled path has one point per 0.1 m)."""
+    if n_waypoints > MAX_WAYPOINTS:
+        raise InputError(source, f"{n_waypoints} waypoints", f"at most {MAX_WAYPOINTS}")
+    if not MIN_TRACK_LENGTH_M <= length_m <= MAX_TRACK_LENGTH_M:
+        raise InputError(
+            source,
+            f"the waypoints span a path {length_m:.6g} m long (in other units than metres?)",
+            f"a track {MIN_TRACK_LENGTH_M:g} m to {MAX_TRACK_LENGTH_M:g} m long, in metres",
+        )
 
 
 def check_simulation(
