@@ -838,6 +838,11 @@ def cmd_plot(args) -> int:
     return 0
 
 
+def _one_line(msg: str) -> str:
+    """The message with control characters (a newline in a file name) escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in msg)
+
+
 def _sigterm(signum, frame):
     # SystemExit unwinds like Ctrl-C does, so atomic writers remove their temporary files
     raise SystemExit(128 + signum)
@@ -852,19 +857,36 @@ def _quiet_stdout() -> None:
         pass
 
 
+def _resend_interrupts(unraisable) -> None:
+    """sys.unraisablehook: a Ctrl-C (or SIGTERM) that landed in a callback Python cannot raise
+    from (JAX's garbage-collection callback) is sent again instead of being lost, so the work
+    still stops; anything else is reported as usual."""
+    import _thread
+
+    if issubclass(unraisable.exc_type, KeyboardInterrupt):
+        _thread.interrupt_main(signal.SIGINT)
+    elif issubclass(unraisable.exc_type, SystemExit):
+        _thread.interrupt_main(signal.SIGTERM)
+    else:
+        sys.__unraisablehook__(unraisable)
+
+
 def main(argv: list[str] | None = None) -> int:
     import threading
 
     args = _build_parser().parse_args(argv)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _sigterm) if main_thread else None
+    previous_hook = sys.unraisablehook
+    if main_thread:
+        sys.unraisablehook = _resend_interrupts
     try:
         rc = args.func(args)
         if sys.stdout is not None:  # None when started with stdout closed
             sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is reported below
         return rc
     except InputError as e:
-        print(f"fpe: error: {e}", file=sys.stderr)
+        print(f"fpe: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("fpe: interrupted", file=sys.stderr)
@@ -877,10 +899,14 @@ def main(argv: list[str] | None = None) -> int:
             _quiet_stdout()
             print(f"fpe: error: cannot write the output ({e.strerror})", file=sys.stderr)
             return 1
+        if e.filename is not None:  # a path the user gave that the system refuses
+            print(f"fpe: error: {_one_line(str(e.filename))}: {e.strerror}", file=sys.stderr)
+            return 2
         raise
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)
+            sys.unraisablehook = previous_hook
 
 
 if __name__ == "__main__":

@@ -200,6 +200,11 @@ def load_recipe(path) -> Recipe:
     if not isinstance(table, dict) or set(table) - set(SETTINGS_KEYS):
         bad = sorted(set(table) - set(SETTINGS_KEYS)) if isinstance(table, dict) else table
         raise InputError(path, f"[settings] has {bad!r}", f"keys from {', '.join(SETTINGS_KEYS)}")
+    for rule in S.SETTING_RULES:
+        if rule.key in table:
+            S.check_value(
+                rule, table[rule.key], {"settings": table}, path, f"[settings] {rule.key}"
+            )
     base = path.parent
     for key in ("drives", "test_drives"):
         entries = spec.get(key, [])

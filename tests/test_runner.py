@@ -406,7 +406,7 @@ def test_parse_line():
     assert parse_line("1.5,2,3,", None, None) == (1.5, 2.0, 3.0, None)
     assert parse_line('{"t": 1, "x": 2, "y": 3, "yaw": null}', None, None) == (1.0, 2.0, 3.0, None)
     assert parse_line('{"t": 1, "x": 2, "y": 3, "yaw": 0.5}', None, None) == (1.0, 2.0, 3.0, 0.5)
-    assert parse_line("9,1,2,3", (3, 1, 2, None), None) == (3.0, 1.0, 2.0, None)
+    assert parse_line("9,1,2,3", (3, 1, 2, None, 4), None) == (3.0, 1.0, 2.0, None)
     assert parse_line("1,2,0", None, 10.0) == (None, 1.0, 2.0, None)  # x,y,z: z unused
     assert parse_line('{"x": 1, "y": 2}', None, 10.0) == (None, 1.0, 2.0, None)
     for bad in ("1,2", "1,2,3,4,5", "a,2,3,4", '{"t": 1, "x": true, "y": 2}', "{not json"):

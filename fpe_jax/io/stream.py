@@ -59,7 +59,8 @@ def _number(value, what: str) -> float:
 
 
 def header_columns(cells: list[str], rate_hz, source="stdin") -> tuple:
-    """Column indices (t, x, y, yaw) of a CSV header, t None with a rate, yaw None if absent."""
+    """Column indices (t, x, y, yaw) of a CSV header (t None with a rate, yaw None if absent),
+    and its number of columns."""
     names = [c.strip().lower() for c in cells]
     found = [
         next((names.index(o) for o in options if o in names), None)
@@ -74,7 +75,7 @@ def header_columns(cells: list[str], rate_hz, source="stdin") -> tuple:
         if idx is None and not (what == "t" and rate_hz is not None):
             need = "x,y[,yaw] with --rate" if rate_hz is not None else "t,x,y[,yaw], or --rate HZ"
             raise InputError(source, f"no {what} column in header {header!r}", need)
-    return tuple(found)
+    return (*found, len(cells))
 
 
 def parse_line(text: str, columns, rate_hz, source="stdin") -> tuple:
@@ -98,9 +99,9 @@ def parse_line(text: str, columns, rate_hz, source="stdin") -> tuple:
     else:
         raw = [c.strip() for c in text.split(",")]
         if columns is not None:
-            if len(raw) <= max(c for c in columns if c is not None):
-                raise _Skip(f"{len(raw)} columns (expected as many as the header)")
-            cells = [None if c is None else raw[c] for c in columns]
+            if len(raw) != columns[4]:
+                raise _Skip(f"{len(raw)} columns (expected {columns[4]}, as the header)")
+            cells = [None if c is None else raw[c] for c in columns[:4]]
         elif rate_hz is not None:  # the original's x,y,z poses; z is the height, unused
             if len(raw) != 3:
                 raise _Skip(f"{len(raw)} columns (expected x,y,z with --rate)")

@@ -33,6 +33,13 @@ def check_output_path(path, force: bool) -> Path:
     system), if it is a folder, or if it exists and `force` is false. Returns it as a `Path`.
     """
     p = Path(path)
+    try:
+        os.stat(p.parent)  # is_dir() says False for a name too long, stat says why
+        os.lstat(p) if p.name else None
+    except FileNotFoundError:
+        pass
+    except OSError as e:  # a name too long, a folder that is a file, a loop of links
+        raise InputError(p, f"cannot be used as an output path ({e.strerror})") from None
     if not p.parent.is_dir():
         raise InputError(p, f"its folder {str(p.parent)!r} does not exist", "an existing folder")
     if p.is_dir():
