@@ -881,6 +881,8 @@ def main(argv: list[str] | None = None) -> int:
     if main_thread:
         sys.unraisablehook = _resend_interrupts
     try:
+        if getattr(args, "out", None) == "":  # Path("") is the current folder
+            raise InputError("--out", "is empty", "a file or folder name")
         rc = args.func(args)
         if sys.stdout is not None:  # None when started with stdout closed
             sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is reported below

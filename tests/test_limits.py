@@ -118,3 +118,49 @@ def test_deep_recipe_is_one_line(tmp_path, capsys, body):
     recipe.write_text(body + "\n")
     assert cli.main(["fit", str(recipe)]) == 2
     assert "nested too deeply" in one_line_error(capsys)
+
+
+# ---- outputs that cannot be written, found before the work (the tests run as root) -----------
+
+
+def _refusing_folder() -> str:
+    """A folder that refuses new files even to root: /sys (sysfs, or read-only in containers)."""
+    import os
+
+    if not os.path.isdir("/sys"):
+        pytest.skip("no /sys on this system")
+    return "/sys"
+
+
+@pytest.mark.parametrize("command", ["fit", "predict", "batch", "convert", "plot"])
+def test_an_output_folder_refusing_files_is_found_before_the_work(tmp_path, capsys, command):
+    out = f"{_refusing_folder()}/fpe-test-out"
+    absent = str(tmp_path / "absent.csv")  # the inputs are never read: the output fails first
+    argv = {
+        "fit": ["fit", absent, "--waypoints", absent, "--out", out + ".json"],
+        "predict": ["predict", absent, "--waypoints", absent, "--out", out + ".csv"],
+        "batch": ["batch", absent, "--waypoints", absent, "--preset", "default"],
+        "convert": ["convert", absent, "--out", out + ".csv"],
+        "plot": ["plot", absent, "--waypoints", absent, "--preset", "default"],
+    }[command]
+    if command == "batch":
+        argv += ["--out", out + ".npy"]
+    if command == "plot":
+        argv += ["--out", out + ".png"]
+    assert cli.main(argv) == 2
+    err = one_line_error(capsys)
+    assert "not writable" in err and "absent" not in err
+
+
+def test_a_read_only_folder_is_found_before_the_work(tmp_path, capsys, monkeypatch):
+    import os
+
+    real_access = os.access
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    # root passes every permission check, so the folder is made read-only to access() itself
+    monkeypatch.setattr(os, "access", lambda p, mode: str(p) != str(ro) and real_access(p, mode))
+    argv = ["fit", str(tmp_path / "absent.csv"), "--waypoints", "absent.csv"]
+    assert cli.main([*argv, "--out", str(ro / "c.json")]) == 2
+    assert f"its folder {str(ro)!r} is not writable" in one_line_error(capsys)
+    assert not any(ro.iterdir())

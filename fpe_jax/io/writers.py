@@ -48,6 +48,16 @@ def check_output_path(path, force: bool) -> Path:
         raise InputError(p, "exists; pass --force to overwrite")
     if not os.access(p.parent, os.W_OK | os.X_OK):
         raise InputError(p, f"its folder {str(p.parent)!r} is not writable", "a writable folder")
+    # access() grants root everything; only creating a file shows a folder (such as /sys) that
+    # refuses files: a hidden probe, created and removed at once
+    probe = p.with_name(f".{p.name[:64]}.{os.getpid()}.{secrets.token_hex(4)}.probe")
+    try:
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+    except OSError as e:
+        raise InputError(
+            p, f"its folder {str(p.parent)!r} is not writable ({e.strerror})", "a writable folder"
+        ) from None
+    probe.unlink(missing_ok=True)
     return p
 
 
