@@ -862,13 +862,16 @@ def _resend_interrupts(unraisable) -> None:
     from (JAX's garbage-collection callback) is sent again instead of being lost, so the work
     still stops; anything else is reported as usual."""
     import _thread
+    import threading
 
-    if issubclass(unraisable.exc_type, KeyboardInterrupt):
-        _thread.interrupt_main(signal.SIGINT)
-    elif issubclass(unraisable.exc_type, SystemExit):
-        _thread.interrupt_main(signal.SIGTERM)
-    else:
-        sys.__unraisablehook__(unraisable)
+    for kind, signum in ((KeyboardInterrupt, signal.SIGINT), (SystemExit, signal.SIGTERM)):
+        if issubclass(unraisable.exc_type, kind):
+            # from another thread, a moment later: sent from here it would land in this hook
+            resend = threading.Timer(0.01, _thread.interrupt_main, (signum,))
+            resend.daemon = True
+            resend.start()
+            return
+    sys.__unraisablehook__(unraisable)
 
 
 def main(argv: list[str] | None = None) -> int:

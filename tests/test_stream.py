@@ -188,3 +188,35 @@ def test_broken_pipe_and_ctrl_c(files, oval):
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 130
         assert proc.stderr.read().strip() == "fpe: interrupted"
+
+
+def test_a_ctrl_c_lost_in_a_callback_is_sent_again(monkeypatch, capsys):
+    """Python cannot raise from a __del__ or a gc callback (JAX has one): a KeyboardInterrupt
+    landing there is only reported, and the work would go on. The CLI sends it again."""
+    import time
+
+    class Dies:
+        def __del__(self):
+            raise KeyboardInterrupt
+
+    def work(args):
+        Dies()  # its __del__ runs at once: the interrupt lands there
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:  # the resent interrupt stops this loop
+            time.sleep(0.01)
+        return 0
+
+    monkeypatch.setattr(cli, "cmd_presets", work)
+    monkeypatch.setattr(cli, "_build_parser", _parser_with(cli._build_parser, work))
+    assert cli.main(["presets"]) == 130
+    err = capsys.readouterr().err
+    assert err.strip() == "fpe: interrupted" and "Traceback" not in err
+
+
+def _parser_with(build, func):
+    def patched():
+        parser = build()
+        parser._subparsers._group_actions[0].choices["presets"].set_defaults(func=func)
+        return parser
+
+    return patched
