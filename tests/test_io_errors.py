@@ -128,7 +128,7 @@ DRIVE_CASES = [
     ("all-nan", _all_nan_log, [], "NaN or infinite"),
     ("rate-on-log", _pose_log, ["--rate", "10"], "--rate"),
     ("csv-needs-rate", _file("a.csv", b"1,2,0\n3,4,0\n"), [], "--rate HZ is required"),
-    ("csv-bad-rate", _file("a.csv", b"1,2,0\n3,4,0\n"), ["--rate", "-1"], "not a positive rate"),
+    ("csv-bad-rate", _file("a.csv", b"1,2,0\n3,4,0\n"), ["--rate", "-1"], "--rate is -1.0"),
     ("csv-rate-and-t", _file("a.csv", b"t,x,y\n0,1,2\n"), ["--rate", "5"], "time column"),
     (
         "csv-non-numeric",

@@ -164,3 +164,11 @@ def test_a_read_only_folder_is_found_before_the_work(tmp_path, capsys, monkeypat
     assert cli.main([*argv, "--out", str(ro / "c.json")]) == 2
     assert f"its folder {str(ro)!r} is not writable" in one_line_error(capsys)
     assert not any(ro.iterdir())
+
+
+def test_a_drive_pose_beyond_the_map_is_refused(tmp_path, capsys):
+    log = tmp_path / "d.csv"
+    log.write_text("t,x,y\n0,0,0\n0.1,1e308,0\n0.2,0.4,0\n")
+    assert cli.main(["convert", str(log), "--out", str(tmp_path / "o.csv")]) == 2
+    assert "first: data row 2, x 1e+308" in one_line_error(capsys)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.csv"]

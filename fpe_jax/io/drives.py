@@ -142,6 +142,16 @@ def _clean(source, what: str, t_ns: np.ndarray, cols: dict[str, np.ndarray], fin
         ok &= np.isfinite(cols[k]).reshape(n, -1).all(axis=1)
     if not ok.any():
         raise InputError(source, f"{what}: all {n} poses are NaN or infinite", "finite poses")
+    # a corrupt value such as 1e308 is finite but overflows the estimate: refused, not predicted
+    far = ok & (np.abs(cols["xy_m"]) > spec.MAX_COORD_M).any(axis=1)
+    if far.any():
+        k = int(np.argmax(far))
+        raise InputError(
+            source,
+            f"{what}: {int(far.sum())} poses beyond ±{spec.MAX_COORD_M:g} m (first: data row "
+            f"{k + 1}, x {cols['xy_m'][k, 0]:g}, y {cols['xy_m'][k, 1]:g})",
+            "map coordinates in metres",
+        )
     t_ns = t_ns[ok]
     cols = {k: v[ok] for k, v in cols.items()}
     # A row is "reordered" when it arrived after a row with a later stamp.
