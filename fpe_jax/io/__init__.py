@@ -1,7 +1,8 @@
 """Drive logs in, predictions out -- without a ROS installation (NumPy only; no JAX here).
 
 Readers: `load_drive` (ROS 2 MCAP, rosbag2 folders, ROS 1 bags, CSV) -> `Drive`;
-`load_waypoints` (CSV variants, nav_msgs/Path in a log) -> `Waypoints`; `describe_log`.
+`load_waypoints` (CSV variants, nav_msgs/Path in a log) -> `Waypoints`; `describe_log`;
+`fpe_jax.io.stream.read_observations` (`fpe run`'s stdin lines -> stamped observations).
 Writers: `write_predictions` (CSV / MCAP), `write_drive_mcap` (simulated drives),
 `write_drive_csv` (a drive's observations), `check_output_path`; every file goes through the
 one atomic writer `atomic_output` (`write_text`, `write_bytes`). AprilTag detections plus the
