@@ -1,0 +1,131 @@
+"""Drives meet the waypoints they follow: the drive-vs-track check (other track, reversed,
+shifted), and the O(P + K) nearest-vertex search it runs on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fpe_jax import cli
+from fpe_jax.errors import InputError
+from fpe_jax.path import build_path, check_on_track, nearest_vertex, track_agreement
+from fpe_jax.sim import simulate
+
+
+def test_nearest_vertex_equals_the_exhaustive_search():
+    rng = np.random.default_rng(0)
+    ver = rng.uniform(0.0, 50.0, (3000, 2))
+    ver[7] = ver[3]  # a tie: the lowest index wins, as np.argmin
+    pts = np.vstack([rng.uniform(-10.0, 60.0, (5000, 2)), ver[3] + 0.01])
+    idx, dist = nearest_vertex(pts, ver, 3.0)
+    d = np.hypot(*(pts[:, None, :] - ver[None, :, :]).transpose(2, 0, 1))
+    near = d.min(axis=1) <= 3.0
+    assert near.sum() > 1000 and (~near).sum() > 100
+    np.testing.assert_array_equal(idx[near], d.argmin(axis=1)[near])
+    np.testing.assert_allclose(dist[near], d.min(axis=1)[near])
+    assert np.all(idx[~near] == -1) and np.all(np.isinf(dist[~near]))
+    assert idx[-1] == 3
+
+
+@pytest.fixture(scope="module")
+def drives(shared_data):
+    """name -> (observations (N, 2), centerline (K, 2)): simulated drives and the Levine lap."""
+    out = {}
+    for name in ("oval", "hairpin", "random:7", str(shared_data / "tracks/Monza_centerline.csv")):
+        res = simulate(name, duration_s=30.0, seed=1)
+        out[name.rsplit("/")[-1]] = (res.drive.xy_m, res.centerline_xy_m)
+    lev = shared_data / "levine"
+    out["levine"] = (
+        np.loadtxt(lev / "actual-poses.csv", delimiter=",")[:, :2],
+        np.loadtxt(lev / "levine-waypoints.csv", delimiter=",")[:, :2],
+    )
+    return out
+
+
+def _agree(xy, wp):
+    p = build_path(wp)
+    return track_agreement(xy, p["xy_m"], p["heading_rad"])
+
+
+def test_own_drives_are_on_their_track(drives):
+    for name, (xy, wp) in drives.items():
+        a = _agree(xy, wp)
+        assert a["share_near"] >= 0.95 and a["share_along"] >= 0.9, (name, a)
+
+
+@pytest.mark.parametrize(
+    "case, words",
+    [
+        ("other track", "different map frame"),
+        ("reversed", "reverse direction"),
+        ("shifted 50 m", "different map frame"),
+    ],
+)
+@pytest.mark.parametrize("name", ["oval", "Monza_centerline.csv", "levine"])
+def test_wrong_waypoints_are_caught(drives, name, case, words):
+    xy, wp = drives[name]
+    other = "hairpin" if name != "hairpin" else "oval"
+    wrong = {
+        "other track": drives[other][1],
+        "reversed": wp[::-1],
+        "shifted 50 m": wp + [50.0, 0.0],
+    }[case]
+    p = build_path(wrong)
+    with pytest.raises(InputError, match=words) as e:
+        check_on_track(xy, p["xy_m"], p["heading_rad"], source="wp.csv", drive="d.csv")
+    assert str(e.value).startswith("wp.csv: ") and "--allow-off-track" in str(e.value)
+    a = check_on_track(xy, p["xy_m"], p["heading_rad"], source="wp.csv", drive="d", allow=True)
+    assert a["share_near"] < 0.8 or a["share_along"] < 0.5  # what tripped it
+
+
+def _write_csv(path, rows, header):
+    path.write_text(header + "\n" + "".join(",".join(map(repr, map(float, r))) + "\n" for r in rows))
+    return path
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory, drives):
+    """A drive CSV on the oval, its waypoints, the same reversed, and the hairpin's."""
+    root = tmp_path_factory.mktemp("on_track")
+    res = simulate("oval", duration_s=10.0, seed=3)
+    d = res.drive
+    log = _write_csv(root / "drive.csv", np.column_stack([d.t_s, d.xy_m, d.yaw_rad]), "t,x,y,yaw")
+    wp = res.centerline_xy_m
+    return dict(
+        log=log,
+        wp=_write_csv(root / "wp.csv", wp, "x,y"),
+        reversed=_write_csv(root / "reversed.csv", wp[::-1], "x,y"),
+        other=_write_csv(root / "hairpin.csv", drives["hairpin"][1], "x,y"),
+    )
+
+
+@pytest.mark.parametrize("wp", ["reversed", "other"])
+@pytest.mark.parametrize(
+    "command",
+    [
+        "fit {log} --waypoints {wp} --out {out}",
+        "evaluate {log} --waypoints {wp} --preset default",
+        "predict {log} --waypoints {wp} --out {out}",
+        "plot {log} --waypoints {wp} --preset default --out {out}",
+    ],
+    ids=["fit", "evaluate", "predict", "plot"],
+)
+def test_commands_refuse_off_track_drives(files, tmp_path, capsys, command, wp):
+    out = tmp_path / ("out.png" if command.startswith("plot") else "out.csv")
+    if command.startswith("fit"):
+        out = tmp_path / "out.json"
+    argv = command.format(log=files["log"], wp=files[wp], out=out).split()
+    assert cli.main([*argv, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert str(files[wp]) in err and "--allow-off-track" in err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_allow_off_track_overrides(files, tmp_path, capsys):
+    out = tmp_path / "pred.csv"
+    argv = f"predict {files['log']} --waypoints {files['reversed']} --out {out} --quiet".split()
+    assert cli.main([*argv, "--allow-off-track"]) == 0
+    assert out.exists()
+    good = tmp_path / "good.csv"
+    assert cli.main(f"predict {files['log']} --waypoints {files['wp']} --out {good}".split()) == 0
