@@ -294,7 +294,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output file (a folder for --format all)")
     p.add_argument("--node", default="future_pose_estimator", help="ROS 2 node name")
     p.add_argument(
-        "--waypoints", help="waypoint file: baked into stablehlo (required there), named in ros2"
+        "--waypoints",
+        help="waypoint file: baked into stablehlo, named in ros2 (default: the config's "
+        "provenance, the file it was fitted on, checked by its hash)",
     )
     p.add_argument("--force", action="store_true", help="overwrite existing files")
     p.set_defaults(func=cmd_export)
@@ -325,14 +327,19 @@ def _build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_export(args) -> int:
-    from fpe_jax.export import export_config
+    from fpe_jax.export import export_config, provenance_waypoints
 
+    waypoints = args.waypoints
+    if waypoints is None:
+        waypoints = provenance_waypoints(args.config)
+        if waypoints is not None:
+            print(f"waypoints from the config's provenance: {waypoints}", file=sys.stderr)
     written = export_config(
         args.config,
         args.format,
         args.out,
         node=args.node,
-        waypoints=args.waypoints,
+        waypoints=waypoints,
         force=args.force,
     )
     for path in written:
@@ -369,6 +376,7 @@ def _fit_inputs(args, say=lambda msg: None):
             model=args.model or r.model,
             solver=args.solver or r.solver,
             settings=r.settings,
+            waypoints=r.waypoints,
         )
         return r.drives, r.test_drives, out, opts
     if not args.waypoints:
@@ -391,6 +399,7 @@ def _fit_inputs(args, say=lambda msg: None):
         model=args.model,
         solver=args.solver,
         settings={},
+        waypoints=args.waypoints,
     )
     return drives, tests, args.out, opts
 
@@ -400,6 +409,17 @@ def _local_drives(entries):
     from fpe_jax.drive import local_frame
 
     return [(*local_frame(d, wp)[:2], desc) for d, wp, desc in entries]
+
+
+def _waypoint_provenance(path, entries) -> dict | None:
+    """{"file": absolute path, "sha256": waypoints_sha256} of the waypoint file every drive of
+    `entries` ((drive, waypoints, description)) ran on; None when there is none or they differ."""
+    from fpe_jax.path import waypoints_sha256
+
+    sha = {waypoints_sha256(wp) for _, wp, _ in entries}
+    if path is None or len(sha) != 1:
+        return None
+    return {"file": str(Path(path).resolve()), "sha256": sha.pop()}
 
 
 def cmd_fit(args) -> int:
@@ -455,14 +475,18 @@ def cmd_fit(args) -> int:
         "truth": drives[0][0].meta.get("truth_topic"),
     }
     sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
+    prov = provenance(result, sources, topics)
+    wp_file = _waypoint_provenance(opts["waypoints"], drives + tests)
+    if wp_file is not None:  # what `fpe export` uses when --waypoints is omitted
+        prov["waypoints"] = wp_file
     line = None
     if "waypoints_sha256" in result.info:
-        line = {"waypoints_sha256": result.info["waypoints_sha256"], "waypoints": args.waypoints}
+        line = {
+            "waypoints_sha256": result.info["waypoints_sha256"],
+            "waypoints": None if wp_file is None else wp_file["file"],
+        }
     cfg = params_to_config(
-        result.params,
-        uncertainty=result.uncertainty,
-        provenance=provenance(result, sources, topics),
-        line=line,
+        result.params, uncertainty=result.uncertainty, provenance=prov, line=line
     )
     write_config(out, cfg, force=args.force)
     print(format_fitted(result))

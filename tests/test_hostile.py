@@ -1,5 +1,6 @@
-"""Drives meet the waypoints they follow: the drive-vs-track check (other track, reversed,
-shifted), and the O(P + K) nearest-vertex search it runs on."""
+"""Hostile input, the parts that need geometry: the drive-vs-track check (other track, reversed,
+shifted) and the O(P + K) nearest-vertex search it runs on; export's waypoints taken from the
+config's provenance (missing or changed file)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import numpy as np
 import pytest
 
 from fpe_jax import cli
+from fpe_jax.config import params_to_config, write_config
 from fpe_jax.errors import InputError
+from fpe_jax.params import presets
 from fpe_jax.path import build_path, check_on_track, nearest_vertex, track_agreement
 from fpe_jax.sim import simulate
 
@@ -79,7 +82,9 @@ def test_wrong_waypoints_are_caught(drives, name, case, words):
 
 
 def _write_csv(path, rows, header):
-    path.write_text(header + "\n" + "".join(",".join(map(repr, map(float, r))) + "\n" for r in rows))
+    path.write_text(
+        header + "\n" + "".join(",".join(map(repr, map(float, r))) + "\n" for r in rows)
+    )
     return path
 
 
@@ -129,3 +134,47 @@ def test_allow_off_track_overrides(files, tmp_path, capsys):
     assert out.exists()
     good = tmp_path / "good.csv"
     assert cli.main(f"predict {files['log']} --waypoints {files['wp']} --out {good}".split()) == 0
+
+
+def _config_with_provenance(tmp_path, wp_file, sha=None):
+    from fpe_jax.path import waypoints_sha256
+
+    sha = sha or waypoints_sha256(np.loadtxt(wp_file, delimiter=",", skiprows=1))
+    prov = {"waypoints": {"file": str(wp_file), "sha256": sha}}
+    path = tmp_path / "tuned.json"
+    write_config(path, params_to_config(presets["default"], provenance=prov))
+    return path
+
+
+def test_export_takes_the_waypoints_from_the_provenance(files, tmp_path, capsys):
+    wp = tmp_path / "wp.csv"
+    wp.write_bytes(files["wp"].read_bytes())
+    cfg = _config_with_provenance(tmp_path, wp)
+    out = tmp_path / "p.yaml"
+    assert cli.main(["export", str(cfg), "--format", "ros2", "--out", str(out)]) == 0
+    assert f"provenance: {wp}" in capsys.readouterr().err
+    assert f'waypoint_file: "{wp}"' in out.read_text()
+
+    before = {p: p.read_bytes() for p in tmp_path.iterdir()}
+    cases = {
+        "changed": (lambda: wp.write_text("x,y\n0,0\n10,0\n10,10\n0,10\n"), "changed since"),
+        "missing": (wp.unlink, "is missing"),
+    }
+    for name, (damage, words) in cases.items():
+        damage()
+        target = tmp_path / f"{name}.stablehlo"
+        assert cli.main(["export", str(cfg), "--format", "stablehlo", "--out", str(target)]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "--waypoints" in err and len(err.strip().splitlines()) == 1, err
+        assert not target.exists()
+    assert {p: p.read_bytes() for p in tmp_path.iterdir()} == {
+        p: b for p, b in before.items() if p != wp
+    }
+
+
+def test_export_rejects_a_malformed_provenance_entry(files, tmp_path, capsys):
+    cfg = _config_with_provenance(tmp_path, files["wp"], sha="not-a-hash")
+    assert (
+        cli.main(["export", str(cfg), "--format", "json", "--out", str(tmp_path / "c.json")]) == 2
+    )
+    assert "provenance.waypoints" in capsys.readouterr().err
