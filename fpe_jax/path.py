@@ -212,16 +212,17 @@ def nearest_vertex(points_m, vertices_m, radius_m: float) -> tuple[np.ndarray, n
                 n = b - a
                 if not n.any():
                     continue
-                owner = np.repeat(np.arange(len(p)), n)
-                cand = order[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())]
-                d2 = np.sum((ver[cand] - p[owner]) ** 2, axis=1)
-                first = np.lexsort((cand, d2, owner))  # per owner: nearest, then lowest index
-                keep = first[np.r_[True, owner[first][1:] != owner[first][:-1]]]
-                o = owner[keep] + start
-                better = (d2[keep] < best_d2[o]) | (
-                    (d2[keep] == best_d2[o]) & (cand[keep] < best_i[o])
-                )
-                best_d2[o[better]], best_i[o[better]] = d2[keep][better], cand[keep][better]
+                has = np.flatnonzero(n)
+                first = np.cumsum(n)[has] - n[has]  # each point's run in the candidates
+                cand = order[np.repeat(a[has] - first, n[has]) + np.arange(first[-1] + n[has][-1])]
+                d2 = np.sum((ver[cand] - np.repeat(p[has], n[has], axis=0)) ** 2, axis=1)
+                # per point: the nearest, and among equally near the lowest index (O(T))
+                d_min = np.minimum.reduceat(d2, first)
+                tie = d2 == np.repeat(d_min, n[has])
+                i_min = np.minimum.reduceat(np.where(tie, cand, len(ver)), first)
+                o = has + start
+                better = (d_min < best_d2[o]) | ((d_min == best_d2[o]) & (i_min < best_i[o]))
+                best_d2[o[better]], best_i[o[better]] = d_min[better], i_min[better]
     far = best_d2 > radius_m * radius_m
     best_i[far], best_d2[far] = -1, np.inf
     return best_i, np.sqrt(best_d2)
