@@ -178,3 +178,22 @@ def test_export_rejects_a_malformed_provenance_entry(files, tmp_path, capsys):
         cli.main(["export", str(cfg), "--format", "json", "--out", str(tmp_path / "c.json")]) == 2
     )
     assert "provenance.waypoints" in capsys.readouterr().err
+
+
+def test_states_from_drive_in_blocks_equal_one_block(monkeypatch):
+    """A long log runs in blocks (bounded memory); the projection continues across them."""
+    import importlib
+
+    from fpe_jax.track import Track
+
+    predict = importlib.import_module("fpe_jax.predict")  # the module (fpe_jax.predict is a name)
+
+    res = simulate("hairpin", duration_s=40.0, seed=4)
+    track = Track.from_waypoints(res.centerline_xy_m)
+    params = presets["default"]
+    whole = predict.states_from_drive(params, res.drive, track)
+    monkeypatch.setattr(predict, "PREDICT_CHUNK", 100)
+    assert len(list(predict.row_blocks(len(res.drive.t_s)))) >= 4
+    blocks = predict.states_from_drive(params, res.drive, track)
+    for name in ("x_m", "y_m", "s_m", "s_fit_m", "sdot_mps", "offset_m", "v_mps"):
+        np.testing.assert_allclose(getattr(blocks, name), getattr(whole, name), atol=1e-9)
