@@ -242,7 +242,8 @@ def run_cases(work: Path) -> list[dict]:
         case(1, f"evaluate, {tag} stamps",
              ["evaluate", log, *pred, "--preset", "default", "--json"], expect="ok",
              check=ade_of(tag))  # fmt: skip
-    case(1, "batch float32, map at 0", ["batch", "cars.csv", *pred, "--out", "b0.npy"],
+    case(1, "batch float32, map at 0", ["batch", "cars.csv", *pred, "--preset", "default",
+         "--out", "b0.npy"],
          outputs=["b0.npy"], expect="ok")  # fmt: skip
 
     def batch_same(_):
@@ -251,7 +252,8 @@ def run_cases(work: Path) -> list[dict]:
         return err <= 1e-6, f"max difference from the zero-origin batch {err:.1e} m"
 
     case(1, "batch float32, map offset (5e5, 5e6)",
-         ["batch", "cars_utm.csv", *utm, "--out", "b1.npy"], outputs=["b1.npy"], expect="ok",
+         ["batch", "cars_utm.csv", *utm, "--preset", "default", "--out", "b1.npy"],
+         outputs=["b1.npy"], expect="ok",
          check=batch_same)  # fmt: skip
 
     # 2. square corners survive
@@ -309,6 +311,8 @@ def run_cases(work: Path) -> list[dict]:
     cfg = ["--config", "bad/nan_lookahead.json"]
     case(4, "evaluate --config nan_lookahead", ["evaluate", "drive.csv", *pred, *cfg, "--json"])
     case(4, "batch --config nan_lookahead", ["batch", "cars.csv", *pred, *cfg, "--out", "b.npy"])
+    case(4, "batch --config neg_speed", ["batch", "cars.csv", *pred, "--config",
+         "bad/neg_speed.json", "--out", "b.npy"])  # fmt: skip
     case(4, "plot --config nan_lookahead", ["plot", "drive.csv", *pred, *cfg, "--out", "f.png"])
     for name in ("weights_null", "weights_scalar", "dt_string", "deep_array", "unc_horizon",
                  "unc_shape"):  # fmt: skip
@@ -406,7 +410,23 @@ def run_cases(work: Path) -> list[dict]:
     case(13, "predict on 1e5-point waypoints (25 km loop)", ["predict", "sim13/drive.mcap",
          "--waypoints", "big_loop.csv", "--out", "p13.csv", "--quiet"], outputs=["p13.csv"],
          expect="ok", check=lambda r: (True, f"{r['wall_s']:.0f} s"))  # fmt: skip
+    long = _long_log(work, 300_000)
+    case(13, f"predict a {long // 1000}k-row log (in blocks)", ["predict", "long.csv",
+         "--waypoints",
+         "wp.csv", "--out", "p_long.csv", "--quiet"], outputs=["p_long.csv"], expect="ok",
+         check=lambda r: (True, f"{r['wall_s']:.0f} s, peak RSS {r['rss_mb']:.0f} MB"))  # fmt: skip
     return rows
+
+
+def _long_log(work: Path, n: int) -> int:
+    """A log of n rows: the oval drive repeated, lap after lap, at its own 11.5 Hz."""
+    rows = np.loadtxt(work / "drive.csv", delimiter=",", skiprows=1)
+    reps = -(-n // len(rows))
+    period = rows[-1, 0] - rows[0, 0] + (rows[1, 0] - rows[0, 0])
+    t = (rows[:, 0][None, :] + period * np.arange(reps)[:, None]).ravel()[:n]
+    other = np.tile(rows[:, 1:], (reps, 1))[:n]
+    _csv(work / "long.csv", "t,x,y,yaw", np.column_stack([t, other]), fmt="%.6f")
+    return n
 
 
 def _big_loop(work: Path) -> dict:
