@@ -164,6 +164,9 @@ class ProjectionGrid(eqx.Module):
         w = int(np.ceil((reach + seg_len.max()) / cell_m)) + 1
         off = np.arange(-w, w + 1)
         ox, oy = (o.ravel() for o in np.meshgrid(off, off, indexing="ij"))
+        # a disk, not the square: farther cells cannot come within reach of the segment
+        disk = np.hypot(ox, oy) * cell_m <= reach + half_diag + 0.5 * seg_len.max() + 1e-9
+        ox, oy = ox[disk], oy[disk]
         mid_cell = np.floor(((a + b) / 2 - origin) / cell_m).astype(np.int64)
         corners = np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]]) * (0.5 * cell_m)
         chunk = max(1, (1 << 20) // ox.size)  # segments per pass: bounded memory on any track
