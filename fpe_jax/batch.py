@@ -21,7 +21,7 @@ How it stays fast and bounded:
   holds a few chunks' intermediates plus the output. Chunks run on a few threads at once (XLA
   runs one chunk's step loop on one core), results are copied into place as they finish.
 - **No global search per car.** A car without an arc-length hint is projected onto the track by a
-  `ProjectionGrid`: a uniform grid over the track's surroundings whose cells list the only
+  `ProjectionGrid`: a uniform grid over a band along the track whose cells list the only
   segments that can be nearest to any point in the cell. The result equals `Track.project` (the
   exhaustive search) while costing O(K) segments instead of O(M), inside the same compiled call.
   The rare cars the grid cannot answer (farther than its margin from the track) get the
@@ -108,26 +108,28 @@ class ProjectionGrid(eqx.Module):
     point in it, so the nearest of them is `Track.project`'s answer (same formula; ties broken
     toward the lowest index as there).
 
-    For speed the candidates' geometry is stored per complete cell (one contiguous gather per
-    query instead of K scattered ones): row r of `segments` holds, for each of its K candidate
-    segments a -> b, the values (a_x, a_y, ab_x, ab_y, ab_x / |ab|^2, ab_y / |ab|^2, s_a, ds),
-    with s_a the arc length [m] at a and ds the track's nominal spacing [m].
+    Only the complete cells (a band along the track) are stored, as sorted keys: memory and
+    build time grow with the track's length, not with the area of its bounding box. A query
+    finds its cell's row by binary search, then gathers its K candidates' geometry.
 
     Attributes:
         origin_m: (2,) lower-left corner of the grid x [m], y [m].
         cell_m: () cell side [m].
-        row_of_cell: (nx * ny,) int32 row of `segments` for each cell (row-major, x outer);
-            the last row (a copy of row 0) for incomplete cells.
-        segments: (R + 1, K, 8) candidate geometry of the R complete cells, lists padded by
-            repeating their first candidate.
+        keys: (R + 1,) int32 sorted keys i * ny + j of the R complete cells, then a sentinel
+            (2^31 - 1) no cell has.
+        candidates: (R + 1, K) int32 candidate segments of each complete cell (lists padded by
+            repeating their first candidate; the sentinel's row is zeros).
+        geometry: (S, 8) per segment a -> b: a_x, a_y, ab_x, ab_y, ab_x / |ab|^2, ab_y / |ab|^2,
+            s_a, ds, with s_a the arc length [m] at a and ds the track's nominal spacing [m].
         shape: static (nx, ny).
         n_complete: static R.
     """
 
     origin_m: Float[Array, "2"]
     cell_m: Float[Array, ""]
-    row_of_cell: Int[Array, " C"]
-    segments: Float[Array, "R K 8"]
+    keys: Int[Array, " R1"]
+    candidates: Int[Array, "R1 K"]
+    geometry: Float[Array, "S 8"]
     shape: tuple[int, int] = eqx.field(static=True)
     n_complete: int = eqx.field(static=True)
 
@@ -139,10 +141,12 @@ class ProjectionGrid(eqx.Module):
 
         Args:
             track: the track whose `xy_m` polyline is searched.
-            cell_m: cell side [m]; smaller cells give shorter candidate lists, more cells.
+            cell_m: cell side [m]; smaller cells give shorter candidate lists, more cells. A
+                track spanning more than 2^31 cells gets cells just large enough.
             margin_m: how far from the track cells are complete [m]; cars farther away use the
                 exhaustive fallback.
-            max_candidates: K; cells needing more are incomplete (their cars use the fallback).
+            max_candidates: K at most; cells needing more are incomplete (their cars use the
+                fallback). K is the longest list of a complete cell.
         """
         xy = np.asarray(track.xy_m, dtype=np.float64)
         ds = float(track.ds_m)
@@ -150,55 +154,67 @@ class ProjectionGrid(eqx.Module):
         n_seg = m if track.closed else m - 1
         a = xy[:n_seg]
         b = xy[(np.arange(n_seg) + 1) % m]
+        span = np.ptp(xy, axis=0) + 2 * (margin_m + 3.0 * cell_m) + 2 * cell_m
+        cell_m = max(float(cell_m), math.sqrt(span[0] * span[1] / 2.0**30))  # keys fit int32
         half_diag = cell_m * math.sqrt(0.5)
         # Candidate search radius around each segment: reach = margin + enough for the cell test.
         reach = margin_m + 3.0 * half_diag + 1e-3
         origin = xy.min(axis=0) - reach
         nx, ny = (np.ceil((xy.max(axis=0) + reach - origin) / cell_m).astype(int) + 1).tolist()
-
-        # every (cell, segment) pair within `reach` of the segment's midpoint cell stencil
         seg_len = np.hypot(*(b - a).T)
         w = int(np.ceil((reach + seg_len.max()) / cell_m)) + 1
-        mid_cell = np.floor(((a + b) / 2 - origin) / cell_m).astype(int)
         off = np.arange(-w, w + 1)
-        ox, oy = np.meshgrid(off, off, indexing="ij")
-        cx = (mid_cell[:, 0, None] + ox.ravel()[None]).ravel()
-        cy = (mid_cell[:, 1, None] + oy.ravel()[None]).ravel()
-        seg = np.repeat(np.arange(n_seg), ox.size)
-        keep = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
-        cx, cy, seg = cx[keep], cy[keep], seg[keep]
-        centre = origin + (np.stack([cx, cy], axis=1) + 0.5) * cell_m
-        d_centre = _seg_dist(centre, a[seg], b[seg])
-        near = d_centre <= reach
-        cx, cy, seg, centre, d_centre = cx[near], cy[near], seg[near], centre[near], d_centre[near]
-        # largest distance from the cell to the segment: at a corner (distance is convex)
+        ox, oy = (o.ravel() for o in np.meshgrid(off, off, indexing="ij"))
+        # a disk, not the square: farther cells cannot come within reach of the segment
+        disk = np.hypot(ox, oy) * cell_m <= reach + half_diag + 0.5 * seg_len.max() + 1e-9
+        ox, oy = ox[disk], oy[disk]
+        mid_cell = np.floor(((a + b) / 2 - origin) / cell_m).astype(np.int64)
         corners = np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]]) * (0.5 * cell_m)
-        d_far = np.max([_seg_dist(centre + c, a[seg], b[seg]) for c in corners], axis=0)
-        cell = cx * ny + cy
-        n_cells = nx * ny
-        upper = np.full(n_cells, np.inf)
-        np.minimum.at(upper, cell, d_far)
+        chunk = max(1, (1 << 20) // ox.size)  # segments per pass: bounded memory on any track
+
+        def pairs(lo: int):
+            """(cell key, segment, distance from the cell centre [m], centre) of every pair of
+            segments lo..lo+chunk and cells within `reach` of them."""
+            mc, sl = mid_cell[lo : lo + chunk], slice(lo, min(lo + chunk, n_seg))
+            cx, cy = (mc[:, 0, None] + ox[None]).ravel(), (mc[:, 1, None] + oy[None]).ravel()
+            seg = np.repeat(np.arange(sl.start, sl.stop), ox.size)
+            keep = (cx >= 0) & (cx < nx) & (cy >= 0) & (cy < ny)
+            cx, cy, seg = cx[keep], cy[keep], seg[keep]
+            centre = origin + (np.stack([cx, cy], axis=1) + 0.5) * cell_m
+            d = _seg_dist(centre, a[seg], b[seg])
+            near = d <= reach
+            key = (cx * ny + cy)[near].astype(np.int32)  # < 2^30: cell_m saw to it
+            return key, seg[near].astype(np.int32), d[near], centre[near]
+
+        # pass 1: U per cell, the least over segments of the largest corner distance
+        keys, upper = [], []
+        for lo in range(0, n_seg, chunk):
+            cell, seg, _, centre = pairs(lo)
+            d_far = np.max([_seg_dist(centre + c, a[seg], b[seg]) for c in corners], axis=0)
+            cell, d_far = _min_by_key(cell, d_far)
+            keys.append(cell)
+            upper.append(d_far)
+        cells, upper = _min_by_key(np.concatenate(keys), np.concatenate(upper))
+        # pass 2: each cell's candidates
         slack = 1e-6 + 1e-6 * cell_m  # float32 queries near a cell border stay covered
-        is_cand = d_centre - half_diag <= upper[cell] + slack
-        cell, seg = cell[is_cand], seg[is_cand]
+        cand_cell, cand_seg = [], []
+        for lo in range(0, n_seg, chunk):
+            cell, seg, d_centre, _ = pairs(lo)
+            keep = d_centre - half_diag <= upper[np.searchsorted(cells, cell)] + slack
+            cand_cell.append(cell[keep])
+            cand_seg.append(seg[keep])
+        cell, seg = np.concatenate(cand_cell), np.concatenate(cand_seg)
         order = np.lexsort((seg, cell))  # by cell, then segment index (ties as in Track.project)
         cell, seg = cell[order], seg[order]
-        counts = np.bincount(cell, minlength=n_cells)
-        k = int(max_candidates)
+        key, first, counts = np.unique(cell, return_index=True, return_counts=True)
         # a cell is complete when every segment that could qualify lay within `reach`
-        complete = (counts > 0) & (counts <= k) & (upper + half_diag <= reach)
+        u = upper[np.searchsorted(cells, key)]
+        complete = (counts <= max_candidates) & (u + half_diag <= reach)
+        k = int(counts[complete].max()) if complete.any() else 1
         rows = np.flatnonzero(complete)
-        row_of_cell = np.full(n_cells, len(rows), dtype=np.int32)
-        row_of_cell[rows] = np.arange(len(rows), dtype=np.int32)
-
-        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        rank = np.arange(len(cell)) - start[cell]
-        first = np.zeros(n_cells, dtype=np.int64)
-        first[cell[rank == 0]] = seg[rank == 0]
-        table = np.repeat(first[rows, None], k, axis=1)  # (R, K) segment indices
-        take = complete[cell] & (rank < k)
-        table[row_of_cell[cell[take]], rank[take]] = seg[take]
-        table = np.vstack([table, table[:1] if len(rows) else np.zeros((1, k), np.int64)])
+        rank = np.arange(k)[None, :]
+        pick = first[rows, None] + np.where(rank < counts[rows, None], rank, 0)
+        table = np.vstack([seg[pick], np.zeros((1, k), np.int64)]).astype(np.int32)
         ab = b - a
         inv = ab / np.maximum(np.sum(ab * ab, axis=1, keepdims=True), 1e-12)
         geo = np.concatenate(
@@ -207,19 +223,21 @@ class ProjectionGrid(eqx.Module):
         return cls(
             origin_m=jnp.asarray(origin),
             cell_m=jnp.asarray(float(cell_m)),
-            row_of_cell=jnp.asarray(row_of_cell),
-            segments=jnp.asarray(geo[table]),
+            keys=jnp.asarray(np.append(key[rows], 2**31 - 1).astype(np.int32)),
+            candidates=jnp.asarray(table),
+            geometry=jnp.asarray(geo),
             shape=(int(nx), int(ny)),
             n_complete=int(len(rows)),
         )
 
     def locate(self, p_m: Float[Array, "2"]) -> tuple[Int[Array, ""], Bool[Array, ""]]:
-        """Row of `segments` for p (2,) [m], and whether p lies in a complete cell."""
+        """Row of `candidates` for p (2,) [m], and whether p lies in a complete cell."""
         nx, ny = self.shape
         ij = jnp.floor((p_m - self.origin_m) / self.cell_m).astype(jnp.int32)
         inside = jnp.all((ij >= 0) & (ij < jnp.array([nx, ny], dtype=jnp.int32)))
-        row = self.row_of_cell[jnp.clip(ij[0], 0, nx - 1) * ny + jnp.clip(ij[1], 0, ny - 1)]
-        return row, inside & (row < self.n_complete)
+        key = jnp.clip(ij[0], 0, nx - 1) * ny + jnp.clip(ij[1], 0, ny - 1)
+        row = jnp.searchsorted(self.keys, key).astype(jnp.int32)  # <= R: the sentinel's row
+        return row, inside & (self.keys[row] == key)
 
     def project(self, p_m: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
         """Arc length [m] of the nearest track point to p (2,) [m], and whether it is exact.
@@ -229,7 +247,7 @@ class ProjectionGrid(eqx.Module):
         the grid or in an incomplete cell) the value is meaningless.
         """
         row, ok = self.locate(p_m)
-        g = self.segments[row]  # (K, 8): one contiguous gather
+        g = self.geometry[self.candidates[row]]  # (K, 8)
         dx, dy = p_m[0] - g[:, 0], p_m[1] - g[:, 1]
         t = jnp.clip(dx * g[:, 4] + dy * g[:, 5], 0.0, 1.0)
         ex, ey = dx - t * g[:, 2], dy - t * g[:, 3]
@@ -239,6 +257,14 @@ class ProjectionGrid(eqx.Module):
         # reduce (2.4x slower here). Among equal distances the smallest s is the lowest index,
         # as argmin picks in Track.project.
         return jnp.min(jnp.where(d2 <= jnp.min(d2), s, jnp.inf)), ok
+
+
+def _min_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted unique keys (U,) and the least value of each (U,)."""
+    order = np.argsort(keys, kind="stable")
+    k, v = keys[order], values[order]
+    start = np.flatnonzero(np.r_[True, k[1:] != k[:-1]]) if len(k) else np.zeros(0, np.int64)
+    return k[start], np.minimum.reduceat(v, start) if len(k) else v
 
 
 def _seg_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

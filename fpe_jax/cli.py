@@ -77,6 +77,35 @@ def _settings_from_args(args) -> dict:
     return {f: (k, getattr(args, f[2:].replace("-", "_"))) for f, k in SETTINGS_FLAGS.items()}
 
 
+def _add_off_track_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--allow-off-track",
+        action="store_true",
+        help="use waypoints that the drive does not follow (off them, or run the other way)",
+    )
+
+
+def _check_on_track(args, drive, track, source: str, name: str) -> None:
+    """Exit 2 (InputError) unless the drive's observations follow the track's waypoints (see
+    `fpe_jax.path.check_on_track`); `track` is a Track or `path.build_path`'s dict, in the
+    drive's frame."""
+    import numpy as np
+
+    from fpe_jax.path import check_on_track
+
+    xy, heading = (
+        track[k] if isinstance(track, dict) else getattr(track, k) for k in ("xy_m", "heading_rad")
+    )
+    check_on_track(
+        drive.xy_m,
+        np.asarray(xy),
+        np.asarray(heading),
+        source=source,
+        drive=name,
+        allow=args.allow_off_track,
+    )
+
+
 def _add_run_flags(p: argparse.ArgumentParser) -> None:
     """Flags of every command that compiles with JAX."""
     p.add_argument(
@@ -149,6 +178,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
     _add_run_flags(p)
+    _add_off_track_flag(p)
     p.set_defaults(func=cmd_predict)
 
     p = sub.add_parser(
@@ -178,6 +208,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
     _add_run_flags(p)
+    _add_off_track_flag(p)
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("evaluate", help="metrics of a config or preset on a drive log")
@@ -186,6 +217,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _add_log_flags(p)
     _add_run_flags(p)
+    _add_off_track_flag(p)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("cache", help="the compilation cache: its path, size and entries; clear it")
@@ -262,7 +294,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output file (a folder for --format all)")
     p.add_argument("--node", default="future_pose_estimator", help="ROS 2 node name")
     p.add_argument(
-        "--waypoints", help="waypoint file: baked into stablehlo (required there), named in ros2"
+        "--waypoints",
+        help="waypoint file: baked into stablehlo, named in ros2 (default: the config's "
+        "provenance, the file it was fitted on, checked by its hash)",
     )
     p.add_argument("--force", action="store_true", help="overwrite existing files")
     p.set_defaults(func=cmd_export)
@@ -293,19 +327,25 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
     _add_run_flags(p)
+    _add_off_track_flag(p)
     p.set_defaults(func=cmd_plot)
     return parser
 
 
 def cmd_export(args) -> int:
-    from fpe_jax.export import export_config
+    from fpe_jax.export import export_config, provenance_waypoints
 
+    waypoints = args.waypoints
+    if waypoints is None:
+        waypoints = provenance_waypoints(args.config)
+        if waypoints is not None:
+            print(f"waypoints from the config's provenance: {waypoints}", file=sys.stderr)
     written = export_config(
         args.config,
         args.format,
         args.out,
         node=args.node,
-        waypoints=args.waypoints,
+        waypoints=waypoints,
         force=args.force,
     )
     for path in written:
@@ -341,6 +381,7 @@ def _fit_inputs(args, say=lambda msg: None):
             model=args.model or r.model,
             solver=args.solver or r.solver,
             settings=r.settings,
+            waypoints=r.waypoints,
         )
         return r.drives, r.test_drives, out, opts
     if not args.waypoints:
@@ -363,6 +404,7 @@ def _fit_inputs(args, say=lambda msg: None):
         model=args.model,
         solver=args.solver,
         settings={},
+        waypoints=args.waypoints,
     )
     return drives, tests, args.out, opts
 
@@ -372,6 +414,17 @@ def _local_drives(entries):
     from fpe_jax.drive import local_frame
 
     return [(*local_frame(d, wp)[:2], desc) for d, wp, desc in entries]
+
+
+def _waypoint_provenance(path, entries) -> dict | None:
+    """{"file": absolute path, "sha256": waypoints_sha256} of the waypoint file every drive of
+    `entries` ((drive, waypoints, description)) ran on; None when there is none or they differ."""
+    from fpe_jax.path import waypoints_sha256
+
+    sha = {waypoints_sha256(wp) for _, wp, _ in entries}
+    if path is None or len(sha) != 1:
+        return None
+    return {"file": str(Path(path).resolve()), "sha256": sha.pop()}
 
 
 def cmd_fit(args) -> int:
@@ -406,6 +459,9 @@ def cmd_fit(args) -> int:
 
         tracks = [Track.from_waypoints(wp) for _, wp, _ in drives]
         test_tracks = [Track.from_waypoints(wp) for _, wp, _ in tests] or None
+        wp_source = args.waypoints or f"{args.logs[0]}: the waypoints"
+        for (d, _, desc), tr in zip(drives + tests, tracks + (test_tracks or []), strict=True):
+            _check_on_track(args, d, tr, wp_source, desc)
         result = fit(
             [d for d, _, _ in drives],
             tracks,
@@ -424,14 +480,18 @@ def cmd_fit(args) -> int:
         "truth": drives[0][0].meta.get("truth_topic"),
     }
     sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
+    prov = provenance(result, sources, topics)
+    wp_file = _waypoint_provenance(opts["waypoints"], drives + tests)
+    if wp_file is not None:  # what `fpe export` uses when --waypoints is omitted
+        prov["waypoints"] = wp_file
     line = None
     if "waypoints_sha256" in result.info:
-        line = {"waypoints_sha256": result.info["waypoints_sha256"], "waypoints": args.waypoints}
+        line = {
+            "waypoints_sha256": result.info["waypoints_sha256"],
+            "waypoints": None if wp_file is None else wp_file["file"],
+        }
     cfg = params_to_config(
-        result.params,
-        uncertainty=result.uncertainty,
-        provenance=provenance(result, sources, topics),
-        line=line,
+        result.params, uncertainty=result.uncertainty, provenance=prov, line=line
     )
     write_config(out, cfg, force=args.force)
     print(format_fitted(result))
@@ -464,6 +524,7 @@ def cmd_evaluate(args) -> int:
         # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
         drive, wp, _, _ = local_frame(_load_drive_from_args(args), waypoints.xy_m)
         track = Track.from_waypoints(wp)
+        _check_on_track(args, drive, track, args.waypoints, args.log)
         data = Dataset(drive, track, make_targets(drive, params.settings))
         if len(data.targets.rows) == 0:
             raise InputError(args.log, "no prediction has a target", "a longer drive")
@@ -548,6 +609,7 @@ def cmd_predict(args) -> int:
         # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
         local, wp, t0_s, origin = local_frame(drive, waypoints.xy_m)
         track = Track.from_waypoints(wp)
+        _check_on_track(args, local, track, args.waypoints, args.log)
         say(f"predicting {len(drive.t_s)} observations")
         states = states_from_drive(params, local, track)
         poses = predict_rows(params, states, track)
@@ -829,6 +891,9 @@ def cmd_plot(args) -> int:
         params, waypoints = _load_predictor(args)
         name = args.preset or f"config {Path(args.config).name}"
         drive = _load_drive_from_args(args)
+        from fpe_jax.path import build_path
+
+        _check_on_track(args, drive, build_path(waypoints.xy_m), args.waypoints, args.log)
         m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log, progress=say)
     print(
         f"wrote {out}: {m['n_predictions']} predictions, ADE {m['ade_m']:.3f} m, "

@@ -332,6 +332,43 @@ def load(path) -> ExportedPredictor:
 # ---- files ---------------------------------------------------------------------------------------
 
 
+def provenance_waypoints(config_path) -> Path | None:
+    """The waypoint file a config was fitted on (its provenance's "waypoints": file and sha256),
+    checked to hold the same waypoints still; None when the provenance names none.
+
+    Raises InputError (naming the config or the file) for a malformed entry, a missing file or
+    one whose waypoints changed since the fit.
+    """
+    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.runner import load_waypoints_xy  # JAX-free
+
+    entry = read_config(config_path)["provenance"].get("waypoints")
+    if entry is None:
+        return None
+    if not (
+        isinstance(entry, dict)
+        and isinstance(entry.get("file"), str)
+        and re.fullmatch(r"[0-9a-f]{64}", str(entry.get("sha256")))
+    ):
+        raise InputError(
+            config_path, "provenance.waypoints is malformed", '{"file": PATH, "sha256": HEX}'
+        )
+    path = Path(entry["file"])
+    if not path.is_file():
+        raise InputError(
+            config_path,
+            f"the waypoint file it was fitted on, {path}, is missing",
+            "that file, or --waypoints FILE",
+        )
+    if waypoints_sha256(load_waypoints_xy(path)) != entry["sha256"]:
+        raise InputError(
+            path,
+            f"its waypoints changed since {config_path} was fitted on them (sha256 differs)",
+            "the waypoints of the fit, or --waypoints FILE",
+        )
+    return path
+
+
 def export_config(
     config_path,
     fmt: str,
@@ -362,7 +399,10 @@ def export_config(
     cfg = read_config(config_path)  # every value checked (fpe_jax.spec)
     if fmt in ("stablehlo", "all") and waypoints is None:
         raise InputError(
-            "--waypoints", "the stablehlo predictor bakes the track in", "--waypoints FILE"
+            "--waypoints",
+            "the stablehlo predictor bakes the track in, and the config's provenance names no "
+            "waypoint file",
+            "--waypoints FILE",
         )
     # everything that can fail on input is checked before anything is written
     text = None

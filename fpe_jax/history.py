@@ -21,15 +21,18 @@ def distinct_mask(xy_m: np.ndarray) -> np.ndarray:
     return ~same
 
 
-def history_windows(drive: Drive, n_hist: int) -> dict[str, np.ndarray]:
-    """For every observation k, the newest `n_hist` distinct observations up to k, right-aligned.
+def history_windows(drive: Drive, n_hist: int, rows: slice | None = None) -> dict[str, np.ndarray]:
+    """For every observation k (of `rows`, default all), the newest `n_hist` distinct
+    observations up to k, right-aligned.
 
     Returns a dict of arrays: t_s (N, W), xy_m (N, W, 2), yaw_rad (N, W), valid (N, W) bool and
-    t_now_s (N,) (the stamp of observation k, the prediction time). Slots with no observation
-    (the start of a drive, or older than MAX_SPAN_S before the newest) are invalid.
+    t_now_s (N,) (the stamp of observation k, the prediction time), N the rows asked for. Slots
+    with no observation (the start of a drive, or older than MAX_SPAN_S before the newest) are
+    invalid.
     """
     idx_distinct = np.flatnonzero(distinct_mask(drive.xy_m))
-    newest = np.searchsorted(idx_distinct, np.arange(len(drive.t_s)), side="right") - 1
+    k = np.arange(len(drive.t_s))[rows if rows is not None else slice(None)]
+    newest = np.searchsorted(idx_distinct, k, side="right") - 1
     slots = newest[:, None] + np.arange(-n_hist + 1, 1)[None, :]
     valid = slots >= 0
     rows = idx_distinct[np.clip(slots, 0, None)]
@@ -40,5 +43,5 @@ def history_windows(drive: Drive, n_hist: int) -> dict[str, np.ndarray]:
         "xy_m": drive.xy_m[rows],
         "yaw_rad": drive.yaw_rad[rows],
         "valid": valid,
-        "t_now_s": drive.t_s.copy(),
+        "t_now_s": drive.t_s[k],
     }

@@ -179,3 +179,142 @@ def build_path(
         "removed_close_idx": removed_close,
         "removed_backtrack_idx": removed_back,
     }
+
+
+def nearest_vertex(points_m, vertices_m, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest vertex (K, 2) [m] to each point (P, 2) [m] among those within `radius_m` [m].
+
+    A hash grid of cells `radius_m` wide holds the vertices; each point looks only at the 3 x 3
+    cells around its own, so the work is O(P + K) times the vertices per cell, never (P, K).
+    Ties go to the lowest vertex index (as np.argmin).
+
+    Returns:
+        idx (P,) int64, -1 where no vertex lies within radius_m; dist (P,) [m], inf there.
+    """
+    pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
+    ver = np.asarray(vertices_m, dtype=np.float64).reshape(-1, 2)
+    best_d2 = np.full(len(pts), np.inf)
+    best_i = np.full(len(pts), -1, dtype=np.int64)
+    if not len(pts) or not len(ver):
+        return best_i, np.sqrt(best_d2)
+    lo = np.floor(ver.min(axis=0) / radius_m) - 1
+    vc = (np.floor(ver / radius_m) - lo).astype(np.int64)
+    span = int(vc[:, 1].max()) + 2
+    order = np.argsort(vc[:, 0] * span + vc[:, 1], kind="stable")
+    keys = (vc[:, 0] * span + vc[:, 1])[order]
+    hi_x = int(vc[:, 0].max()) + 1
+    for start in range(0, len(pts), 1 << 16):  # bounded memory for any number of points
+        p = pts[start : start + (1 << 16)]
+        pc = np.floor(p / radius_m) - lo
+        ok = np.all((pc >= 0) & (pc <= [hi_x, span - 1]), axis=1)
+        pc = np.where(ok[:, None], pc, -10).astype(np.int64)
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                cx, cy = pc[:, 0] + dx, pc[:, 1] + dy
+                key = np.where(ok & (cy >= 0) & (cy < span), cx * span + cy, -1)
+                a, b = np.searchsorted(keys, key, "left"), np.searchsorted(keys, key, "right")
+                n = b - a
+                if not n.any():
+                    continue
+                has = np.flatnonzero(n)
+                first = np.cumsum(n)[has] - n[has]  # each point's run in the candidates
+                cand = order[np.repeat(a[has] - first, n[has]) + np.arange(first[-1] + n[has][-1])]
+                d2 = np.sum((ver[cand] - np.repeat(p[has], n[has], axis=0)) ** 2, axis=1)
+                # per point: the nearest, and among equally near the lowest index (O(T))
+                d_min = np.minimum.reduceat(d2, first)
+                tie = d2 == np.repeat(d_min, n[has])
+                i_min = np.minimum.reduceat(np.where(tie, cand, len(ver)), first)
+                o = has + start
+                better = (d_min < best_d2[o]) | ((d_min == best_d2[o]) & (i_min < best_i[o]))
+                best_d2[o[better]], best_i[o[better]] = d_min[better], i_min[better]
+    far = best_d2 > radius_m * radius_m
+    best_i[far], best_d2[far] = -1, np.inf
+    return best_i, np.sqrt(best_d2)
+
+
+# A drive on its own track: its observations lie within ON_TRACK_M of the waypoints' line
+# (race tracks are 1-2 m wide each side, and a raceline, detection noise and the odd outlier add
+# to that), and where it moves it goes the way the waypoints run.
+ON_TRACK_M = 3.0
+MIN_ON_TRACK_SHARE = 0.8  # of the observations, within ON_TRACK_M
+MIN_ALONG_SHARE = 0.5  # of the moves, starting near the waypoints and going their way
+_MOVE_M = 2.0  # direction of motion judged over about this distance driven
+_MAX_CHECKED = 200_000  # observations sampled for the share (its error is then < 0.3 %)
+
+
+def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON_TRACK_M) -> dict:
+    """How well a drive's observations (N, 2) [m] sit on a resampled path (M, 2) [m] with its
+    headings (M,) [rad] (`build_path`'s, or a Track's, in the same frame).
+
+    Returns dict: share_near (share of observations within `near_m` of the path), share_along
+    (of the drive's moves of about 2 m, the share that start near the path and go its way; NaN
+    when the car never moved), share_backward (those that start near it and go against it),
+    n_moves, and drive_to_path_m (distance between the centres of the
+    drive and of the path, for the message). O(N + M): a hash grid, no (N, M) distances.
+    """
+    obs = np.asarray(obs_xy_m, dtype=np.float64).reshape(-1, 2)
+    obs = obs[np.all(np.isfinite(obs), axis=1)]
+    xy = np.asarray(path_xy_m, dtype=np.float64)
+    heading = np.asarray(path_heading_rad, dtype=np.float64)
+    # every few points of the path: a nearest-vertex distance within 0.15 m of the true one
+    spacing = float(np.median(np.hypot(*np.diff(xy, axis=0).T))) if len(xy) > 1 else 1.0
+    k = max(1, int(0.3 / max(spacing, 1e-9)))
+    xy, heading = xy[::k], heading[::k]
+    stride = max(1, len(obs) // _MAX_CHECKED)
+    idx, _ = nearest_vertex(obs[::stride], xy, near_m)
+    share_near = float(np.mean(idx >= 0)) if len(idx) else 1.0
+    # moves: the drive cut where its travelled distance passes each whole metre (repeated
+    # detections and jitter add nothing), each judged against the path at its start
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(obs, axis=0).T))])
+    cut = np.flatnonzero(np.diff(np.floor(travelled / _MOVE_M), prepend=-1.0) > 0)
+    cut = cut[:: max(1, len(cut) // _MAX_CHECKED)]
+    step = np.diff(obs[cut], axis=0)
+    moved = np.hypot(*step.T) >= 0.5 * _MOVE_M
+    start, step = obs[cut[:-1]][moved], step[moved]
+    j, _ = nearest_vertex(start, xy, near_m)
+    near = j >= 0
+    forward = step[near, 0] * np.cos(heading[j[near]]) + step[near, 1] * np.sin(heading[j[near]])
+    n = max(len(step), 1)
+    share_along = float(np.sum(forward > 0) / n) if len(step) else float("nan")
+    gap = float(np.hypot(*(obs.mean(axis=0) - xy.mean(axis=0)))) if len(obs) else 0.0
+    return dict(
+        share_near=share_near,
+        share_along=share_along,
+        share_backward=float(np.sum(forward < 0) / n),
+        n_moves=len(step),
+        drive_to_path_m=gap,
+    )
+
+
+def check_on_track(
+    obs_xy_m, path_xy_m, path_heading_rad, *, source: str, drive: str, allow: bool = False
+) -> dict:
+    """`track_agreement`, raising InputError (naming the waypoints `source` and the `drive`)
+    when the drive is not on these waypoints or runs against them; `allow` only reports."""
+    a = track_agreement(obs_xy_m, path_xy_m, path_heading_rad)
+    if allow:
+        return a
+    hint = "pass --allow-off-track to use them anyway"
+    if a["share_near"] < MIN_ON_TRACK_SHARE:
+        raise InputError(
+            source,
+            f"only {a['share_near']:.0%} of the observations of {drive} lie within "
+            f"{ON_TRACK_M:g} m of these waypoints (the drive's centre is "
+            f"{a['drive_to_path_m']:.0f} m from theirs): likely the wrong waypoints file or a "
+            f"different map frame; {hint}",
+            f"at least {MIN_ON_TRACK_SHARE:.0%}",
+        )
+    if a["share_along"] < MIN_ALONG_SHARE:  # NaN (a car that never moved) passes
+        cause = (
+            "likely waypoints in the reverse direction"
+            if a["share_backward"] > a["share_along"]
+            else "it crosses them rather than following them: likely the wrong waypoints file"
+            " or a different map frame"
+        )
+        raise InputError(
+            source,
+            f"{drive} moves along these waypoints in only {a['share_along']:.0%} of its "
+            f"{a['n_moves']} moves of ~{_MOVE_M:g} m: {cause}; {hint}",
+            f"at least {MIN_ALONG_SHARE:.0%}",
+        )
+    return a

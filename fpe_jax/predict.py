@@ -100,12 +100,12 @@ def predict_rows(params: Params, states: State, track: Track) -> np.ndarray:
 
 
 @eqx.filter_jit
-def _states_from_windows(windows: dict, track: Track) -> State:
+def _states_from_windows(windows: dict, track: Track, s_before_m=None) -> State:
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
     )
     p = jnp.stack([states.x_m, states.y_m], axis=1)
-    s_m = arclength_along(track, p)
+    s_m = arclength_along(track, p, s_before_m)
     s_fit, sdot, offset, age = jax.vmap(estimate_track_frame, in_axes=(0, 0, 0, 0, None))(
         windows["t_s"], windows["xy_m"], windows["valid"], s_m, track
     )
@@ -120,10 +120,16 @@ def states_from_drive(params: Params, drive: Drive, track: Track) -> State:
     For the seed model the original's rules apply: the current row is used alone (position and
     observed yaw as recorded; the direction of motion stands in when the log has no yaw).
     """
-    windows = history_windows(drive, params.settings.history)
-    n = len(drive.t_s)
-    states = _states_from_windows(pad_rows(windows, bucket(n)), track)
-    states = jax.tree.map(lambda x: np.asarray(x)[:n], states)
+    # in blocks of PREDICT_CHUNK rows, each block's projection window continuing from the last
+    # arc length of the one before: memory stays O(block) for a log of any length
+    parts, s_before = [], None
+    for rows, size in list(row_blocks(len(drive.t_s))) or [(slice(0, 0), bucket(0))]:
+        windows = history_windows(drive, params.settings.history, rows)
+        part = _states_from_windows(pad_rows(windows, size), track, s_before)
+        part = jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], part)
+        s_before = np.asarray(part.s_m[-1]) if len(part.s_m) else None
+        parts.append(part)
+    states = jax.tree.map(lambda *xs: np.concatenate(xs), *parts) if len(parts) > 1 else parts[0]
     if params.settings.model == "seed":
         yaw_obs = np.asarray(drive.yaw_rad)
         states = dataclasses.replace(

@@ -141,6 +141,7 @@ class Recipe:
     model: str | None
     solver: str | None
     settings: dict  # {"[settings] key": (Settings field, value)}, see config.apply_settings
+    waypoints: Path | None = None  # the top-level waypoint file (drives may name their own)
 
 
 def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
@@ -237,4 +238,5 @@ def load_recipe(path) -> Recipe:
         model=spec.get("model"),
         solver=spec.get("solver"),
         settings={f"[settings] {k}": (k, v) for k, v in table.items()},
+        waypoints=None if wp is None else base / wp,
     )

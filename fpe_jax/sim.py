@@ -30,6 +30,7 @@ import numpy as np
 
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
+from fpe_jax.path import nearest_vertex
 from fpe_jax.spec import check_simulation
 from fpe_jax.tracks import builtin_track, is_builtin, loop_arclength, loop_curvature, resample_loop
 
@@ -367,11 +368,18 @@ def _left_normals(xy_m: np.ndarray) -> np.ndarray:
 
 
 def _nearest(points_m: np.ndarray, loop_m: np.ndarray) -> np.ndarray:
-    """(P,) index of the nearest loop vertex (K, 2) to each point (P, 2), in bounded chunks."""
-    out = np.empty(len(points_m), dtype=np.int64)
-    for i in range(0, len(points_m), 256):
-        d = points_m[i : i + 256, None, :] - loop_m[None, :, :]
-        out[i : i + 256] = np.argmin(np.einsum("pkd,pkd->pk", d, d), axis=1)
+    """(P,) index of the nearest loop vertex (K, 2) to each point (P, 2) (ties: the lowest).
+
+    O(P + K) by the hash grid of `path.nearest_vertex`; only points farther than its radius from
+    every vertex (none on a drive's own track) are searched exhaustively, in bounded chunks.
+    """
+    spacing = float(np.median(np.hypot(*np.diff(loop_m, axis=0).T))) if len(loop_m) > 1 else 1.0
+    out, _ = nearest_vertex(points_m, loop_m, max(2.0, 4.0 * spacing))
+    far = np.flatnonzero(out < 0)
+    for i in range(0, len(far), 256):
+        rows = far[i : i + 256]
+        d = points_m[rows, None, :] - loop_m[None, :, :]
+        out[rows] = np.argmin(np.einsum("pkd,pkd->pk", d, d), axis=1)
     return out
 
 

@@ -251,7 +251,8 @@ def test_cast_floats_keeps_static_and_integer_fields(loop, loop_grid):
     t32 = cast_floats(loop, "float32")
     assert t32.xy_m.dtype == np.float32 and t32.closed == loop.closed
     g32 = cast_floats(loop_grid, np.float32)
-    assert g32.row_of_cell.dtype == np.int32 and g32.segments.dtype == np.float32
+    assert g32.keys.dtype == np.int32 and g32.candidates.dtype == np.int32
+    assert g32.geometry.dtype == np.float32
     assert g32.origin_m.dtype == np.float32 and g32.shape == loop_grid.shape
     with pytest.raises(InputError, match="dtype"):
         cast_floats(loop, "float16")

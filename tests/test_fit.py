@@ -4,6 +4,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -276,7 +277,11 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
 
     # fit -> export all -> the NumPy runner and the ROS 2 YAML agree with the JAX predictor
     exp = tmp_path / "export"
-    assert main(["export", str(out), "--format", "all", "--out", str(exp), "--waypoints", wp]) == 0
+    # without --waypoints: the file of the fit, named in the config's provenance
+    assert cfg["provenance"]["waypoints"]["file"] == str(Path(wp).resolve())
+    capsys.readouterr()
+    assert main(["export", str(out), "--format", "all", "--out", str(exp)]) == 0
+    assert f"provenance: {Path(wp).resolve()}" in capsys.readouterr().err
     runner = Runner.from_config(exp / "config.json", wp)
     drive = io.load_drive(log)
     got = np.stack(
