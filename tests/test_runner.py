@@ -225,6 +225,29 @@ def test_path_geometry_matches_track(sim_drive, closed):
     np.testing.assert_allclose(np.array(got), want(p, s, hint), rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("closed", [True, False])
+@pytest.mark.parametrize("name", ["default", "heading-blend", "shrunk-speed"])
+def test_predict_from_state_on_arrays_equals_one_car_at_a_time(sim_drive, name, closed):
+    """The vectorised path (the SciPy baseline's model) gives each car's scalar prediction, on a
+    loop and past the ends of an open path; with_params swaps the values, keeps the track."""
+    wp = sim_drive[0] if closed else sim_drive[0][: len(sim_drive[0]) // 2]
+    base = Runner(params_to_config(Params.create(get_params(name).settings, weights=1.0)), wp)
+    r = base.with_params(get_params(name).physical())
+    assert r.path is base.path
+    want_r = Runner(params_to_config(get_params(name)), wp)
+    rng = np.random.default_rng(4)
+    n = 50
+    s = rng.uniform(-2.0, r.path.length_m + 2.0, n)
+    xy = np.stack([r.path.point_at(si) for si in s]) + rng.normal(0, 0.3, (n, 2))
+    yaw, v = rng.uniform(-np.pi, np.pi, n), rng.uniform(0.0, 4.0, n)
+    got = r.predict_from_state(xy[:, 0], xy[:, 1], yaw, v, s)
+    one = [r.predict_from_state(*xy[k], yaw[k], v[k], s[k]) for k in range(n)]
+    want = [want_r.predict_from_state(*xy[k], yaw[k], v[k], s[k]) for k in range(n)]
+    assert got.shape == (n, r.horizon, 3)
+    np.testing.assert_allclose(got, np.stack(one), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.stack(one), np.stack(want))
+
+
 def test_goal_scan_equals_full_scan(levine):
     wp = levine[0]
     rng = np.random.default_rng(2)

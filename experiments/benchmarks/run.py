@@ -315,30 +315,22 @@ def seed_predict_python(
     alpha=0.7,
     horizon=10,
 ):
-    """The 2019 node's prediction for one car, rule by rule (../shared/data/README.md).
-
-    waypoints: list of (x, y) tuples in file order. Each step scans them from the last row
-    backwards for the first one within the lookahead (row 0 when none is), steers by
-    2 sin(phi - yaw) / d used as an angle, blends the headings by alpha^i and moves.
+    """The 2019 node's prediction for one car, rule by rule (`fpe_jax.runner.seed_rollout`), with
+    the original's goal search: the waypoints (a list of (x, y) tuples in file order) scanned from
+    the last row backwards for the first one within the lookahead (row 0 when none is), every
+    step. (The runner buckets the waypoints instead; this is the algorithm as it was.)
     """
-    out = []
-    for i in range(horizon):
-        gx, gy = waypoints[0]
+    from fpe_jax.runner import seed_rollout
+
+    def goal(x, y):
         for k in range(len(waypoints) - 1, -1, -1):
             wx, wy = waypoints[k]
             if math.hypot(wx - x, wy - y) <= lookahead:
-                gx, gy = wx, wy
-                break
-        d = math.hypot(gx - x, gy - y)
-        steer = 2.0 * math.sin(math.atan2(gy - y, gx - x) - yaw) / d if d > 0 else 0.0
-        steer = min(max(steer, -max_steer), max_steer)
-        yaw_pp = yaw + dt * v / wheelbase * math.tan(steer)
-        w = alpha**i
-        yaw = w * yaw + (1.0 - w) * yaw_pp
-        x += v * dt * math.cos(yaw)
-        y += v * dt * math.sin(yaw)
-        out.append((x, y, yaw))
-    return out
+                return wx, wy
+        return waypoints[0]
+
+    weights = [alpha**i for i in range(horizon)]
+    return seed_rollout(goal, x, y, yaw, v, weights, dt, wheelbase, max_steer)
 
 
 def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
@@ -381,9 +373,9 @@ def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
 # with a 10 Hz detector (noise and outliers on, no dropouts); targets come from the 50 Hz truth.
 # Each fit runs in a fresh process, so its time includes compilation. Timed: targets, state
 # estimation and the solve (`fpe_jax.fit.fit_params`, the default preset as start, the default
-# fitted values). The SciPy baseline minimises the same objective ported to NumPy
-# (numpy_loss.py) with L-BFGS-B and finite-difference gradients from the same start, on the
-# 10-minute drive.
+# fitted values). The SciPy baseline minimises the same objective in NumPy (numpy_loss.py: the
+# on-car runner's model) with L-BFGS-B and finite-difference gradients from the same start, on
+# the 10-minute drive.
 
 FIT_MINUTES = (1, 10, 60)
 SCIPY_MINUTES = 10
@@ -431,20 +423,21 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         "fitted": fitted.physical(),
     }
     if with_scipy:
-        from numpy_loss import NumpyLoss, NumpyTrack
+        from numpy_loss import NumpyLoss
         from scipy.optimize import minimize
+
+        from fpe_jax.config import params_to_config
+        from fpe_jax.runner import Runner
 
         st = data.states(init)
         states = {k: np.asarray(getattr(st, k)) for k in ("x_m", "y_m", "yaw_rad", "v_mps", "s_m")}
-        groups = [(states, NumpyTrack(track), data.targets.xy_m, data.targets.mask)]
-        raw0 = {k: np.asarray(v) for k, v in vars(unconstrain(init)).items() if k != "settings"}
+        runner = Runner(params_to_config(init), res.centerline_xy_m, source="benchmark")
+        groups = [(states, runner, data.targets.xy_m, data.targets.mask)]
         free = [f for g in DEFAULT_FIT for f in FIT_GROUPS[g]]
         smoothing = getattr(fpe_fit, "WEIGHT_SMOOTHING_M2", 0.0)  # the fit's weight prior
-        loss = NumpyLoss(groups, raw0, free, init.settings, HUBER_M, RAW_RIDGE, smoothing)
-        raw_fit = {
-            k: np.asarray(v) for k, v in vars(unconstrain(fitted)).items() if k != "settings"
-        }
-        jax_solution = np.concatenate([np.ravel(raw_fit[f]) for f in loss.free])
+        loss = NumpyLoss(groups, unconstrain(init), free, HUBER_M, RAW_RIDGE, smoothing)
+        raw_fit = unconstrain(fitted)
+        jax_solution = np.concatenate([np.ravel(getattr(raw_fit, f)) for f in loss.free])
         t0 = time.perf_counter()
         sol = minimize(loss, loss.x0(), method="L-BFGS-B", options={"maxiter": 1000})
         scipy_s = time.perf_counter() - t0
