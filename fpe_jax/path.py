@@ -36,6 +36,23 @@ def wrap_angle(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+def nearest_index(points_m: np.ndarray, path_xy_m: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """(P,) index of the nearest path point (K, 2) to each point (P, 2), in bounded chunks
+    (memory O(chunk x K))."""
+    out = np.empty(len(points_m), dtype=np.int64)
+    for i in range(0, len(points_m), chunk):
+        d = points_m[i : i + chunk, None, :] - path_xy_m[None, :, :]
+        out[i : i + chunk] = np.argmin(np.einsum("pkd,pkd->pk", d, d), axis=1)
+    return out
+
+
+def left_normals(loop_xy_m: np.ndarray) -> np.ndarray:
+    """(K, 2) unit normals pointing left of the direction of travel of a closed loop (K, 2)."""
+    d = np.roll(loop_xy_m, -1, axis=0) - np.roll(loop_xy_m, 1, axis=0)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.stack([-d[:, 1], d[:, 0]], axis=1)
+
+
 # How far back along the kept path a reversing point is compared with: backing up further than
 # this is not recording noise but a path that really turns back.
 _BACKTRACK_WINDOW_M = 10.0
