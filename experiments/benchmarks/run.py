@@ -153,7 +153,9 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
             info = {}
             t0 = time.perf_counter()
             predictor = BatchPredictor(params, track, dtype=dtype, grid=grid)
-            compile_s = _chunk_compile_s(predictor, cars, chunk_size(n))
+            # compiled ahead of time, apart from running: a first call's time minus a steady
+            # call's is too noisy on a shared machine
+            compile_s = predictor.compile_seconds(cars, chunk_size(n))
             predictor(cars, info=info)
             first = time.perf_counter() - t0
             res = timed_runs(lambda p=predictor, c=cars: p(c), n)
@@ -179,11 +181,22 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
     return rows
 
 
-def _chunk_compile_s(predictor, cars, chunk: int) -> float:
-    """Seconds to compile (ahead of time) the predictor's chunk function at this chunk size:
-    compile time measured apart from running (a first call's time minus a steady call's is
-    too noisy on a shared machine)."""
-    return predictor.compile_seconds(cars, chunk)
+def _time_jitted(f, args: tuple, n: int, path: str, dtype: str) -> dict:
+    """Compile time, first call and steady rate (`timed_runs`) of the jitted f(*args) on n cars,
+    with a cleared compilation cache."""
+    import jax
+
+    jax.clear_caches()
+    t0 = time.perf_counter()
+    f.lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(f(*args))
+    first = time.perf_counter() - t0
+    res = timed_runs(lambda: jax.block_until_ready(f(*args)), n)
+    res.update(path=path, dtype=dtype, n_cars=n, first_call_s=first, compile_s=compile_s)
+    res.update(load_avg=load_average())
+    return res
 
 
 def bench_core(track, sizes, dtypes) -> list[dict]:
@@ -210,28 +223,12 @@ def bench_core(track, sizes, dtypes) -> list[dict]:
             params = jax.tree.map(jnp.asarray, cast_floats(presets[PRESET], dtype))
             for n in sizes:
                 st = jax.tree.map(jnp.asarray, cast_floats(hinted[n], dtype))
-                jax.clear_caches()
-                t0 = time.perf_counter()
-                predict_batch.lower(params, st, tr).compile()
-                compile_s = time.perf_counter() - t0
-                t0 = time.perf_counter()
-                jax.block_until_ready(predict_batch(params, st, tr))
-                first = time.perf_counter() - t0
-                res = timed_runs(
-                    lambda p=params, x=st, t=tr: jax.block_until_ready(predict_batch(p, x, t)), n
-                )
-                res.update(
-                    path="predict_batch (core, on device, hinted)",
-                    dtype=dtype,
-                    n_cars=n,
-                    first_call_s=first,
-                    compile_s=compile_s,
-                    load_avg=load_average(),
-                )
+                path = "predict_batch (core, on device, hinted)"
+                res = _time_jitted(predict_batch, (params, st, tr), n, path, dtype)
                 rows.append(res)
                 print(
                     f"  core  {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s "
-                    f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {compile_s:.2f} s)",
+                    f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {res['compile_s']:.2f} s)",
                     flush=True,
                 )
     return rows
@@ -267,7 +264,7 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
             f = jax.jit(jax.vmap(_bare_rollout))
             for n in sizes:
                 rng = np.random.default_rng(0)
-                args = [
+                args = tuple(
                     jnp.asarray(a.astype(dtype))
                     for a in (
                         rng.normal(0, 10, n),
@@ -276,23 +273,8 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
                         rng.uniform(1, 6, n),
                         rng.normal(0, 0.2, n),
                     )
-                ]
-                jax.clear_caches()
-                t0 = time.perf_counter()
-                f.lower(*args).compile()
-                compile_s = time.perf_counter() - t0
-                t0 = time.perf_counter()
-                jax.block_until_ready(f(*args))
-                first = time.perf_counter() - t0
-                res = timed_runs(lambda g=f, a=args: jax.block_until_ready(g(*a)), n)
-                res.update(
-                    path="bare kinematic bicycle (ceiling)",
-                    dtype=dtype,
-                    n_cars=n,
-                    first_call_s=first,
-                    compile_s=compile_s,
-                    load_avg=load_average(),
                 )
+                res = _time_jitted(f, args, n, "bare kinematic bicycle (ceiling)", dtype)
                 rows.append(res)
                 print(f"  bare  {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s", flush=True)
     return rows
