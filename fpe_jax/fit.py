@@ -102,7 +102,7 @@ def _residuals(raw_free, args):
     raw_fixed, groups, huber_m = args
     params = constrain(eqx.combine(raw_free, raw_fixed))
     out = []
-    n_targets = sum(jnp.sum(mask) for _, _, _, mask in groups)
+    n_targets = sum(jnp.sum(mask) for _, _, _, mask in groups).astype(params.weights.dtype)
     out.append(jnp.sqrt(WEIGHT_SMOOTHING_M2 * n_targets) * jnp.diff(params.weights))
     for states, track, target, mask in groups:
         pred = jax.vmap(predict, in_axes=(None, 0, None))(params, states, track)[..., :2]
@@ -165,7 +165,7 @@ def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: str):
         method = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5, norm=optx.rms_norm)
     else:
         n_points = sum(jnp.sum(mask) for _, _, _, mask in groups)
-        scale = BFGS_LOSS_UNIT_M2 * jnp.maximum(n_points, 1)
+        scale = BFGS_LOSS_UNIT_M2 * jnp.maximum(n_points, 1).astype(groups[0][2].dtype)
         run, fn = optx.minimise, lambda y, a: _objective(y, a) / scale  # see BFGS_LOSS_UNIT_M2
         method = optx.BFGS(rtol=1e-6, atol=1e-8, norm=optx.rms_norm)
     sol = run(fn, method, raw_free, args=args, max_steps=max_steps, throw=False)

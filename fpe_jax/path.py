@@ -37,6 +37,30 @@ def wrap_angle(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+def nearest_index(points_m: np.ndarray, path_xy_m: np.ndarray) -> np.ndarray:
+    """(P,) index of the nearest path point (K, 2) to each point (P, 2) (ties: the lowest).
+
+    O(P + K) by the hash grid of `nearest_vertex`; only points farther than its radius from every
+    vertex (none on a drive's own track) are searched exhaustively, in bounded chunks.
+    """
+    steps = np.hypot(*np.diff(path_xy_m, axis=0).T)
+    spacing = float(np.median(steps)) if len(steps) else 1.0
+    out, _ = nearest_vertex(points_m, path_xy_m, max(2.0, 4.0 * spacing))
+    far = np.flatnonzero(out < 0)
+    for i in range(0, len(far), 256):
+        rows = far[i : i + 256]
+        d = points_m[rows, None, :] - path_xy_m[None, :, :]
+        out[rows] = np.argmin(np.einsum("pkd,pkd->pk", d, d), axis=1)
+    return out
+
+
+def left_normals(loop_xy_m: np.ndarray) -> np.ndarray:
+    """(K, 2) unit normals pointing left of the direction of travel of a closed loop (K, 2)."""
+    d = np.roll(loop_xy_m, -1, axis=0) - np.roll(loop_xy_m, 1, axis=0)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.stack([-d[:, 1], d[:, 0]], axis=1)
+
+
 # How far back along the kept path a reversing point is compared with: backing up further than
 # this is not recording noise but a path that really turns back.
 _BACKTRACK_WINDOW_M = 10.0

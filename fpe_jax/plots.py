@@ -108,15 +108,6 @@ def bends(xy_m: np.ndarray, baseline_m: float = 1.0, reach_m: float = 3.0):
     return p, tangent, k, bend
 
 
-def nearest_index(points_m: np.ndarray, path_xy_m: np.ndarray, chunk: int = 512) -> np.ndarray:
-    """(N,) index of the nearest path point (K, 2) to each of the points (N, 2)."""
-    out = []
-    for i in range(0, len(points_m), chunk):
-        p = points_m[i : i + chunk]
-        out.append(np.argmin(((p[:, None, :] - path_xy_m[None, :, :]) ** 2).sum(-1), axis=1))
-    return np.concatenate(out) if out else np.zeros(0, dtype=int)
-
-
 def ellipse_xy(center_m: np.ndarray, cov_m2: np.ndarray, n_sigma: float, n: int = 64):
     """(n, 2) points [m] of the n_sigma ellipse {x : x^T cov^-1 x = n_sigma^2} around center."""
     vals, vecs = np.linalg.eigh(cov_m2)
@@ -210,6 +201,8 @@ BEND_FULL_1PM = 0.3  # radius < 3.3 m: full weight
 
 def _bend_geometry(held, name: str, waypoints_xy_m: np.ndarray):
     """(lateral offset [m] of the 1 s point toward the bend's inside, bend curvature [1/m])."""
+    from fpe_jax.path import nearest_index
+
     p, tangent, _, bend = bends(waypoints_xy_m)
     tgt = held.target_xy_m[:, -1]
     j = nearest_index(tgt, p)

@@ -293,7 +293,7 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
         # the measured speed is the window's average: the profile's shape from where the car
         # was then (s0 - v0 age) carries it to now and over the horizon
         _, cov0, vp0 = line(s0 - v0 * age)
-        ok0 = cov0 * (vp0 > MIN_PROFILE_SPEED_MPS)
+        ok0 = cov0 * (vp0 > MIN_PROFILE_SPEED_MPS).astype(cov0.dtype)
         vp0 = jnp.maximum(vp0, MIN_PROFILE_SPEED_MPS)
 
         def step(s, inp):

@@ -22,6 +22,7 @@ It imports only `fpe_jax.config`, `fpe_jax.errors`, `fpe_jax.path` and (to read 
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import time
@@ -52,9 +53,30 @@ _PI = math.pi
 _TWO_PI = 2 * math.pi
 
 
-def _wrap(a: float) -> float:
-    """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.track.wrap_angle."""
-    return a - _TWO_PI * math.floor((a + _PI) * (0.5 / _PI))
+def _wrap(a: float, floor=math.floor) -> float:
+    """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.track.wrap_angle
+    (`floor=np.floor` for arrays)."""
+    return a - _TWO_PI * floor((a + _PI) * (0.5 / _PI))
+
+
+class _Floats:
+    """The math the rollouts use, on Python floats (one car: several times faster than NumPy)."""
+
+    cos, sin, floor = math.cos, math.sin, math.floor
+
+    @staticmethod
+    def clip(a, lo, hi):
+        return min(max(a, lo), hi)
+
+
+class _Arrays:
+    """The same math on (N,) arrays: N cars at once (the SciPy baseline of `make bench`)."""
+
+    cos, sin, floor, clip = np.cos, np.sin, np.floor, np.clip
+
+
+def _ops(x):
+    return _Arrays if isinstance(x, np.ndarray) else _Floats
 
 
 def _median(values: list[float]) -> float:
@@ -96,6 +118,8 @@ class RunnerPath:
         tangent = np.stack([np.cos(p["heading_rad"]), np.sin(p["heading_rad"])], axis=1)
         rows = np.concatenate([xy, ab, tangent, tangent[nxt]], axis=1)
         self._rows = [tuple(row) for row in rows.tolist()]
+        self._table = rows  # the same (M, 8), for `arrays()`
+        self._arrays: _ArrayPath | None = None
         self._heading = p["heading_rad"].tolist()
         self._all_segments = np.arange(m if self.closed else m - 1)
         n_back = int(np.ceil(WINDOW_BEHIND_M / self.ds_m))
@@ -113,6 +137,12 @@ class RunnerPath:
         if i > self._m - 2:
             i = self._m - 2
         return i, u - i
+
+    def arrays(self) -> RunnerPath:
+        """This path with locate, point_at and project_local on (N,) arrays of cars."""
+        if self._arrays is None:
+            self._arrays = _ArrayPath(self)
+        return self._arrays
 
     def point_at(self, s_m: float) -> tuple[float, float]:
         """Position x [m], y [m] at arc length s [m]."""
@@ -179,6 +209,30 @@ class RunnerPath:
         return s_hint_m + ((s - s_hint_m + half) % self.length_m - half)
 
 
+class _ArrayPath(RunnerPath):
+    """A RunnerPath whose point_at and project_local take (N,) arrays: the same code, with the
+    segment lookup and `locate` on arrays (the scalar path keeps its list-of-tuples speed)."""
+
+    def __init__(self, path: RunnerPath):
+        self.__dict__.update(path.__dict__)
+        table = path._table
+
+        class Rows:  # rows[i] for (N,) indices i: the (8, N) columns the scalar code unpacks
+            def __getitem__(self, i):
+                return table[i].T
+
+        self._rows = Rows()
+
+    def locate(self, s_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.closed:
+            u = s_m / self.ds_m
+            u_floor = np.floor(u)
+            return u_floor.astype(np.int64) % self._m, u - u_floor
+        u = np.clip(s_m, 0.0, self.length_m) / self.ds_m
+        i = np.minimum(u.astype(np.int64), self._m - 2)
+        return i, u - i
+
+
 class Runner:
     """Streaming predictor for one leading car: feed observations, get (H, 3) predictions.
 
@@ -205,6 +259,12 @@ class Runner:
         self.blend: str = st["blend"]
         self._wheelbase_m = float(st["wheelbase_m"])
         self._max_steer_rad = float(st["max_steer_rad"])
+        self.path = RunnerPath(waypoints_xy_m, source="waypoints")
+        self._set_params(p)
+        self._history = deque(maxlen=int(st["history"]))  # distinct (t, x, y, yaw), oldest first
+        self.reset()
+
+    def _set_params(self, p: dict) -> None:
         self._lookahead_m = float(p["lookahead_m"])
         self._gain_s = float(p["lookahead_gain_s"])
         self._weights = [float(w) for w in p["weights"]]
@@ -215,11 +275,22 @@ class Runner:
         self._speed_tau_s = float(p.get("speed_tau_s", 0.5))
         self._smoothing = float(p.get("position_smoothing", 0.0))
         self._line = [[float(v) for v in p[k]] for k in LINE_KEYS] if self.model == "line" else None
-        self._history = deque(maxlen=int(st["history"]))  # distinct (t, x, y, yaw), oldest first
-        self.path = RunnerPath(waypoints_xy_m, source="waypoints")
         if self.model == "seed":
             self._goal_scan = GoalScan(self.path.raw_xy_m, self._lookahead_m)
-        self.reset()
+
+    def with_params(self, params: dict) -> Runner:
+        """This runner's track and settings with other parameter values, and an empty history.
+
+        Args:
+            params: physical values keyed as a config's "params" (`Params.physical()`); not
+                schema-checked again (the fitting loss of `make bench`'s SciPy baseline calls
+                this once per evaluation).
+        """
+        new = copy.copy(self)
+        new._set_params(params)
+        new._history = deque(maxlen=self._history.maxlen)
+        new.reset()
+        return new
 
     @classmethod
     def from_config(cls, config_path, waypoints_path) -> Runner:
@@ -281,10 +352,28 @@ class Runner:
         self._s_m = path.project_window(ex, ey, s_prev)
         if self.model in ("frenet", "line"):
             return self._frenet(self._track_frame(self._s_m), est)
+        return self.predict_from_state(ex, ey, est[2], est[3], self._s_m)
+
+    def predict_from_state(self, x_m, y_m, yaw_rad, v_mps, s_m):
+        """The blend model's rollout from an estimated state, as `update` does after estimating.
+
+        Args:
+            x_m, y_m, yaw_rad, v_mps: position [m], heading [rad], measured speed [m/s]:
+                floats for one car or (N,) float64 arrays for N cars.
+            s_m: the arc length [m] near the position (the track projection's start).
+
+        Returns:
+            (H, 3) x [m], y [m], yaw [rad] at h * dt_s, h = 1..H; (N, H, 3) for arrays.
+        """
+        if self.model != "blend":
+            raise ValueError(f"predict_from_state: the blend model only, not {self.model!r}")
+        est = (x_m, y_m, yaw_rad, v_mps)
         if self.blend == "heading":
             w = self._weights
-            return self._bicycle(est, self._s_m, [1.0 - wk for wk in [w[0], *w]])
-        return self._position_blend(est, self._s_m)
+            out = self._bicycle(est, s_m, [1.0 - wk for wk in [w[0], *w]])
+        else:
+            out = self._position_blend(est, s_m)
+        return np.moveaxis(out, -1, 0) if isinstance(x_m, np.ndarray) else out
 
     # ---- state estimation (fpe_jax.estimate.estimate_state on the valid slots) ----------------
 
@@ -435,7 +524,8 @@ class Runner:
 
     def _linear_rows(self, est, heading_rad: float) -> list[list[float]]:
         x0, y0, v = est[0], est[1], self._speed(est[3])
-        c, s = math.cos(heading_rad), math.sin(heading_rad)
+        o = _ops(heading_rad)
+        c, s = o.cos(heading_rad), o.sin(heading_rad)
         rows, t = [], 0.0
         for k, dt in enumerate(self._times()):
             t += dt
@@ -461,28 +551,31 @@ class Runner:
         return np.array(rows)
 
     def _bicycle_rows(self, est, s_m: float, turn_scale: list[float]) -> list[list[float]]:
-        """Kinematic bicycle steered by pure pursuit; yaw change of step k times turn_scale[k]."""
-        path = self.path
+        """Kinematic bicycle steered by pure pursuit; yaw change of step k times turn_scale[k].
+        The state's values are floats, or (N,) arrays for N cars."""
         x, y, yaw = est[0], est[1], est[2]
+        o = _ops(x)
+        path = self.path.arrays() if o is _Arrays else self.path
+        cos, sin, clip = o.cos, o.sin, o.clip
         v = self._speed(est[3])
         wb, tan_lim = self._wheelbase_m, math.tan(self._max_steer_rad)
         reach = self._gain_s * v
         s = path.project_local(x, y, s_m)
-        cy, sy = math.cos(yaw), math.sin(yaw)  # the heading as a unit vector, as the JAX step
+        cy, sy = cos(yaw), sin(yaw)  # the heading as a unit vector, as the JAX step
         rows = []
         for k, dt in enumerate(self._times()):
             s = path.project_local(x, y, s)
             gx, gy = path.point_at(s + self._lookahead_m + reach)
             dx, dy = gx - x, gy - y
             tan_steer = 2.0 * wb * (cy * dy - sy * dx) / (dx * dx + dy * dy + 1e-12)
-            tan_steer = min(max(tan_steer, -tan_lim), tan_lim)
+            tan_steer = clip(tan_steer, -tan_lim, tan_lim)
             dyaw = turn_scale[k] * v / wb * tan_steer * dt
-            ch, sh = math.cos(0.5 * dyaw), math.sin(0.5 * dyaw)
+            ch, sh = cos(0.5 * dyaw), sin(0.5 * dyaw)
             cm, sm = cy * ch - sy * sh, sy * ch + cy * sh  # midpoint heading: the move's direction
             cy, sy = cm * ch - sm * sh, sm * ch + cm * sh
             x, y, yaw = x + v * dt * cm, y + v * dt * sm, yaw + dyaw
             if k:
-                rows.append([x, y, _wrap(yaw)])
+                rows.append([x, y, _wrap(yaw, o.floor)])
         return rows
 
     def _bicycle(self, est, s_m: float, turn_scale: list[float]) -> np.ndarray:
@@ -491,27 +584,43 @@ class Runner:
     def _position_blend(self, est, s_m: float) -> np.ndarray:
         lin = self._linear_rows(est, est[2])
         pp = self._bicycle_rows(est, s_m, [1.0] * (self.horizon + 1))
-        out = []
+        floor, out = _ops(est[0]).floor, []
         for w, (lx, ly, lyaw), (px, py, pyaw) in zip(self._weights, lin, pp):
             g = 1.0 - w
-            out.append([w * lx + g * px, w * ly + g * py, _wrap(lyaw + g * _wrap(pyaw - lyaw))])
+            yaw = _wrap(lyaw + g * _wrap(pyaw - lyaw, floor), floor)
+            out.append([w * lx + g * px, w * ly + g * py, yaw])
         return np.array(out)
 
     def _seed(self, x: float, y: float, yaw: float, v: float) -> np.ndarray:
         """The original node's discrete rules (fpe_jax.rollout.rollout_seed)."""
-        goal = self._goal_scan
-        dt, wb, lim = self.dt_s, self._wheelbase_m, self._max_steer_rad
-        rows = []
-        for w in self._weights:
-            gx, gy = goal.goal(x, y)
-            d = math.hypot(gx - x, gy - y)
-            steer = 2.0 * math.sin(math.atan2(gy - y, gx - x) - yaw) / d if d > 0 else 0.0
-            steer = min(max(steer, -lim), lim)
-            yaw_pp = yaw + dt * v / wb * math.tan(steer)
-            yaw = w * yaw + (1.0 - w) * yaw_pp
-            x, y = x + v * dt * math.cos(yaw), y + v * dt * math.sin(yaw)
-            rows.append([x, y, yaw])
-        return np.array(rows)
+        st = (self.dt_s, self._wheelbase_m, self._max_steer_rad)
+        return np.array(seed_rollout(self._goal_scan.goal, x, y, yaw, v, self._weights, *st))
+
+
+def seed_rollout(goal, x_m, y_m, yaw_rad, v_mps, weights, dt_s, wheelbase_m, max_steer_rad):
+    """The original 2019 node's prediction for one car, rule by rule (fpe_jax.rollout.rollout_seed,
+    ../shared/data/README.md): per step the goal, a steering of 2 sin(phi - yaw) / d used as an
+    angle, the headings blended by weights[k], a move.
+
+    Args:
+        goal: (x, y) -> the goal waypoint (x, y) [m] (`GoalScan.goal`, or the original's full
+            reverse scan).
+        weights: H heading weights; the rest as the config's settings [m, rad, m/s, s].
+
+    Returns:
+        H (x [m], y [m], yaw [rad]) lists.
+    """
+    x, y, yaw, rows = x_m, y_m, yaw_rad, []
+    for w in weights:
+        gx, gy = goal(x, y)
+        d = math.hypot(gx - x, gy - y)
+        steer = 2.0 * math.sin(math.atan2(gy - y, gx - x) - yaw) / d if d > 0 else 0.0
+        steer = min(max(steer, -max_steer_rad), max_steer_rad)
+        yaw_pp = yaw + dt_s * v_mps / wheelbase_m * math.tan(steer)
+        yaw = w * yaw + (1.0 - w) * yaw_pp
+        x, y = x + v_mps * dt_s * math.cos(yaw), y + v_mps * dt_s * math.sin(yaw)
+        rows.append([x, y, yaw])
+    return rows
 
 
 class GoalScan:

@@ -30,7 +30,7 @@ import numpy as np
 
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
-from fpe_jax.path import nearest_vertex
+from fpe_jax.path import left_normals, nearest_index, wrap_angle
 from fpe_jax.spec import check_simulation
 from fpe_jax.tracks import builtin_track, is_builtin, loop_arclength, loop_curvature, resample_loop
 
@@ -252,7 +252,7 @@ def simulate(
         yaw_rad=det["yaw"],
         truth_t_s=truth_t,
         truth_xy_m=truth[:, 0:2].copy(),
-        truth_yaw_rad=_wrap(truth[:, 2]),
+        truth_yaw_rad=wrap_angle(truth[:, 2]),
         truth_v_mps=truth[:, 3].copy(),
         meta=dict(
             source="fpe_jax.sim",
@@ -327,10 +327,10 @@ def _reference_path(xy_m, speed_mps, center_xy_m, half_width_m, driver: Driver) 
         v = _speed_profile(loop_curvature(xy, smooth_m=1.0), spacing, driver)
     else:
         v = np.clip(v * driver.raceline_speed_scale, driver.v_min_mps, driver.v_max_mps)
-    normal = _left_normals(xy)
+    normal = left_normals(xy)
     # Signed distance of each path point from the centerline (zero when the path is it).
-    idx = _nearest(xy, center_xy_m)
-    side = np.sum((xy - center_xy_m[idx]) * _left_normals(center_xy_m)[idx], axis=1)
+    idx = nearest_index(xy, center_xy_m)
+    side = np.sum((xy - center_xy_m[idx]) * left_normals(center_xy_m)[idx], axis=1)
     room = max(half_width_m - driver.edge_margin_m, 0.0)
     lo, hi = -room - side, room - side
     return dict(
@@ -358,29 +358,6 @@ def _speed_profile(kappa: np.ndarray, spacing_m: float, driver: Driver) -> np.nd
     for k in range(2 * n - 2, -1, -1):
         v[k % n] = min(v[k % n], math.sqrt(v[(k + 1) % n] ** 2 + brk2))
     return np.maximum(np.array(v), driver.v_min_mps)
-
-
-def _left_normals(xy_m: np.ndarray) -> np.ndarray:
-    """(K, 2) unit normals pointing left of the direction of travel of a closed loop (K, 2)."""
-    d = np.roll(xy_m, -1, axis=0) - np.roll(xy_m, 1, axis=0)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return np.stack([-d[:, 1], d[:, 0]], axis=1)
-
-
-def _nearest(points_m: np.ndarray, loop_m: np.ndarray) -> np.ndarray:
-    """(P,) index of the nearest loop vertex (K, 2) to each point (P, 2) (ties: the lowest).
-
-    O(P + K) by the hash grid of `path.nearest_vertex`; only points farther than its radius from
-    every vertex (none on a drive's own track) are searched exhaustively, in bounded chunks.
-    """
-    spacing = float(np.median(np.hypot(*np.diff(loop_m, axis=0).T))) if len(loop_m) > 1 else 1.0
-    out, _ = nearest_vertex(points_m, loop_m, max(2.0, 4.0 * spacing))
-    far = np.flatnonzero(out < 0)
-    for i in range(0, len(far), 256):
-        rows = far[i : i + 256]
-        d = points_m[rows, None, :] - loop_m[None, :, :]
-        out[rows] = np.argmin(np.einsum("pkd,pkd->pk", d, d), axis=1)
-    return out
 
 
 def _smooth_random(rng, t_s: np.ndarray, amplitude: float, period_s, n: int = 3) -> np.ndarray:
@@ -571,7 +548,7 @@ def _project_s(points_m: np.ndarray, loop_m: np.ndarray) -> np.ndarray:
     """(P,) arc length [m] of each point's (P, 2) orthogonal projection onto a closed loop (K, 2)
     (onto one of the two segments at its nearest vertex)."""
     s = loop_arclength(loop_m)
-    k = _nearest(points_m, loop_m)
+    k = nearest_index(points_m, loop_m)
     best_s, best_d2 = np.zeros(len(points_m)), np.full(len(points_m), np.inf)
     for a in (k - 1) % len(loop_m), k:
         b = (a + 1) % len(loop_m)
@@ -595,7 +572,7 @@ def _ego_pose(lead_xy_m: np.ndarray, gap_m: np.ndarray, center_xy_m: np.ndarray)
     ego = np.stack([np.interp(s_ego, s, closed[:, 0]), np.interp(s_ego, s, closed[:, 1])], 1)
     d = np.roll(center_xy_m, -1, axis=0) - np.roll(center_xy_m, 1, axis=0)
     heading = np.unwrap(np.append(np.arctan2(d[:, 1], d[:, 0]), math.atan2(d[0, 1], d[0, 0])))
-    return ego, _wrap(np.interp(s_ego, s, heading))
+    return ego, wrap_angle(np.interp(s_ego, s, heading))
 
 
 def _in_view(ego_xy, ego_yaw, lead_xy, lead_yaw, cam: Camera) -> np.ndarray:
@@ -609,7 +586,7 @@ def _in_view(ego_xy, ego_yaw, lead_xy, lead_yaw, cam: Camera) -> np.ndarray:
     tag_xy = ahead(lead_xy, lead_yaw, cam.tag_xyz_m)
     d = tag_xy - cam_xy
     dist = np.linalg.norm(d, axis=1)
-    bearing = _wrap(np.arctan2(d[:, 1], d[:, 0]) - ego_yaw)
+    bearing = wrap_angle(np.arctan2(d[:, 1], d[:, 0]) - ego_yaw)
     face = lead_yaw + cam.tag_yaw_rad
     cos_incidence = -(np.cos(face) * d[:, 0] + np.sin(face) * d[:, 1]) / np.maximum(dist, 1e-9)
     return (
@@ -646,7 +623,7 @@ def _detect(
     # (for the noise, the projection is the nearest centerline vertex).
     s = loop_arclength(center_xy_m)
     closed = np.vstack([center_xy_m, center_xy_m[:1]])
-    s_ego = np.mod(s[:-1][_nearest(np.stack([x, y], 1), center_xy_m)] - gap_m[keep], s[-1])
+    s_ego = np.mod(s[:-1][nearest_index(np.stack([x, y], 1), center_xy_m)] - gap_m[keep], s[-1])
     ego = np.stack([np.interp(s_ego, s, closed[:, 0]), np.interp(s_ego, s, closed[:, 1])], 1)
     los = np.stack([x, y], 1) - ego
     range_m = np.linalg.norm(los, axis=1)
@@ -658,7 +635,7 @@ def _detect(
     outlier = u_out[keep] < sen.outlier_prob
     jump = jump_m[keep] * outlier
     xy += np.stack([np.cos(jump_dir[keep]), np.sin(jump_dir[keep])], 1) * jump[:, None]
-    yaw = _wrap(yaw + sen.yaw_sigma_rad * z_yaw[keep])
+    yaw = wrap_angle(yaw + sen.yaw_sigma_rad * z_yaw[keep])
     fast = np.maximum(np.abs(r) - sen.miss_yaw_rate_rps, 0.0)
     seen = u_miss[keep] >= np.minimum(sen.miss_prob + sen.miss_per_radps * fast, 0.9)
     extra = {}
@@ -681,11 +658,6 @@ def _detect(
         n_captured=int(len(capture)),
         **extra,
     )
-
-
-def _wrap(angle_rad: np.ndarray) -> np.ndarray:
-    """Angles wrapped to [-pi, pi)."""
-    return np.mod(np.asarray(angle_rad) + math.pi, 2 * math.pi) - math.pi
 
 
 # --- files --------------------------------------------------------------------------------------

@@ -91,8 +91,8 @@ class Rule:
 
     key: str
     kind: str = "number"
-    lo: float | str | None = None
-    hi: float | str | None = None
+    lo: float | int | str | None = None
+    hi: float | int | str | None = None
     lo_open: bool = False
     hi_open: bool = False
     choices: tuple[str, ...] = ()

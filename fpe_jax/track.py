@@ -77,7 +77,7 @@ class Track(eqx.Module):
             return i, (i + 1) % m, u - u_floor
         u = jnp.clip(s_m, 0.0, self.length_m) / self.ds_m
         i = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, m - 2)
-        return i, i + 1, u - i
+        return i, i + 1, u - i.astype(u.dtype)
 
     def _segment(self, s_m):
         """The `seg_m` row (8,) of the segment holding arc length s, and the fraction in it."""
@@ -104,7 +104,7 @@ class Track(eqx.Module):
         )
         d2 = jnp.sum((a + t[:, None] * ab - p_m[None, :]) ** 2, -1)
         k = jnp.argmin(d2)
-        return (idx[k] + t[k]) * self.ds_m
+        return (idx[k].astype(t.dtype) + t[k]) * self.ds_m
 
     def project(self, p_m: Float[Array, "2"]) -> Float[Array, ""]:
         """Arc length [m] of the closest point of the whole track to p (2,) [m] (global search)."""
@@ -122,7 +122,7 @@ class Track(eqx.Module):
         n_back = int(np.ceil(behind_m / self.window_ds_m))
         n_ahead = int(np.ceil(ahead_m / self.window_ds_m))
         i0 = jnp.floor(s_hint_m / self.ds_m).astype(jnp.int32)
-        idx = i0 + jnp.arange(-n_back, n_ahead + 1)
+        idx = i0 + jnp.arange(-n_back, n_ahead + 1, dtype=jnp.int32)
         if self.closed:
             idx = jnp.mod(idx, self.n_points)
             s = self._project_segments(p_m, idx)

@@ -1,4 +1,4 @@
-"""Strict JAX settings for every test: float64, no implicit rank promotion."""
+"""Strict JAX settings for every test: float64, no implicit rank or dtype promotion."""
 
 import os
 import tempfile
@@ -13,6 +13,9 @@ import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+# no implicit dtype promotion: dtypes come from the inputs (a float32 input stays float32, a
+# Python scalar takes the array's dtype; mixing float32 and float64 arrays is an error)
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

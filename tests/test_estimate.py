@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import fd_gradient
 
 from fpe_jax import Drive
 from fpe_jax.estimate import estimate_state
@@ -183,11 +184,6 @@ def test_estimate_state_under_jit_vmap_grad():
     t, xy, yaw, valid, t_now = wins[2]
     f = lambda q: estimate(t, q, yaw, valid, t_now).v_mps
     g = np.asarray(jax.jit(jax.grad(lambda q: estimate_state(t, q, yaw, valid, t_now).v_mps))(xy))
-    eps = 1e-7
-    fd = np.zeros((W, 2))
-    for i in range(W):
-        for j in range(2):
-            e = jnp.zeros((W, 2)).at[i, j].set(eps)
-            fd[i, j] = (float(f(xy + e)) - float(f(xy - e))) / (2 * eps)
+    fd = fd_gradient(lambda q: f(jnp.asarray(q)), xy, eps=1e-7)
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6)
     assert np.abs(g).max() > 1.0

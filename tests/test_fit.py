@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
+from helpers import assert_trees_close
 from test_export import FRESH  # the fresh-process loader script of the export tests
 
 from fpe_jax import evaluate as E
@@ -203,8 +204,7 @@ def test_bfgs_objective_derivative_equals_autodiff_of_the_loss(oval_drives):
     assert abs(float(d_auto)) > 1e-3
     g_auto = jax.grad(lambda y: F._loss(y, args))(free)
     g_hand = jax.jit(jax.grad(lambda y: F._objective(y, args)))(free)
-    for a, b in zip(jax.tree.leaves(g_hand), jax.tree.leaves(g_auto)):
-        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    assert_trees_close(g_hand, g_auto, rtol=1e-10, atol=1e-12)
 
 
 def test_summarize_and_coverage_exact():

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import assert_trees_close
 
 from fpe_jax import Params, Settings, constrain, presets, stack_params, unconstrain
 
@@ -38,10 +39,8 @@ def interior(settings=None, **kw):
 
 
 def assert_params_close(a, b, atol):
-    for name in FITTED:
-        np.testing.assert_allclose(
-            np.asarray(getattr(a, name)), np.asarray(getattr(b, name)), rtol=0, atol=atol
-        )
+    fitted = lambda p: {name: getattr(p, name) for name in FITTED}
+    assert_trees_close(fitted(a), fitted(b), atol=atol)
     assert a.settings == b.settings
 
 

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import fd_gradient
 
 from fpe_jax import Params, Settings, State, Track
 from fpe_jax.path import wrap_angle
@@ -406,17 +407,10 @@ def test_gradients_match_central_differences(levine, blend):
 
     grad = eqx.filter_jit(jax.grad(loss))(p0)
     loss_jit = eqx.filter_jit(loss)
-    eps = 1e-6
     for name in FITTED:
         value = np.asarray(getattr(p0, name), dtype=float)
-        fd = np.zeros(value.size)
-        for i in range(value.size):
-            e = np.zeros(value.size)
-            e[i] = eps
-            e = e.reshape(value.shape)
-            up = eqx.tree_at(lambda p, n=name: getattr(p, n), p0, jnp.asarray(value + e))
-            dn = eqx.tree_at(lambda p, n=name: getattr(p, n), p0, jnp.asarray(value - e))
-            fd[i] = (float(loss_jit(up)) - float(loss_jit(dn))) / (2 * eps)
+        at = lambda v, n=name: loss_jit(eqx.tree_at(lambda p: getattr(p, n), p0, jnp.asarray(v)))
+        fd = np.ravel(fd_gradient(at, value, eps=1e-6))
         g = np.ravel(np.asarray(getattr(grad, name)))
         np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-8, err_msg=f"{blend} {name}")
         assert np.all(np.abs(g) > 1e-6) and np.abs(g).max() > 1e-2, (blend, name, g)

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import CASES, predictor, track_drive
 
 from fpe_jax import Drive, Params, Settings, Track, params, predict_drive, presets, runner
 from fpe_jax.config import params_to_config, write_config
@@ -20,7 +21,6 @@ from fpe_jax.runner import GoalScan, Runner, RunnerPath, run_stream
 from fpe_jax.sim import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
-LEVINE = ROOT.parent / "shared" / "data" / "levine"
 TOL_M = 1e-6
 
 # Run in a subprocess before anything else: importing JAX (or what needs it) fails there.
@@ -36,29 +36,6 @@ CHECK_NO_JAX = """
 leaked = [m for m in ("jax", "jaxlib", "equinox", "optimistix") if m in sys.modules]
 assert not leaked, leaked
 """
-
-CUSTOM = {  # non-trivial weights, delay, gain and speed shrinkage; both blend modes
-    "heading-blend": lambda: Params.create(
-        Settings(blend="heading"),
-        lookahead_m=1.3,
-        lookahead_gain_s=0.3,
-        weights=np.linspace(0.95, 0.1, 10),
-        delay_s=0.15,
-    ),
-    "shrunk-speed": lambda: Params.create(
-        Settings(),
-        lookahead_m=0.8,
-        lookahead_gain_s=0.1,
-        weights=np.linspace(0.2, 0.9, 10),
-        delay_s=0.05,
-        speed_weight=0.3,
-        speed_mps=2.5,
-    ),
-}
-
-
-def get_params(name: str) -> Params:
-    return CUSTOM[name]() if name in CUSTOM else presets[name]
 
 
 def run_drive(r: Runner, drive: Drive) -> np.ndarray:
@@ -78,21 +55,12 @@ def assert_parity(pred_runner: np.ndarray, pred_jax: np.ndarray) -> None:
 
 @pytest.fixture(scope="module")
 def sim_drive():
-    """A 20 s simulated drive on the oval: noisy detections with yaw, outliers, repeats-free."""
-    res = simulate("oval", duration_s=20.0, seed=3)
-    return res.centerline_xy_m, res.drive
+    return track_drive("oval")
 
 
 @pytest.fixture(scope="module")
 def levine():
-    """The real 2019 drive: 10 Hz, no yaw, ~48 % repeated rows, stops and outlier jumps."""
-    if not LEVINE.is_dir():
-        pytest.skip(f"real data not found at {LEVINE} (../shared/data beside the checkout)")
-    wp = np.loadtxt(LEVINE / "levine-waypoints.csv", delimiter=",")[:, :2]
-    poses = np.loadtxt(LEVINE / "actual-poses.csv", delimiter=",")
-    n = len(poses)
-    drive = Drive(t_s=np.arange(n) * 0.1, xy_m=poses[:, :2], yaw_rad=np.full(n, np.nan))
-    return wp, drive
+    return track_drive("levine")
 
 
 def write_waypoints(path: Path, xy: np.ndarray) -> Path:
@@ -121,32 +89,11 @@ def test_mirrored_constants_match_the_jax_modules():
 
 # ---- parity with the JAX predictor -----------------------------------------------------------
 
-SIM_CONFIGS = [
-    "seed",
-    "seed-measured-speed",
-    "linear",
-    "pure-pursuit",
-    "constant-velocity",
-    "ctrv",
-    "frenet",
-    "default",
-    "heading-blend",
-    "shrunk-speed",
-]
 
-
-@pytest.mark.parametrize("name", SIM_CONFIGS)
-def test_parity_on_simulated_drive(sim_drive, name):
-    wp, drive = sim_drive
-    p = get_params(name)
-    _, pred_jax = predict_drive(p, drive, Track.from_waypoints(wp))
-    assert_parity(run_drive(Runner(params_to_config(p), wp), drive), pred_jax)
-
-
-@pytest.mark.parametrize("name", ["seed", "default", "heading-blend"])
-def test_parity_on_levine(levine, name):
-    wp, drive = levine
-    p = get_params(name)
+@pytest.mark.parametrize(("track", "name"), CASES)
+def test_parity_with_the_jax_predictor(track, name):
+    wp, drive = track_drive(track)
+    p = predictor(name)
     _, pred_jax = predict_drive(p, drive, Track.from_waypoints(wp))
     assert_parity(run_drive(Runner(params_to_config(p), wp), drive), pred_jax)
 
@@ -226,6 +173,29 @@ def test_path_geometry_matches_track(sim_drive, closed):
     np.testing.assert_allclose(np.array(got), want(p, s, hint), rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("closed", [True, False])
+@pytest.mark.parametrize("name", ["default", "heading-blend", "shrunk-speed"])
+def test_predict_from_state_on_arrays_equals_one_car_at_a_time(sim_drive, name, closed):
+    """The vectorised path (the SciPy baseline's model) gives each car's scalar prediction, on a
+    loop and past the ends of an open path; with_params swaps the values, keeps the track."""
+    wp = sim_drive[0] if closed else sim_drive[0][: len(sim_drive[0]) // 2]
+    base = Runner(params_to_config(Params.create(predictor(name).settings, weights=1.0)), wp)
+    r = base.with_params(predictor(name).physical())
+    assert r.path is base.path
+    want_r = Runner(params_to_config(predictor(name)), wp)
+    rng = np.random.default_rng(4)
+    n = 50
+    s = rng.uniform(-2.0, r.path.length_m + 2.0, n)
+    xy = np.stack([r.path.point_at(si) for si in s]) + rng.normal(0, 0.3, (n, 2))
+    yaw, v = rng.uniform(-np.pi, np.pi, n), rng.uniform(0.0, 4.0, n)
+    got = r.predict_from_state(xy[:, 0], xy[:, 1], yaw, v, s)
+    one = [r.predict_from_state(*xy[k], yaw[k], v[k], s[k]) for k in range(n)]
+    want = [want_r.predict_from_state(*xy[k], yaw[k], v[k], s[k]) for k in range(n)]
+    assert got.shape == (n, r.horizon, 3)
+    np.testing.assert_allclose(got, np.stack(one), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(np.stack(one), np.stack(want))
+
+
 def test_goal_scan_equals_full_scan(levine):
     wp = levine[0]
     rng = np.random.default_rng(2)
@@ -255,7 +225,7 @@ def run_python(code: str, *args: str, stdin: str = "") -> subprocess.CompletedPr
 
 def test_runner_works_where_jax_cannot_be_imported(tmp_path, sim_drive):
     wp, drive = sim_drive
-    p = get_params("heading-blend")
+    p = predictor("heading-blend")
     write_config(tmp_path / "cfg.json", params_to_config(p))
     write_waypoints(tmp_path / "wp.csv", wp)
     np.save(tmp_path / "obs.npy", np.column_stack([drive.t_s, drive.xy_m, drive.yaw_rad]))

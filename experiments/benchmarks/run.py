@@ -153,7 +153,9 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
             info = {}
             t0 = time.perf_counter()
             predictor = BatchPredictor(params, track, dtype=dtype, grid=grid)
-            compile_s = _chunk_compile_s(predictor, cars, chunk_size(n))
+            # compiled ahead of time, apart from running: a first call's time minus a steady
+            # call's is too noisy on a shared machine
+            compile_s = predictor.compile_seconds(cars, chunk_size(n))
             predictor(cars, info=info)
             first = time.perf_counter() - t0
             res = timed_runs(lambda p=predictor, c=cars: p(c), n)
@@ -179,11 +181,22 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
     return rows
 
 
-def _chunk_compile_s(predictor, cars, chunk: int) -> float:
-    """Seconds to compile (ahead of time) the predictor's chunk function at this chunk size:
-    compile time measured apart from running (a first call's time minus a steady call's is
-    too noisy on a shared machine)."""
-    return predictor.compile_seconds(cars, chunk)
+def _time_jitted(f, args: tuple, n: int, path: str, dtype: str) -> dict:
+    """Compile time, first call and steady rate (`timed_runs`) of the jitted f(*args) on n cars,
+    with a cleared compilation cache."""
+    import jax
+
+    jax.clear_caches()
+    t0 = time.perf_counter()
+    f.lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(f(*args))
+    first = time.perf_counter() - t0
+    res = timed_runs(lambda: jax.block_until_ready(f(*args)), n)
+    res.update(path=path, dtype=dtype, n_cars=n, first_call_s=first, compile_s=compile_s)
+    res.update(load_avg=load_average())
+    return res
 
 
 def bench_core(track, sizes, dtypes) -> list[dict]:
@@ -210,28 +223,12 @@ def bench_core(track, sizes, dtypes) -> list[dict]:
             params = jax.tree.map(jnp.asarray, cast_floats(presets[PRESET], dtype))
             for n in sizes:
                 st = jax.tree.map(jnp.asarray, cast_floats(hinted[n], dtype))
-                jax.clear_caches()
-                t0 = time.perf_counter()
-                predict_batch.lower(params, st, tr).compile()
-                compile_s = time.perf_counter() - t0
-                t0 = time.perf_counter()
-                jax.block_until_ready(predict_batch(params, st, tr))
-                first = time.perf_counter() - t0
-                res = timed_runs(
-                    lambda p=params, x=st, t=tr: jax.block_until_ready(predict_batch(p, x, t)), n
-                )
-                res.update(
-                    path="predict_batch (core, on device, hinted)",
-                    dtype=dtype,
-                    n_cars=n,
-                    first_call_s=first,
-                    compile_s=compile_s,
-                    load_avg=load_average(),
-                )
+                path = "predict_batch (core, on device, hinted)"
+                res = _time_jitted(predict_batch, (params, st, tr), n, path, dtype)
                 rows.append(res)
                 print(
                     f"  core  {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s "
-                    f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {compile_s:.2f} s)",
+                    f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {res['compile_s']:.2f} s)",
                     flush=True,
                 )
     return rows
@@ -267,7 +264,7 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
             f = jax.jit(jax.vmap(_bare_rollout))
             for n in sizes:
                 rng = np.random.default_rng(0)
-                args = [
+                args = tuple(
                     jnp.asarray(a.astype(dtype))
                     for a in (
                         rng.normal(0, 10, n),
@@ -276,23 +273,8 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
                         rng.uniform(1, 6, n),
                         rng.normal(0, 0.2, n),
                     )
-                ]
-                jax.clear_caches()
-                t0 = time.perf_counter()
-                f.lower(*args).compile()
-                compile_s = time.perf_counter() - t0
-                t0 = time.perf_counter()
-                jax.block_until_ready(f(*args))
-                first = time.perf_counter() - t0
-                res = timed_runs(lambda g=f, a=args: jax.block_until_ready(g(*a)), n)
-                res.update(
-                    path="bare kinematic bicycle (ceiling)",
-                    dtype=dtype,
-                    n_cars=n,
-                    first_call_s=first,
-                    compile_s=compile_s,
-                    load_avg=load_average(),
                 )
+                res = _time_jitted(f, args, n, "bare kinematic bicycle (ceiling)", dtype)
                 rows.append(res)
                 print(f"  bare  {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s", flush=True)
     return rows
@@ -315,30 +297,22 @@ def seed_predict_python(
     alpha=0.7,
     horizon=10,
 ):
-    """The 2019 node's prediction for one car, rule by rule (../shared/data/README.md).
-
-    waypoints: list of (x, y) tuples in file order. Each step scans them from the last row
-    backwards for the first one within the lookahead (row 0 when none is), steers by
-    2 sin(phi - yaw) / d used as an angle, blends the headings by alpha^i and moves.
+    """The 2019 node's prediction for one car, rule by rule (`fpe_jax.runner.seed_rollout`), with
+    the original's goal search: the waypoints (a list of (x, y) tuples in file order) scanned from
+    the last row backwards for the first one within the lookahead (row 0 when none is), every
+    step. (The runner buckets the waypoints instead; this is the algorithm as it was.)
     """
-    out = []
-    for i in range(horizon):
-        gx, gy = waypoints[0]
+    from fpe_jax.runner import seed_rollout
+
+    def goal(x, y):
         for k in range(len(waypoints) - 1, -1, -1):
             wx, wy = waypoints[k]
             if math.hypot(wx - x, wy - y) <= lookahead:
-                gx, gy = wx, wy
-                break
-        d = math.hypot(gx - x, gy - y)
-        steer = 2.0 * math.sin(math.atan2(gy - y, gx - x) - yaw) / d if d > 0 else 0.0
-        steer = min(max(steer, -max_steer), max_steer)
-        yaw_pp = yaw + dt * v / wheelbase * math.tan(steer)
-        w = alpha**i
-        yaw = w * yaw + (1.0 - w) * yaw_pp
-        x += v * dt * math.cos(yaw)
-        y += v * dt * math.sin(yaw)
-        out.append((x, y, yaw))
-    return out
+                return wx, wy
+        return waypoints[0]
+
+    weights = [alpha**i for i in range(horizon)]
+    return seed_rollout(goal, x, y, yaw, v, weights, dt, wheelbase, max_steer)
 
 
 def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
@@ -381,9 +355,9 @@ def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
 # with a 10 Hz detector (noise and outliers on, no dropouts); targets come from the 50 Hz truth.
 # Each fit runs in a fresh process, so its time includes compilation. Timed: targets, state
 # estimation and the solve (`fpe_jax.fit.fit_params`, the default preset as start, the default
-# fitted values). The SciPy baseline minimises the same objective ported to NumPy
-# (numpy_loss.py) with L-BFGS-B and finite-difference gradients from the same start, on the
-# 10-minute drive.
+# fitted values). The SciPy baseline minimises the same objective in NumPy (numpy_loss.py: the
+# on-car runner's model) with L-BFGS-B and finite-difference gradients from the same start, on
+# the 10-minute drive.
 
 FIT_MINUTES = (1, 10, 60)
 SCIPY_MINUTES = 10
@@ -431,20 +405,21 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         "fitted": fitted.physical(),
     }
     if with_scipy:
-        from numpy_loss import NumpyLoss, NumpyTrack
+        from numpy_loss import NumpyLoss
         from scipy.optimize import minimize
+
+        from fpe_jax.config import params_to_config
+        from fpe_jax.runner import Runner
 
         st = data.states(init)
         states = {k: np.asarray(getattr(st, k)) for k in ("x_m", "y_m", "yaw_rad", "v_mps", "s_m")}
-        groups = [(states, NumpyTrack(track), data.targets.xy_m, data.targets.mask)]
-        raw0 = {k: np.asarray(v) for k, v in vars(unconstrain(init)).items() if k != "settings"}
+        runner = Runner(params_to_config(init), res.centerline_xy_m, source="benchmark")
+        groups = [(states, runner, data.targets.xy_m, data.targets.mask)]
         free = [f for g in DEFAULT_FIT for f in FIT_GROUPS[g]]
         smoothing = getattr(fpe_fit, "WEIGHT_SMOOTHING_M2", 0.0)  # the fit's weight prior
-        loss = NumpyLoss(groups, raw0, free, init.settings, HUBER_M, RAW_RIDGE, smoothing)
-        raw_fit = {
-            k: np.asarray(v) for k, v in vars(unconstrain(fitted)).items() if k != "settings"
-        }
-        jax_solution = np.concatenate([np.ravel(raw_fit[f]) for f in loss.free])
+        loss = NumpyLoss(groups, unconstrain(init), free, HUBER_M, RAW_RIDGE, smoothing)
+        raw_fit = unconstrain(fitted)
+        jax_solution = np.concatenate([np.ravel(getattr(raw_fit, f)) for f in loss.free])
         t0 = time.perf_counter()
         sol = minimize(loss, loss.x0(), method="L-BFGS-B", options={"maxiter": 1000})
         scipy_s = time.perf_counter() - t0

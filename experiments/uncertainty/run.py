@@ -28,6 +28,7 @@ from fpe_jax import plots
 from fpe_jax.demo import LATENCY_S, fit_case, levine_case, simulated_case
 from fpe_jax.evaluate import heldout_predictions
 from fpe_jax.metrics import coverage, track_frame_residuals
+from fpe_jax.path import nearest_index
 from fpe_jax.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -59,7 +60,7 @@ def corner_panel(ax, case, held, heading, cov_m2, title: str, loc: str) -> None:
     1- and 2-sigma ellipses at the steps in ELLIPSE_STEPS and where the car really was."""
     p, _, curvature, _ = plots.bends(case.waypoints_xy_m)
     # centre: where the car is in the sharpest part of a bend half-way through the prediction
-    k_at = np.abs(curvature[plots.nearest_index(held.target_xy_m[:, 4], p)])
+    k_at = np.abs(curvature[nearest_index(held.target_xy_m[:, 4], p)])
     # the 1 s target exists (on real data some steps lack one) and the car is moving (> 0.5 m
     # in that second: the Levine car stands still at one corner)
     moved = np.linalg.norm(held.target_xy_m[:, -1] - held.origin_xy_m, axis=1)
