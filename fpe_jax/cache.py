@@ -21,6 +21,14 @@ _JAX_CACHE_WARNINGS = (
 )
 
 
+_ACTIVE: list[Path] = []  # the folder `enable` turned on in this process (none: off)
+
+
+def active_dir() -> Path | None:
+    """The folder `enable` pointed JAX at in this process, or None (the cache is off)."""
+    return _ACTIVE[-1] if _ACTIVE else None
+
+
 def root_dir() -> Path:
     """The cache's top folder (each subfolder belongs to one JAX installation and mode)."""
     if os.environ.get("FPE_CACHE_DIR"):
@@ -34,11 +42,25 @@ def disabled() -> bool:
     return os.environ.get("FPE_NO_CACHE", "").strip().lower() not in ("", "0", "false")
 
 
-def _one_line_warnings(stream=None) -> None:
-    """Show JAX's cache read/write warnings as one `fpe: warning:` line each kind, once."""
+_SHOWN: set[str] = set()  # the kinds of warning already printed in this process
+
+
+def warn(kind: str, detail: str, stream=None) -> None:
+    """One `fpe: warning:` line per kind ("unreadable", "unwritable") and process."""
+    if kind in _SHOWN:
+        return
+    _SHOWN.add(kind)
+    print(
+        f"fpe: warning: {kind} compilation cache entry in {root_dir()} ({detail[:80]}); "
+        + ("compiling instead" if kind == "unreadable" else "not stored"),
+        file=stream or sys.stderr,
+    )
+
+
+def _one_line_warnings() -> None:
+    """Show JAX's cache read/write warnings as `warn` lines."""
     if getattr(warnings.showwarning, "_fpe_cache", False):  # installed by an earlier call
         return
-    shown: set[str] = set()
     previous = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
@@ -46,14 +68,7 @@ def _one_line_warnings(stream=None) -> None:
         kind = next((k for k in _JAX_CACHE_WARNINGS if text.startswith(k)), None)
         if kind is None:
             return previous(message, category, filename, lineno, file, line)
-        if kind not in shown:
-            shown.add(kind)
-            what = "unreadable" if "reading" in kind else "unwritable"
-            print(
-                f"fpe: warning: {what} compilation cache entry in {root_dir()} "
-                f"({text.rsplit(': ', 1)[-1][:80]}); compiling instead",
-                file=stream or sys.stderr,
-            )
+        warn("unreadable" if "reading" in kind else "unwritable", text.rsplit(": ", 1)[-1])
 
     show._fpe_cache = True
     warnings.showwarning = show
@@ -84,7 +99,15 @@ def enable() -> Path | None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_raise_persistent_cache_errors", False)
     _one_line_warnings()
+    _ACTIVE.append(path)
     return path
+
+
+def disable() -> None:
+    """Turn the cache off for the rest of this process (`--no-cache` after an earlier enable)."""
+    _ACTIVE.clear()
+    if "jax" in sys.modules:
+        sys.modules["jax"].config.update("jax_enable_compilation_cache", False)
 
 
 def info() -> dict:

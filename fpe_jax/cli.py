@@ -93,9 +93,11 @@ def _start_jax(args, x64: bool = True):
 
     if x64:
         jax.config.update("jax_enable_x64", True)
-    if not getattr(args, "no_cache", False):
-        from fpe_jax import cache
+    from fpe_jax import cache
 
+    if getattr(args, "no_cache", False):
+        cache.disable()
+    else:
         cache.enable()
     return jax
 
