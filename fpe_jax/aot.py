@@ -6,7 +6,8 @@ lowers each function again, which took most of a warm command's seconds (0.3-5 s
 that shape a trace, the static (non-array) leaves and tree structure of the arguments and the
 shapes and dtypes of their arrays, and stores it (`jax.experimental.serialize_executable`) in
 the cache folder's `aot/`. Within one process every executable is made once. With the cache off
-(`--no-cache`, or `cache.enable` never called) executables are only kept in memory.
+(`--no-cache`, or `cache.enable` never called) executables are only kept in memory. JAX's own
+cache must be off while executables are stored (`cache.enable` says why).
 
 Arguments follow `equinox.filter_jit`: arrays (NumPy or JAX) and `jax.ShapeDtypeStruct`s are
 traced, every other leaf is static. `executable(f, *args)` with shapes alone compiles ahead of the
@@ -15,7 +16,6 @@ data (fit compiles its solver while the states are estimated).
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import pickle
@@ -119,8 +119,6 @@ def _load(path: Path, traced: list[int]) -> Executable | None:
 
 
 def _build(fun, leaves, treedef, traced, path: Path | None) -> Executable:
-    from jax._src import config as jax_config  # the per-thread switch of JAX's own cache
-
     out_treedef = []
 
     def flat(*traced_leaves):
@@ -139,11 +137,7 @@ def _build(fun, leaves, treedef, traced, path: Path | None) -> Executable:
     ]
     lowered = jax.jit(flat).lower(*shapes)
     t1 = time.perf_counter()
-    # an executable JAX read back from its own cache cannot be serialized again on the CPU
-    # ("Function ... not found" when the copy runs): compile this one afresh
-    off = jax_config.enable_compilation_cache(False) if path else contextlib.nullcontext()
-    with off:
-        compiled = lowered.compile()
+    compiled = lowered.compile()
     seconds = {"trace_s": t1 - t0, "compile_s": time.perf_counter() - t1}
     exe = Executable(compiled, out_treedef[0], traced, **seconds)
     if path is not None:

@@ -74,9 +74,14 @@ def _one_line_warnings() -> None:
     warnings.showwarning = show
 
 
-def enable() -> Path | None:
-    """Point JAX's persistent cache at this installation's subfolder; returns it (None: off).
+def enable(executables: bool = True) -> Path | None:
+    """Turn the cache on in this installation's subfolder; returns it (None: off).
 
+    executables=True (predict, evaluate, plot, fit, demo): `aot` stores the commands' whole
+    executables there and JAX's own cache stays off: an executable compiled in a process that
+    had read entries of JAX's cache ran elsewhere as "NOT_FOUND: Function ... fusion not found"
+    (XLA on the CPU, jax 0.10.2), so the two must not mix. False (batch, whose chunk function is
+    a plain jit): JAX's persistent cache of XLA executables.
     Call after the command has set x64 mode and before its first compilation.
     """
     if disabled():
@@ -93,13 +98,16 @@ def enable() -> Path | None:
         print(f"fpe: warning: no compilation cache ({path}: {e.strerror})", file=sys.stderr)
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_enable_compilation_cache", True)
+    jax.config.update("jax_enable_compilation_cache", not executables)
     # our executables compile in 0.05-5 s on a CPU: store every one (JAX's default keeps >= 1 s)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_raise_persistent_cache_errors", False)
     _one_line_warnings()
-    _ACTIVE.append(path)
+    if executables:
+        _ACTIVE.append(path)
+    else:
+        _ACTIVE.clear()
     return path
 
 
