@@ -22,6 +22,7 @@ _JAX_CACHE_WARNINGS = (
 
 
 _ACTIVE: list[Path] = []  # the folder `enable` turned on in this process (none: off)
+_JAX_CACHE_ON: list[Path] = []  # where JAX's own cache was turned on in this process
 
 
 def active_dir() -> Path | None:
@@ -104,10 +105,11 @@ def enable(executables: bool = True) -> Path | None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_raise_persistent_cache_errors", False)
     _one_line_warnings()
-    if executables:
-        _ACTIVE.append(path)
-    else:
+    if not executables:
+        _JAX_CACHE_ON.append(path)
         _ACTIVE.clear()
+    elif not _JAX_CACHE_ON:  # after JAX's cache, even once, executables stay in memory only
+        _ACTIVE.append(path)
     return path
 
 
