@@ -21,6 +21,15 @@ _JAX_CACHE_WARNINGS = (
 )
 
 
+_ACTIVE: list[Path] = []  # the folder `enable` turned on in this process (none: off)
+_JAX_CACHE_ON: list[Path] = []  # where JAX's own cache was turned on in this process
+
+
+def active_dir() -> Path | None:
+    """The folder `enable` pointed JAX at in this process, or None (the cache is off)."""
+    return _ACTIVE[-1] if _ACTIVE else None
+
+
 def root_dir() -> Path:
     """The cache's top folder (each subfolder belongs to one JAX installation and mode)."""
     if os.environ.get("FPE_CACHE_DIR"):
@@ -34,11 +43,25 @@ def disabled() -> bool:
     return os.environ.get("FPE_NO_CACHE", "").strip().lower() not in ("", "0", "false")
 
 
-def _one_line_warnings(stream=None) -> None:
-    """Show JAX's cache read/write warnings as one `fpe: warning:` line each kind, once."""
+_SHOWN: set[str] = set()  # the kinds of warning already printed in this process
+
+
+def warn(kind: str, detail: str, stream=None) -> None:
+    """One `fpe: warning:` line per kind ("unreadable", "unwritable") and process."""
+    if kind in _SHOWN:
+        return
+    _SHOWN.add(kind)
+    print(
+        f"fpe: warning: {kind} compilation cache entry in {root_dir()} ({detail[:80]}); "
+        + ("compiling instead" if kind == "unreadable" else "not stored"),
+        file=stream or sys.stderr,
+    )
+
+
+def _one_line_warnings() -> None:
+    """Show JAX's cache read/write warnings as `warn` lines."""
     if getattr(warnings.showwarning, "_fpe_cache", False):  # installed by an earlier call
         return
-    shown: set[str] = set()
     previous = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
@@ -46,22 +69,20 @@ def _one_line_warnings(stream=None) -> None:
         kind = next((k for k in _JAX_CACHE_WARNINGS if text.startswith(k)), None)
         if kind is None:
             return previous(message, category, filename, lineno, file, line)
-        if kind not in shown:
-            shown.add(kind)
-            what = "unreadable" if "reading" in kind else "unwritable"
-            print(
-                f"fpe: warning: {what} compilation cache entry in {root_dir()} "
-                f"({text.rsplit(': ', 1)[-1][:80]}); compiling instead",
-                file=stream or sys.stderr,
-            )
+        warn("unreadable" if "reading" in kind else "unwritable", text.rsplit(": ", 1)[-1])
 
     show._fpe_cache = True
     warnings.showwarning = show
 
 
-def enable() -> Path | None:
-    """Point JAX's persistent cache at this installation's subfolder; returns it (None: off).
+def enable(executables: bool = True) -> Path | None:
+    """Turn the cache on in this installation's subfolder; returns it (None: off).
 
+    executables=True (predict, evaluate, plot, fit, demo): `aot` stores the commands' whole
+    executables there and JAX's own cache stays off: an executable compiled in a process that
+    had read entries of JAX's cache ran elsewhere as "NOT_FOUND: Function ... fusion not found"
+    (XLA on the CPU, jax 0.10.2), so the two must not mix. False (batch, whose chunk function is
+    a plain jit): JAX's persistent cache of XLA executables.
     Call after the command has set x64 mode and before its first compilation.
     """
     if disabled():
@@ -78,13 +99,25 @@ def enable() -> Path | None:
         print(f"fpe: warning: no compilation cache ({path}: {e.strerror})", file=sys.stderr)
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_enable_compilation_cache", True)
+    jax.config.update("jax_enable_compilation_cache", not executables)
     # our executables compile in 0.05-5 s on a CPU: store every one (JAX's default keeps >= 1 s)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_raise_persistent_cache_errors", False)
     _one_line_warnings()
+    if not executables:
+        _JAX_CACHE_ON.append(path)
+        _ACTIVE.clear()
+    elif not _JAX_CACHE_ON:  # after JAX's cache, even once, executables stay in memory only
+        _ACTIVE.append(path)
     return path
+
+
+def disable() -> None:
+    """Turn the cache off for the rest of this process (`--no-cache` after an earlier enable)."""
+    _ACTIVE.clear()
+    if "jax" in sys.modules:
+        sys.modules["jax"].config.update("jax_enable_compilation_cache", False)
 
 
 def info() -> dict:

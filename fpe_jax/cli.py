@@ -116,16 +116,19 @@ def _add_run_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
-def _start_jax(args, x64: bool = True):
-    """Import JAX for a command: float64 unless told, the compilation cache unless --no-cache."""
+def _start_jax(args, x64: bool = True, executables: bool = True):
+    """Import JAX for a command: float64 unless told, the compilation cache unless --no-cache
+    (of whole executables, or with executables=False of JAX's XLA output: `cache.enable`)."""
     import jax
 
     if x64:
         jax.config.update("jax_enable_x64", True)
-    if not getattr(args, "no_cache", False):
-        from fpe_jax import cache
+    from fpe_jax import cache
 
-        cache.enable()
+    if getattr(args, "no_cache", False):
+        cache.disable()
+    else:
+        cache.enable(executables)
     return jax
 
 
@@ -803,7 +806,8 @@ def cmd_batch(args) -> int:
     spec.check_chunk(args.chunk)
     with _progress(args) as say:
         say("loading JAX")
-        _start_jax(args, x64=False)  # the predictor runs in --dtype (batch.py pins it)
+        # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
+        _start_jax(args, x64=False, executables=False)
         from fpe_jax.batch import predict_chunked, read_cars, write_poses
         from fpe_jax.drive import map_origin
         from fpe_jax.track import Track

@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fpe_jax import aot
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.history import distinct_mask, history_windows
@@ -168,7 +169,7 @@ def path_heading(track: Track, xy_m: np.ndarray, states: State) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(np.shape(xy_m)[:2])
 
 
-@jax.jit
+@aot.jit
 def _heading_chunk(track: Track, xy_m, start_xy_m, s_start_m):
     along = jax.vmap(project_rollout, in_axes=(None, 0, 0, 0))(track, xy_m, start_xy_m, s_start_m)
     return jax.vmap(jax.vmap(track.heading_at))(along)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import functools
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -20,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from fpe_jax import aot
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.evaluate import (
@@ -143,13 +143,6 @@ def _objective_jvp(primals, tangents):
     return value, sum(jnp.vdot(g, t) for g, t in pairs)
 
 
-# plain jax.jit (every argument is a pytree of arrays): it can be compiled ahead of the call from
-# shapes alone, while the states are still being estimated (see fit_params). Compiled solvers
-# are kept by argument structure, shapes and static settings (as jit's own cache would).
-_COMPILED: dict = {}
-
-
-@functools.partial(jax.jit, static_argnames=("max_steps", "solver"))
 def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: str):
     """Run the optimistix solver; returns (raw values, steps, converged, loss)."""
     # imported here, at trace time: predict, evaluate and plot use this module but not the solver,
@@ -196,8 +189,9 @@ def fit_params(
         max_steps: solver steps before giving up (default per solver, MAX_STEPS).
 
     Returns the fitted Params and solver info: solver, steps, converged, loss, seconds (all of
-    this call) and of those trace_s (tracing the solver), compile_s (XLA, on a second thread
-    while the states are estimated; both 0 when compiled by an earlier call) and solve_s.
+    this call) and of those trace_s (tracing the solver), compile_s (XLA) or load_s (its stored
+    executable, `aot`), all on a second thread while the states are estimated and all 0 when
+    an earlier call made it, and solve_s.
     """
     if init.settings.model not in MODEL_FIT:
         raise ValueError(f"fit_params: only the models {FIT_MODELS} are fitted, not presets'")
@@ -232,31 +226,19 @@ def fit_params(
     t0 = time.perf_counter()
     static = dict(max_steps=MAX_STEPS[solver] if max_steps is None else max_steps, solver=solver)
     abstract = [(shape_of(xy), d.track, xy, m) for d, (xy, m) in zip(datasets, targets)]
-    leaves, treedef = jax.tree.flatten((free, fixed, abstract, huber_m))
-    key = (treedef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves), str(static))
-    # XLA compiles the solver (seconds) on a second thread while this one estimates the states
-    # (measured against estimating them on the second thread while this one traces, and against
-    # no thread: 6.2 s vs 6.4 s and 6.7 s, medians of 6 fits of a 10-minute drive)
-    took = {"trace_s": 0.0, "compile_s": 0.0}  # stay 0 when the solver was compiled before
-
-    def compile_timed(lowered):
-        t = time.perf_counter()
-        compiled = lowered.compile()
-        took["compile_s"] = time.perf_counter() - t
-        return compiled
-
+    huber = np.float64(huber_m)
+    # the solver's executable (from memory, from disk, or traced and compiled: seconds) is made
+    # on a second thread from shapes alone while this one estimates the states
     with ThreadPoolExecutor(1) as pool:
-        if key not in _COMPILED:
-            lowered = _solve.lower(free, fixed, abstract, huber_m, **static)
-            took["trace_s"] = time.perf_counter() - t0
-            _COMPILED[key] = pool.submit(compile_timed, lowered)
+        pending = pool.submit(aot.executable, _solve, free, fixed, abstract, huber, **static)
         groups = [
             (pad_rows(d.states(init), n), d.track, *tm)
             for d, n, tm in zip(datasets, sizes, targets)
         ]
-        compiled = _COMPILED[key].result()
+        compiled = pending.result()
+    took = dict(compiled.seconds)
     t = time.perf_counter()
-    value, steps, ok, loss = jax.block_until_ready(compiled(free, fixed, groups, huber_m))
+    value, steps, ok, loss = jax.block_until_ready(compiled(free, fixed, groups, huber, **static))
     took["solve_s"] = time.perf_counter() - t
     fitted = constrain(eqx.combine(value, fixed))
     info = {

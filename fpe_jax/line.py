@@ -18,14 +18,24 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
+from fpe_jax import aot
 from fpe_jax.drive import Drive
 from fpe_jax.history import distinct_mask
+from fpe_jax.predict import bucket, pad_rows
 from fpe_jax.track import Track, arclength_along
 
 PROFILE_DS_M = 0.5  # spacing of the profile's points [m]
 PROFILE_SMOOTH_M = 1.0  # standard deviation of the smoothing kernel [m]
 MAX_GAP_S = 0.5  # samples further apart than this give no speed
 MIN_SAMPLES = 1.0  # kernel-weighted samples for full coverage
+
+
+@aot.jit
+def _project(track: Track, xy_m):
+    """Arc length s (N,) [m] of points (N, 2) [m], the centerline point (N, 2) [m] and heading
+    (N,) [rad] there."""
+    s = arclength_along(track, xy_m)
+    return s, jax.vmap(track.point_at)(s), jax.vmap(track.heading_at)(s)
 
 
 def _samples(drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -35,9 +45,10 @@ def _samples(drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray, np.nda
     else:
         keep = distinct_mask(drive.xy_m)
         t, xy = drive.t_s[keep], drive.xy_m[keep]
-    s = np.asarray(arclength_along(track, jax.numpy.asarray(xy)), dtype=np.float64)
-    centre = np.asarray(jax.vmap(track.point_at)(s))
-    heading = np.asarray(jax.vmap(track.heading_at)(s))
+    # padded to a bucketed length: a drive and both halves of it (the cross-fitted
+    # uncertainty) reuse two stored executables instead of tracing three shapes
+    n = len(xy)
+    s, centre, heading = (np.asarray(a)[:n] for a in _project(track, pad_rows(xy, bucket(n))))
     d = (xy[:, 1] - centre[:, 1]) * np.cos(heading) - (xy[:, 0] - centre[:, 0]) * np.sin(heading)
     v = np.full_like(s, np.nan)
     if len(t) >= 3:

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from fpe_jax import aot
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported for users of params
 from fpe_jax.spec import LINE_KEYS as LINE_KEYS
 from fpe_jax.spec import MIN_TAU_S as MIN_TAU_S
@@ -202,6 +203,7 @@ def _logit(p):
     return jnp.log(p) - jnp.log1p(-p)
 
 
+@aot.jit  # eagerly, nine small XLA programs: one executable instead
 def unconstrain(params: Params) -> Params:
     """Raw, unconstrained values (same pytree structure) for the fitter."""
     s = params.settings
@@ -219,6 +221,7 @@ def unconstrain(params: Params) -> Params:
     )
 
 
+@aot.jit
 def constrain(raw: Params) -> Params:
     """Physical values from raw ones: the inverse of `unconstrain`, smooth everywhere."""
     s = raw.settings

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from fpe_jax import aot
 from fpe_jax.drive import Drive
 from fpe_jax.estimate import estimate_state, estimate_track_frame
 from fpe_jax.history import history_windows
@@ -27,6 +28,13 @@ def predict(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
     return rollout(params, state, track)
 
 
+def _predict_cars(params: Params, states: State, track: Track) -> Float[Array, "... N H 3"]:
+    over_cars = jax.vmap(predict, in_axes=(None, 0, None))
+    if params.weights.ndim == 2:
+        return jax.vmap(over_cars, in_axes=(0, None, None))(params, states, track)
+    return over_cars(params, states, track)
+
+
 @eqx.filter_jit
 def predict_batch(params: Params, states: State, track: Track) -> Float[Array, "... N H 3"]:
     """Predict N cars (states with a leading axis N) -> (N, H, 3).
@@ -34,10 +42,12 @@ def predict_batch(params: Params, states: State, track: Track) -> Float[Array, "
     With P stacked parameter sets (`stack_params`; weights of shape (P, H)) -> (P, N, H, 3): every
     car under every hypothesis, in one compiled call.
     """
-    over_cars = jax.vmap(predict, in_axes=(None, 0, None))
-    if params.weights.ndim == 2:
-        return jax.vmap(over_cars, in_axes=(0, None, None))(params, states, track)
-    return over_cars(params, states, track)
+    return _predict_cars(params, states, track)
+
+
+# the commands' path: executables kept on disk (`aot`), so a warm run traces nothing; the public
+# predict_batch stays a plain jit (it also runs on sharded arrays and inside other traces)
+_predict_rows_block = aot.jit(_predict_cars)
 
 
 def stack_params(params_list: list[Params]) -> Params:
@@ -93,13 +103,13 @@ def predict_rows(params: Params, states: State, track: Track) -> np.ndarray:
     out = []
     for rows, size in row_blocks(len(states.x_m)):
         part = pad_rows(jax.tree.map(lambda x, r=rows: x[r], states), size)
-        out.append(np.asarray(predict_batch(params, part, track))[: rows.stop - rows.start])
+        out.append(np.asarray(_predict_rows_block(params, part, track))[: rows.stop - rows.start])
     if not out:
         return np.zeros((0, params.settings.horizon, 3))
     return np.concatenate(out) if len(out) > 1 else out[0]
 
 
-@eqx.filter_jit
+@aot.jit
 def _states_from_windows(windows: dict, track: Track, s_before_m=None) -> State:
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]

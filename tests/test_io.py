@@ -255,6 +255,30 @@ def test_log_roundtrip(tmp_path, container, msgtype):
         assert_series(t.truth_t_s, t.truth_xy_m, t.truth_yaw_rad, s)
 
 
+@pytest.mark.parametrize("msgtype", [PS, PWCS, ODOM])
+def test_cdr_rows_equal_the_decoders(tmp_path, msgtype):
+    """The fixed-layout reader gives the full decoder's rows for every frame id length (so every
+    string alignment), and bytes it does not understand go to the decoder."""
+    from fpe_jax.io.logs import cdr_pose_row, open_log, pose_rows
+
+    s = make_series(24)
+    events = series_events("/car/pose", msgtype, s)
+    for k, (_, _, _, msg) in enumerate(events):
+        msg["header"]["frame_id"] = "m" * (k % 9)
+        if msgtype == ODOM:
+            msg["child_frame_id"] = "c" * (k % 7)
+            msg["twist"]["covariance"] = [float(i) for i in range(36)]
+    log = open_log(write_mcap(tmp_path / "a.mcap", events))
+    fast = log.pose_rows("/car/pose", ("map", "x"))
+    slow = [r for _, t, ns, m in log.messages(["/car/pose"]) for r in pose_rows(t, m, ns, ("", ""))]
+    assert len(fast) == len(slow) == 24
+    np.testing.assert_array_equal(np.array(fast), np.array(slow))
+    raw = [cdr_pose_row(msgtype, m.data, m.log_time) for _, _, m, _ in log._mcap_messages(None)]
+    np.testing.assert_array_equal(np.array(raw), np.array(slow))  # none fell back
+    assert cdr_pose_row(msgtype, b"\x00\x00\x00\x00" + bytes(400), 0) is None  # big-endian
+    assert cdr_pose_row(msgtype, b"\x00\x01\x00\x00" + bytes(20), 0) is None  # too short
+
+
 def test_simulated_drive_roundtrip(tmp_path):
     """write_drive_mcap (the simulator's writer): pose + odom + tf; default topic choice."""
     p, o = make_series(20, seed=1), make_series(100, seed=2)

@@ -116,6 +116,51 @@ def test_cache_is_written_reused_and_survives_corrupt_entries(tmp_path, drive_di
     assert json.loads(fpe("cache", "info", "--json", env=env).stdout)["entries"] == 0
 
 
+def test_stored_executables_run_in_later_processes(tmp_path, drive_dir):
+    """Each command loads what earlier ones stored and stores what it compiled itself: every
+    later process runs them and gets the same numbers (a process that had read entries of
+    JAX's own cache once stored executables that failed elsewhere with "Function ... not
+    found")."""
+    env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
+    log = [str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
+    runs = []
+    for k in range(3):  # cold predict, then evaluate (loads predict's, compiles its own), twice
+        p = fpe(*predict_args(drive_dir, tmp_path / f"p{k}.csv"), "--quiet", env=env)
+        e = fpe("evaluate", *log, "--preset", "frenet", "--json", "--quiet", env=env)
+        assert p.returncode == 0 and e.returncode == 0, p.stderr + e.stderr
+        assert "warning" not in p.stderr + e.stderr, p.stderr + e.stderr
+        runs.append((np.loadtxt(tmp_path / f"p{k}.csv", delimiter=",", skiprows=1), e.stdout))
+    stored = list((tmp_path / "cache").rglob("aot/*.exe"))
+    assert len(stored) >= 3
+    for poses, metrics in runs[1:]:
+        np.testing.assert_array_equal(poses, runs[0][0])
+        assert metrics == runs[0][1]
+
+
+def test_executables_are_kept_by_shape_and_reloaded_from_disk(tmp_path, monkeypatch):
+    import jax.numpy as jnp
+
+    from fpe_jax import aot
+
+    monkeypatch.setattr(cache, "_ACTIVE", [tmp_path])
+
+    def scaled(x, factor):
+        return {"y": jnp.sin(x) * factor}
+
+    x = np.linspace(0.0, 1.0, 7)
+    first = aot.executable(scaled, x, 2.0)
+    assert first.seconds["compile_s"] > 0 and len(list(tmp_path.rglob("*.exe"))) == 1
+    assert aot.executable(scaled, x, 2.0).seconds["compile_s"] == 0.0  # kept in memory
+    monkeypatch.setattr(aot, "_MEMO", {})
+    again = aot.executable(scaled, x, 2.0)  # from disk: nothing traced or compiled
+    assert again.seconds["trace_s"] == again.seconds["compile_s"] == 0.0
+    assert again.seconds["load_s"] > 0
+    np.testing.assert_allclose(again(x, 2.0)["y"], np.sin(x) * 2.0, rtol=1e-14)
+    aot.executable(scaled, x, 3.0)  # a static value and a shape are part of the key
+    aot.executable(scaled, x[:5], 2.0)
+    assert len(list(tmp_path.rglob("*.exe"))) == 3
+
+
 def test_cache_dir_follows_xdg(monkeypatch, tmp_path):
     monkeypatch.delenv("FPE_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))

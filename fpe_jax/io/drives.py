@@ -32,7 +32,6 @@ from fpe_jax.io.logs import (
     Log,
     is_log_path,
     open_log,
-    pose_rows,
 )
 from fpe_jax.io.tf import TfBuffer
 
@@ -189,8 +188,7 @@ def _log_series(log: Log, topic: str, tf_pair, log_time: bool, tags: dict):
             drop_outside_tf=tags.get("drop_outside_tf", False),
         )
     else:
-        for _, msgtype, log_ns, msg in log.messages([topic]):
-            rows.extend(pose_rows(msgtype, msg, log_ns, tf_pair))
+        rows = log.pose_rows(topic, tf_pair)
     a = np.array(rows, dtype=np.float64)
     t_ns = np.array([r[1] if log_time else r[0] for r in rows], dtype=np.int64)
     cols = {"xy_m": a[:, 2:4], "quat": a[:, 4:8], "v_mps": a[:, 8]}
