@@ -18,7 +18,6 @@ from fpe_jax.config import params_to_config, write_config
 from fpe_jax.errors import InputError
 from fpe_jax.io.stream import _Skip, parse_line
 from fpe_jax.runner import GoalScan, Runner, RunnerPath, run_stream
-from fpe_jax.sim import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 TOL_M = 1e-6
