@@ -175,14 +175,15 @@ def study_cases(data_dir: str | Path, say: Callable[[str], None] = lambda msg: N
 def fit_case(
     case: Case,
     *,
-    blend: str = "position",
+    blend: str = "auto",
     fit: Sequence[str] | None = None,
-    model: str = "line",
+    model: str = "auto",
     progress: Callable[[str], None] = lambda msg: None,
 ):
     """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`.
 
-    model: "line" (the default fitted model) or "blend" (then `blend` applies)."""
+    model, blend: as `fpe_jax.fit.fit` takes them (default: `fpe fit`'s, line or blend chosen on
+    an inner validation split)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
