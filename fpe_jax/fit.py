@@ -546,8 +546,10 @@ def fit(
             waypoints), "blend" (linear / pure-pursuit blend) or "auto" (default: each
             candidate, the line model and the blend in each mode of `blend`, is fitted on the
             first 75 % of the training data, the line learned from that part only, and the one
-            with the lowest validation ADE on the rest is fitted on all of it; `info["model"]`
-            says which and why). The chosen model is fitted exactly as it is when named.
+            with the lowest validation ADE on the rest, reweighted to the final line's coverage
+            (`_expected_ade`), is fitted on all of it; `info["model"]` says which and why). The
+            line is then fitted exactly as with "line"; the blend, unless `fit` is given, at
+            the measured speed (see `_candidates`).
         blend: for the blend model: "position", "heading", or "auto" (each mode is a candidate
             on the inner split, as above).
         holdout: fraction of each drive (its end) held out, unless test_drives are given.
@@ -589,17 +591,26 @@ def fit(
         # drives: the same shapes as the final fit, so the chosen candidate's solver compiles once
         inner_val = make_datasets([p[1] for p in inner], tracks, settings, "validation")
         inner_fit = [_before(d, v.drive.t_s[0], settings.dt_s) for d, v in zip(train, inner_val)]
+        score = lambda p: evaluate(p, inner_val)["ade_m"]  # noqa: E731
+        if "line" in candidates:
+            from fpe_jax.line import learn_line
+
+            # learned from the inner fit part only: the validation part must be as new to the
+            # line as held-out data is (on Levine it lies mostly where the fit never went)
+            line = learn_line([p[0] for p in inner], tracks[0])
+            inner_line = {k: jnp.asarray(v) for k, v in line.items()}
+            p_line = candidates["line"][0]
+            final_cover = float(np.mean(np.asarray(p_line.line_coverage)))
+            covered = [_row_coverage(line["line_coverage"], d, p_line) > 0 for d in inner_val]
+            score = functools.partial(
+                _expected_ade, datasets=inner_val, covered=covered, cover=final_cover
+            )
         for label, (p0, groups) in candidates.items():
             if p0.settings.model == "line":
-                # learned from the inner fit part only: the validation part must be as new to
-                # the line as held-out data is (on Levine it lies mostly where the fit never went)
-                from fpe_jax.line import learn_line
-
-                line = learn_line([p[0] for p in inner], tracks[0])
-                p0 = dataclasses.replace(p0, **{k: jnp.asarray(v) for k, v in line.items()})
+                p0 = dataclasses.replace(p0, **inner_line)
             progress(f"choosing the model: fitting {_label(p0)} on the inner split")
             p, _ = fit_params(inner_fit, p0, fit=groups, solver=solver)
-            selection[label] = evaluate(p, inner_val)["ade_m"]
+            selection[label] = score(p)
         best = min(selection, key=selection.get)
     else:
         best = next(iter(candidates))
@@ -636,6 +647,39 @@ def baseline(name: str, settings: Settings) -> Params:
     return with_settings(presets[name], **changes)
 
 
+def _row_coverage(coverage, d: Dataset, params: Params) -> np.ndarray:
+    """(N,) a line profile's coverage at the arc length of each of d's prediction rows (the
+    states of `params`)."""
+    from fpe_jax.rollout import profile_at
+
+    s_m = d.states(params).s_m
+    at = jax.vmap(profile_at, in_axes=(None, 0, None))
+    return np.asarray(at(jnp.asarray(coverage), jnp.asarray(s_m), d.track))
+
+
+def _expected_ade(params: Params, datasets, covered, cover: float) -> float:
+    """Validation ADE [m] of params reweighted to the share of the track the final line covers.
+
+    The inner validation part lies where the inner line went less often than a new drive will
+    lie where the final line went (on a long track the last quarter of a drive is mostly new to
+    its first three quarters): ADE on the rows the inner line covers, weighted by `cover` (the
+    final line's mean coverage), plus ADE on the rest weighted by 1 - cover. Either part falls
+    back to the overall ADE when it has no rows. Every candidate is scored this way.
+    """
+    errs = [
+        errors_m(predict_targets(params, d)[..., :2], d.targets.xy_m, d.targets.mask)
+        for d in datasets
+    ]
+    err, cov = np.concatenate(errs), np.concatenate(covered)
+    overall = float(np.nanmean(err))
+
+    def part(rows):
+        e = err[rows]
+        return float(np.nanmean(e)) if np.isfinite(e).any() else overall
+
+    return cover * part(cov) + (1.0 - cover) * part(~cov)
+
+
 def _label(p0: Params) -> str:
     return f"the '{p0.settings.blend}' blend" if p0.settings.model == "blend" else "the line model"
 
@@ -647,7 +691,9 @@ def _candidates(
     groups), and the line's provenance (`waypoints_sha256`).
 
     "auto" offers the line model (unless the drives use different waypoints or `fit` names a
-    group it lacks) and the blend model in each mode of `blend`.
+    group it lacks) and the blend model in each mode of `blend`; without `fit` that blend
+    drives at the measured speed (speed_weight 1, the speed group not fitted), so neither
+    candidate has a memorised speed.
     """
     from fpe_jax.path import waypoints_sha256
 
@@ -676,9 +722,15 @@ def _candidates(
         if p0.settings.model != "blend":  # a line config lends only its car and grid
             car = {k: getattr(p0.settings, k) for k in USER_SETTINGS}
             p0 = with_settings(presets["default"], **car)
+        groups = fit or MODEL_FIT["blend"][1]
+        if model == "auto" and not fit:
+            # the default follows the measured speed: no typical speed to collapse onto (a slow
+            # fit drive must not slow every prediction down)
+            groups = tuple(g for g in groups if g != "speed")
+            p0 = dataclasses.replace(p0, speed_weight=jnp.asarray(1.0, dtype=p0.speed_weight.dtype))
         for mode in BLEND_CHOICES if blend == "auto" else (blend,):
             p = dataclasses.replace(p0, settings=dataclasses.replace(p0.settings, blend=mode))
-            out[mode] = (p, fit or MODEL_FIT["blend"][1])
+            out[mode] = (p, groups)
     return out, line_info
 
 
