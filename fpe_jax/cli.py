@@ -450,7 +450,7 @@ def cmd_evaluate(args) -> int:
         say("loading JAX")
         _start_jax(args)
         from fpe_jax.drive import local_frame
-        from fpe_jax.fit import Dataset, evaluate, make_targets
+        from fpe_jax.evaluate import Dataset, evaluate, make_targets
         from fpe_jax.track import Track
 
         say("reading the drive and waypoints")
@@ -531,7 +531,7 @@ def cmd_predict(args) -> int:
         say("loading JAX")
         _start_jax(args)
         from fpe_jax.drive import local_frame
-        from fpe_jax.fit import covariance_map, path_heading
+        from fpe_jax.evaluate import covariance_map, path_heading
         from fpe_jax.predict import predict_rows, states_from_drive
         from fpe_jax.track import Track
 

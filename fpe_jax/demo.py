@@ -124,7 +124,7 @@ def levine_case(data_dir: str | Path, *, holdout: float = 0.4) -> Case:
         holdout: fraction of the drive's duration held out at its end.
     """
     from fpe_jax import io
-    from fpe_jax.fit import split_drive
+    from fpe_jax.evaluate import split_drive
 
     lev = Path(data_dir) / "levine"
     drive = io.load_drive(lev / "actual-poses.csv", rate_hz=10.0)
@@ -326,8 +326,9 @@ def write_demo_outputs(
     """Config, ROS 2 parameters, waypoints, plots and report.md of a finished demo fit."""
     from fpe_jax import plots
     from fpe_jax.config import params_to_config, write_config
+    from fpe_jax.evaluate import heldout_predictions
     from fpe_jax.export import export_config
-    from fpe_jax.fit import heldout_predictions, provenance
+    from fpe_jax.fit import provenance
     from fpe_jax.io.writers import write_text, write_xy_csv
     from fpe_jax.params import presets
 

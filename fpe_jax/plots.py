@@ -275,7 +275,7 @@ def trajectory_figure(
     Args:
         waypoints_xy_m: (K, 2) the predictors' path [m]; drive: the drive predicted from (its
             truth or observations are drawn as the actual path).
-        held: a `fit.Heldout` with predictions for every name.
+        held: an `evaluate.Heldout` with predictions for every name.
         names: predictors to draw (keys of held.pred_xy_m).
         corner: index into held of the zoom's centre; default: where `corner_by` turns earliest
             relative to the car (see `early_turn_score`), or, without corner_by, where names[0]
@@ -442,7 +442,7 @@ def plot_drive(
         progress: called with a short message at each phase.
     """
     from fpe_jax.errors import InputError
-    from fpe_jax.fit import heldout_predictions
+    from fpe_jax.evaluate import heldout_predictions
     from fpe_jax.metrics import errors_m, summarize
     from fpe_jax.track import Track
 

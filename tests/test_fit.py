@@ -13,6 +13,7 @@ import pytest
 import yaml
 from test_export import FRESH  # the fresh-process loader script of the export tests
 
+from fpe_jax import evaluate as E
 from fpe_jax import fit as F
 from fpe_jax import io, spec
 from fpe_jax.cli import main
@@ -47,12 +48,12 @@ def test_targets_from_truth_are_interpolated_exactly():
         truth_t_s=t,
         truth_xy_m=truth_xy,
     )
-    tg = F.make_targets(drive, Settings())
+    tg = E.make_targets(drive, Settings())
     when = obs_t[tg.rows, None] + 0.1 * np.arange(1, 11)
     ok = tg.mask
     np.testing.assert_allclose(tg.xy_m[..., 0][ok], 2.0 * when[ok], atol=1e-12)
     assert not ok[-1, -1]  # beyond the end of the truth stream: masked, not invented
-    assert tg.rows[0] == F.MIN_HISTORY - 1  # needs MIN_HISTORY distinct observations first
+    assert tg.rows[0] == E.MIN_HISTORY - 1  # needs MIN_HISTORY distinct observations first
 
 
 def test_targets_from_observations_skip_repeats_and_gaps():
@@ -60,7 +61,7 @@ def test_targets_from_observations_skip_repeats_and_gaps():
     xy = np.stack([t, np.zeros_like(t)], axis=1)
     xy[20] = xy[19]  # a repeated row (no new detection): never a target
     drive = Drive(t_s=t, xy_m=xy, yaw_rad=np.full(40, np.nan))
-    tg = F.make_targets(drive, Settings())
+    tg = E.make_targets(drive, Settings())
     k = np.flatnonzero(tg.rows == 10)[0]
     assert not tg.mask[k, 9]  # the target at t = 2.0 s is the repeated row 20
     np.testing.assert_allclose(tg.xy_m[k, 8], [1.9, 0.0], atol=1e-12)
@@ -158,7 +159,7 @@ def test_auto_model_chooses_on_the_inner_split_and_fits_the_choice_as_named(
 def test_fit_subset_keeps_the_rest_fixed(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
-    data = F.make_datasets([fit_d.drive], [track], init.settings, "training")
+    data = E.make_datasets([fit_d.drive], [track], init.settings, "training")
     p, info = F.fit_params(data, init, fit=("delay",), max_steps=30)
     assert float(p.lookahead_m) == pytest.approx(float(init.lookahead_m), abs=1e-9)
     np.testing.assert_allclose(np.asarray(p.weights), np.asarray(init.weights), atol=1e-9)
@@ -170,7 +171,7 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
     """BFGS on the scalar loss and LM on the residuals: one objective, one minimum."""
     fit_d, _, track = oval_drives
     init = presets["default"]
-    data = F.make_datasets([fit_d.drive.slice_time(0, 30)], [track], init.settings, "training")
+    data = E.make_datasets([fit_d.drive.slice_time(0, 30)], [track], init.settings, "training")
     fits = {s: F.fit_params(data, init, fit=("delay", "speed"), solver=s) for s in F.SOLVERS}
     (p_bfgs, i_bfgs), (p_lm, i_lm) = fits["bfgs"], fits["lm"]
     assert i_bfgs["converged"] and i_lm["converged"]
@@ -192,9 +193,9 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
 def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
-    (d,) = F.make_datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
+    (d,) = E.make_datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
     cut = 15.0
-    inner = F._before(d, cut, init.settings.dt_s)
+    inner = E.targets_before(d, cut, init.settings.dt_s)
     assert inner.targets.mask.shape == d.targets.mask.shape  # same shapes as the final fit
     due = d.drive.t_s[d.targets.rows, None] + 0.1 * np.arange(1, 11)[None, :]
     assert not np.any(inner.targets.mask & (due >= cut - 0.05))  # nothing from after the cut
@@ -207,13 +208,13 @@ def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     assert 0.0 < info["solve_s"] <= info["seconds"]
     assert float(a.delay_s) != float(b.delay_s)  # and the masks did make a difference
     with pytest.raises(InputError, match="inner split"):
-        F._before(d, 0.0, init.settings.dt_s)
+        E.targets_before(d, 0.0, init.settings.dt_s)
 
 
 def test_residual_gradient_matches_finite_differences(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
-    data = F.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
+    data = E.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
     raw = F.unconstrain(init)
     groups = [(data.states(init), track, jnp.asarray(data.targets.xy_m), data.targets.mask)]
 
@@ -235,7 +236,7 @@ def test_bfgs_objective_derivative_equals_autodiff_of_the_loss(oval_drives):
     equal plain autodiff of `_loss`."""
     fit_d, _, track = oval_drives
     init = presets["default"]
-    data = F.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
+    data = E.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
     raw = F.unconstrain(init)
     free, fixed = eqx.partition(raw, F._free_mask(raw, F.DEFAULT_FIT))
     xy, mask = jnp.asarray(data.targets.xy_m), jnp.asarray(data.targets.mask)

@@ -11,7 +11,7 @@ import pytest
 
 from fpe_jax import sim
 from fpe_jax.cli import main
-from fpe_jax.fit import _heading_chunk, path_heading
+from fpe_jax.evaluate import _heading_chunk, path_heading
 from fpe_jax.params import presets, with_settings
 from fpe_jax.rollout import State
 from fpe_jax.track import Track

@@ -136,7 +136,8 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     try:
         import equinox as eqx
         from fpe_jax import sim
-        from fpe_jax.fit import DEFAULT_FIT, HUBER_M, Dataset, _free_mask, _residuals, make_targets
+        from fpe_jax.evaluate import Dataset, make_targets
+        from fpe_jax.fit import DEFAULT_FIT, HUBER_M, _free_mask, _residuals
         from fpe_jax.params import unconstrain
     except ImportError as e:
         report["fit_skipped"] = str(e)

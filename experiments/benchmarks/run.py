@@ -403,15 +403,8 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         cache.enable()
     import fpe_jax.fit as fpe_fit
     from fpe_jax import sim
-    from fpe_jax.fit import (
-        DEFAULT_FIT,
-        FIT_GROUPS,
-        HUBER_M,
-        RAW_RIDGE,
-        Dataset,
-        fit_params,
-        make_targets,
-    )
+    from fpe_jax.evaluate import Dataset, make_targets
+    from fpe_jax.fit import DEFAULT_FIT, FIT_GROUPS, HUBER_M, RAW_RIDGE, fit_params
     from fpe_jax.params import presets, unconstrain
     from fpe_jax.track import Track
 

@@ -22,12 +22,8 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from fpe_jax.demo import simulated_case, study_cases  # noqa: E402
-from fpe_jax.fit import (  # noqa: E402
-    SOLVERS,
-    evaluate,
-    fit_params,
-    make_datasets,
-)
+from fpe_jax.evaluate import evaluate, make_datasets  # noqa: E402
+from fpe_jax.fit import SOLVERS, fit_params  # noqa: E402
 from fpe_jax.params import presets  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]

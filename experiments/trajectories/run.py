@@ -25,7 +25,7 @@ import numpy as np
 
 from fpe_jax import plots
 from fpe_jax.demo import LATENCY_S, fit_case, levine_case, simulated_case
-from fpe_jax.fit import heldout_predictions
+from fpe_jax.evaluate import heldout_predictions
 from fpe_jax.params import presets
 from fpe_jax.progress import Progress
 
