@@ -124,8 +124,8 @@ def test_line_model_fits_no_speed_and_rejects_blend_values(oval_drives):
 def test_auto_model_chooses_on_the_inner_split_and_fits_the_choice_as_named(
     oval_drives, monkeypatch
 ):
-    """--model auto: the line (learned from the inner fit part only) and the blend (at the
-    measured speed) are scored on the last quarter of the training data; the lower validation
+    """--model auto: the line (learned from the inner fit part only) and the blend are
+    scored on the last quarter of the training data; the lower validation
     ADE wins, and the line model is then fitted exactly as `--model line` fits it."""
     import fpe_jax.line
 
