@@ -162,9 +162,9 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--model",
         choices=FIT_MODELS,
-        help="auto (default): line or blend, whichever predicts an inner validation split of the "
-        "training data better; line: the car's own line and speed profile, learned from the "
-        "drives; blend: linear / pure-pursuit blend",
+        help="line (default): the car's own line and speed profile, learned from the drives; "
+        "blend: linear / pure-pursuit blend; auto: line or blend, whichever predicts an inner "
+        "validation split of the training data better",
     )
     p.add_argument(
         "--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: the model's own values)"
@@ -406,7 +406,7 @@ def cmd_fit(args) -> int:
             [d for d, _, _ in drives],
             tracks,
             fit=fit_names or opts["fit"] or None,
-            model=opts["model"] or "auto",
+            model=opts["model"] or "line",
             blend=opts["blend"],
             holdout=opts["holdout"],
             test_drives=[d for d, _, _ in tests] or None,

@@ -175,15 +175,14 @@ def study_cases(data_dir: str | Path, say: Callable[[str], None] = lambda msg: N
 def fit_case(
     case: Case,
     *,
-    blend: str = "auto",
+    blend: str = "position",
     fit: Sequence[str] | None = None,
-    model: str = "auto",
+    model: str = "line",
     progress: Callable[[str], None] = lambda msg: None,
 ):
     """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`.
 
-    model, blend: as `fpe_jax.fit.fit` takes them (default: `fpe fit`'s, line or blend chosen on
-    an inner validation split)."""
+    model, blend: as `fpe_jax.fit.fit` takes them (default: the line model)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -56,7 +56,10 @@ MODEL_FIT = {
     "line": (("delay", "tau", "smoothing"), ("delay", "tau", "smoothing")),
 }
 FIT_MODELS = ("auto", *MODEL_FIT)  # spec.FIT_MODELS, which the CLI offers without JAX
-DEFAULT_MODEL = "auto"
+# "auto" chose the blend on a slow oval fit drive and missed the fast test laps (FDE 1.61 m
+# against 0.37 m, tests/test_speed_shift.py): the line model, which has no memorised speed,
+# stays the default
+DEFAULT_MODEL = "line"
 PARAM_FIELDS = (
     "lookahead_m",
     "lookahead_gain_s",
@@ -303,7 +306,7 @@ def fit(
         fit: which values to fit (names of FIT_GROUPS; default: the model's, MODEL_FIT).
         model: "line" (the opponent's line and speed profile, learned from the training
             drives, `fpe_jax.line`; every training and test drive must share one set of
-            waypoints), "blend" (linear / pure-pursuit blend) or "auto" (default: each
+            waypoints; the default), "blend" (linear / pure-pursuit blend) or "auto" (each
             candidate, the line model and the blend in each mode of `blend`, is fitted on the
             first 75 % of the training data, the line learned from that part only, and the one
             with the lowest validation ADE on the rest, reweighted to the final line's coverage

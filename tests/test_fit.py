@@ -294,12 +294,13 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
     log, wp = str(tmp_path / "sim" / "drive.mcap"), str(tmp_path / "sim" / "waypoints.csv")
     out = tmp_path / "cfg.json"
     args = ["fit", log, "--waypoints", wp, "--out", str(out), "--blend", "position"]
+    args += ["--model", "auto"]
     assert main(args) == 0
     text = capsys.readouterr().out
     assert "held-out" in text and "| fitted |" in text and "seed-measured-speed" in text
     cfg = read_config(out)
     assert cfg["provenance"]["topics"]["pose"] == "/opp/pose"
-    chosen = cfg["provenance"]["model_selection"]  # the default, --model auto, says what it chose
+    chosen = cfg["provenance"]["model_selection"]  # --model auto says what it chose
     assert chosen["requested"] == "auto" and chosen["chosen"] == cfg["settings"]["model"]
     assert set(chosen["validation_ade_m"]) == {"line", "position"}
     assert "chosen by --model auto" in text
@@ -371,7 +372,7 @@ def test_cli_fit_names_match_the_fit_groups():
 
     assert set(FIT_NAMES) == set(F.FIT_GROUPS)
     assert SOLVERS == F.SOLVERS and SOLVERS[0] == F.DEFAULT_SOLVER
-    assert set(spec.FIT_MODELS) == set(F.FIT_MODELS) and F.DEFAULT_MODEL == "auto"
+    assert set(spec.FIT_MODELS) == set(F.FIT_MODELS) and F.DEFAULT_MODEL in F.FIT_MODELS
 
 
 def test_cli_fit_rejects_unknown_fit_names(tmp_path, capsys):
@@ -397,9 +398,9 @@ def test_levine_fit_beats_seed_and_constant_velocity(shared_data):
 
     drive = io.load_drive(shared_data / "levine" / "actual-poses.csv", rate_hz=10)
     wp = io.load_waypoints(shared_data / "levine" / "levine-waypoints.csv").xy_m
-    res = F.fit([drive], [Track.from_waypoints(wp)], holdout=0.4, blend="position")
+    res = F.fit([drive], [Track.from_waypoints(wp)], holdout=0.4, blend="position", model="auto")
     rep = res.report
-    # the default (--model auto) beats every preset at every step (issue 13)
+    # --model auto beats every preset at every step (issue 13)
     from fpe_jax.demo import presets_beating_fitted
 
     assert presets_beating_fitted(rep) == [], res.info["model"]

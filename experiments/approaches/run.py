@@ -86,7 +86,9 @@ def main() -> None:
         todo = cases(say)
         for i, case in enumerate(todo):
             say(f"[{i + 1}/{len(todo)}] {case.name}: fitting the line model")
-            res = fit_case(case, progress=lambda m, n=case.name: say(f"{n}: {m}"))
+            res = fit_case(
+                case, model="auto", blend="auto", progress=lambda m, n=case.name: say(f"{n}: {m}")
+            )
             results.append((case, res))
         say("writing the results")
         RESULTS.mkdir(parents=True, exist_ok=True)

@@ -123,7 +123,9 @@ def main() -> None:
             cases.append((simulated_case(track, latency_s=LATENCY_S), "position"))
         for case, blend in cases:
             say(f"{case.name}: fitting")
-            r = fit_case(case, blend=blend, progress=lambda m, n=case.name: say(f"{n}: {m}"))
+            r = fit_case(
+                case, model="auto", blend=blend, progress=lambda m, n=case.name: say(f"{n}: {m}")
+            )
             say(f"{case.name}: per-step coverage")
             track = case.track()
             held = heldout_predictions(case.test_drive, track, {"fitted": r.params})
