@@ -196,7 +196,8 @@ def _build_parser() -> argparse.ArgumentParser:
         "--model",
         choices=FIT_MODELS,
         help="line (default): the car's own line and speed profile, learned from the drives; "
-        "blend: linear / pure-pursuit blend",
+        "blend: linear / pure-pursuit blend; auto: line or blend, whichever predicts an inner "
+        "validation split of the training data better",
     )
     p.add_argument(
         "--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: the model's own values)"

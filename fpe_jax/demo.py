@@ -182,7 +182,7 @@ def fit_case(
 ):
     """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`.
 
-    model: "line" (the default fitted model) or "blend" (then `blend` applies)."""
+    model, blend: as `fpe_jax.fit.fit` takes them (default: the line model)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)

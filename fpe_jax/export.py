@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from fpe_jax.config import read_config, write_config
+from fpe_jax.config import check_waypoints, read_config, write_config
 from fpe_jax.errors import InputError
 from fpe_jax.io.writers import check_output_paths, write_bytes
 
@@ -405,14 +405,15 @@ def export_config(
             "--waypoints FILE",
         )
     # everything that can fail on input is checked before anything is written
+    xy = None
+    if waypoints is not None:  # a line config runs only on the waypoints it was learned on
+        xy = load_waypoints_xy(waypoints)
+        check_waypoints(cfg, config_path, xy, waypoints)
     text = None
     if fmt in ("ros2", "all"):
         wp_name = None if waypoints is None else str(waypoints)
         source = Path(config_path).name
         text = to_ros2_yaml(cfg, node=node, waypoint_file=wp_name, source=source)
-    xy = None
-    if fmt in ("stablehlo", "all"):
-        xy = load_waypoints_xy(waypoints)
     out = Path(out)
     if fmt == "all":
         if out.exists() and not out.is_dir():

@@ -3,7 +3,7 @@
 out = "levine.json"            # relative to the recipe's folder, and inside it (or absolute)
 waypoints = "../../shared/data/levine/levine-waypoints.csv"
 holdout = 0.4                  # or [[test_drives]] for separate held-out drives
-model = "line"                 # or "blend" (then also fit = [...] and blend = "auto")
+model = "auto"                 # (default) line or blend by inner validation; or "line", "blend"
 solver = "bfgs"                # or "lm"
 
 [settings]                     # the car and the prediction grid (default: F1TENTH, 10 x 0.1 s)

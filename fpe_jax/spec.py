@@ -58,7 +58,9 @@ DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")
 SOLVERS = ("bfgs", "lm")  # optimistix BFGS on the robust loss (default), LM on the residuals
 DEFAULT_SOLVER = SOLVERS[0]
 FIT_BLENDS = ("auto", *BLEND_MODES)
-FIT_MODELS = ("line", "blend")  # the models `fpe fit --model` fits (fpe_jax.fit.MODEL_FIT)
+# the models `fpe fit --model` fits (fpe_jax.fit.MODEL_FIT); "auto": line or blend, whichever
+# predicts the training data's inner validation split better
+FIT_MODELS = ("auto", "line", "blend")
 # Settings a user may change on a predictor (flags --wheelbase, --max-steer, --dt, --horizon and
 # a recipe's [settings] table): the car and the prediction grid, never the model's form.
 USER_SETTINGS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")

@@ -304,3 +304,24 @@ def test_line_model_exports_its_profile_to_every_format(case, tmp_path):
     # without the track-frame inputs: the position, speed and course stand in
     plain = f(*(np.asarray(getattr(states, n)) for n in ("x_m", "y_m", "yaw_rad", "v_mps")))
     assert plain.shape == want.shape and np.all(np.isfinite(plain))
+
+
+@pytest.mark.parametrize("fmt", ["stablehlo", "ros2", "all"])
+def test_export_refuses_a_line_config_on_other_waypoints(case, tmp_path, fmt, capsys):
+    """Like predict and run: the line was learned on other waypoints -> one line naming both
+    files, exit 2, nothing written."""
+    from fpe_jax.line import learn_line
+    from fpe_jax.path import waypoints_sha256
+
+    wp = np.loadtxt(case["tmp"] / "wp.csv", delimiter=",")
+    params = Params.create(Settings(model="line"), **learn_line([case["drive"]], case["track"]))
+    cfg = params_to_config(params, line={"waypoints_sha256": waypoints_sha256(wp)})
+    write_config(tmp_path / "line.json", cfg)
+    other = tmp_path / "other.csv"
+    np.savetxt(other, wp * 1.01, delimiter=",")
+    out = tmp_path / "out"
+    argv = ["export", str(tmp_path / "line.json"), "--format", fmt, "--out", str(out)]
+    assert main([*argv, "--waypoints", str(other)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "other.csv" in err and "line.json" in err
+    assert not out.exists()

@@ -5,7 +5,8 @@ Approach 1 (displacement) = the `constant-velocity` preset, 2 = `linear`, 3 = `p
 4 = `seed` (the 0.7 blend exactly as the 2019 node ran it, speed hard-coded to 1 m/s) and
 `seed-measured-speed` (the same rules with the measured speed); `ctrv` and `frenet` (along-track
 speed held, lateral offset decaying to the centerline) are extra baselines. The fitted predictor
-is `fpe fit`'s default, the line model (the car's own line and speed profile).
+is `fpe fit`'s default (`--model auto`: the line model, the car's own line and speed profile, or
+the blend, whichever predicts an inner validation split of the fit drive better).
 
 - Levine: fit on the first 60 % of the lap, report on the last 40 % (targets are the trace itself).
 - Simulated: a 60 s fit drive and a separate 40 s test drive (other seed) per track, detection
@@ -37,6 +38,7 @@ from fpe_jax.demo import (
     presets_beating_fitted,
     study_cases,
 )
+from fpe_jax.fit import format_fitted
 from fpe_jax.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -84,7 +86,9 @@ def main() -> None:
         todo = cases(say)
         for i, case in enumerate(todo):
             say(f"[{i + 1}/{len(todo)}] {case.name}: fitting the line model")
-            res = fit_case(case, progress=lambda m, n=case.name: say(f"{n}: {m}"))
+            res = fit_case(
+                case, model="auto", blend="auto", progress=lambda m, n=case.name: say(f"{n}: {m}")
+            )
             results.append((case, res))
         say("writing the results")
         RESULTS.mkdir(parents=True, exist_ok=True)
@@ -106,6 +110,13 @@ def main() -> None:
     print(f"wrote {md} and {png}")
 
 
+def _choice(model: dict) -> str:
+    """The chosen model and the inner validation ADEs it was chosen by."""
+    ade = model["validation_ade_m"]
+    blend = min((v for k, v in ade.items() if k != "line"), default=float("nan"))
+    return f"{model['chosen']} ({ade.get('line', float('nan')):.3f} / {blend:.3f})"
+
+
 def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) -> str:
     lines = [
         "# Thesis approaches 1-4 vs the fitted predictor",
@@ -119,8 +130,10 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
         "hard-coded to 1 m/s) and `seed-measured-speed` (same rules, measured speed); `ctrv` "
         "(constant turn rate and velocity) and `frenet` (along-track speed held, lateral offset "
         "decaying to the centerline) are extra baselines. The fitted predictor is `fpe fit`'s "
-        "default line model: the car's own line and speed profile learned from the fit drive, "
-        "a Frenet rollout on it. Errors are on data the fit did "
+        "default, `--model auto`: the line model (the car's own line and speed profile learned "
+        "from the fit drive, a Frenet rollout on it) or the linear / pure-pursuit blend, "
+        "whichever predicts the last quarter of the fit drive better when fitted on the rest "
+        "(the line learned from the rest only). Errors are on data the fit did "
         "not see. Simulated drives: a "
         f"{STUDY_FIT_S:g} s fit drive (seed {STUDY_FIT_SEED}) and a separate {STUDY_TEST_S:g} s "
         f"test drive (seed {STUDY_TEST_SEED}) per track, detection latency {LATENCY_S} s, "
@@ -142,8 +155,8 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
         "",
         "| case | fitted ADE m | fitted FDE m | frenet FDE m | seed FDE m | "
         "seed-measured-speed FDE m | ratio | ratio <= 0.5 | blend FDE m | vs blend | beaten at "
-        "| fitted delay s (true) | predictions |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| fitted delay s (true) | model (line / blend validation ADE m) | predictions |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for case, r in results:
         rep = r.report
@@ -161,7 +174,8 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
             f"{rep['seed']['fde_m']:.3f} | {rep['seed-measured-speed']['fde_m']:.3f} | "
             f"{ratio:.2f} | {half} | {vs} | "
             f"{', '.join(beaten) if beaten else 'none'} | "
-            f"{r.params.physical()['delay_s']:.3f} ({true}) | {rep['fitted']['n_predictions']} |"
+            f"{r.params.physical()['delay_s']:.3f} ({true}) | {_choice(r.info['model'])} | "
+            f"{rep['fitted']['n_predictions']} |"
         )
     sims = [(c, r) for c, r in results if c.latency_s is not None]
     n_08 = sum(r.report["fitted"]["fde_m"] <= 0.8 * BLEND_FDE_M[c.name] for c, r in sims)
@@ -178,15 +192,11 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
         "",
     ]
     for case, r in results:
-        p = r.params.physical()
-        cov = sum(c > 0 for c in p["line_coverage"]) / len(p["line_coverage"])
+        fitted = format_fitted(r).replace("\n", "; ")
         lines += [
             f"## {case.name}",
             "",
-            f"{case.description}. Fitted (line model, {r.info['steps']} solver steps): delay "
-            f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
-            f"{p['speed_tau_s']:.3f} s; line of {len(p['line_offset_m'])} points, {cov:.0%} "
-            "covered by the fit drive.",
+            f"{case.description}. {fitted}.",
             "",
             "Mean error [m] per horizon step (best per column in bold):",
             "",

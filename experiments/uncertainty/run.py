@@ -8,7 +8,8 @@ point (as the fit measures residuals). Ideal coverage for a 2-D Gaussian: 39.3 %
 
 Cases: the real Levine lap (fit first 60 %, test last 40 %), and simulated hairpin and oval drives
 (60 s fit drive, separate 40 s test drive, latency 0.3 s); the fitted model is `fpe fit`'s
-default, the line model (its covariance from cross-fitted residuals).
+default (`--model auto`: the line model, its covariance from cross-fitted residuals, or the
+blend, from in-sample ones).
 
 Run:  .venv/bin/python experiments/uncertainty/run.py   (about 1.5 minutes on the 2-core machine)
 Writes experiments/results/uncertainty.md and experiments/results/uncertainty.png.
@@ -122,8 +123,10 @@ def main() -> None:
         for track in ("hairpin", "oval"):
             cases.append((simulated_case(track, latency_s=LATENCY_S), "position"))
         for case, blend in cases:
-            say(f"{case.name}: fitting the line model")
-            r = fit_case(case, blend=blend, progress=lambda m, n=case.name: say(f"{n}: {m}"))
+            say(f"{case.name}: fitting")
+            r = fit_case(
+                case, model="auto", blend=blend, progress=lambda m, n=case.name: say(f"{n}: {m}")
+            )
             say(f"{case.name}: per-step coverage")
             track = case.track()
             held = heldout_predictions(case.test_drive, track, {"fitted": r.params})
@@ -176,9 +179,10 @@ def markdown(runs, seconds: float) -> str:
         "Regenerate: `.venv/bin/python experiments/uncertainty/run.py` (this run: "
         f"{seconds / 60:.1f} min).",
         "",
-        "Fitted model: `fpe fit`'s default line model. The covariance is fitted per step on "
-        "the training part (for the line model from cross-fitted residuals: each half of the "
-        "fit drive predicted with the line learned on the other half), in the track frame "
+        "Fitted model: `fpe fit`'s default (`--model auto`; the chosen model is named in the "
+        "coverage table). The covariance is fitted per step on the training part (for the line "
+        "model from cross-fitted residuals: each fifth of the fit drive, contiguous in time, "
+        "predicted with the line learned on the rest), in the track frame "
         "(along-track, cross-track), and drawn rotated by the path heading at each predicted "
         "point. Coverage: the fraction of held-out targets inside the ellipse (ideal for a 2-D "
         "Gaussian: 39.3 % at 1 sigma, 86.5 % at 2 sigma). Levine: fit first 60 %, test last "
@@ -189,13 +193,14 @@ def markdown(runs, seconds: float) -> str:
         "",
         "## Coverage on held-out data (all steps)",
         "",
-        "| case | 1-sigma coverage | 2-sigma coverage | held-out predictions |",
-        "|---|---|---|---|",
+        "| case | model | 1-sigma coverage | 2-sigma coverage | held-out predictions |",
+        "|---|---|---|---|---|",
     ]
     for case, r, *_ in runs:
         m = r.report["fitted"]
         lines.append(
-            f"| {case.name} | {m['coverage_1sigma']:.1%} | {m['coverage_2sigma']:.1%} | "
+            f"| {case.name} | {r.params.settings.model} | {m['coverage_1sigma']:.1%} | "
+            f"{m['coverage_2sigma']:.1%} | "
             f"{m['n_predictions']} |"
         )
     lines += ["", "## Per step", ""]
