@@ -1,12 +1,18 @@
 """Strict JAX settings for every test: float64, no implicit rank or dtype promotion."""
 
 import os
+import signal
 import tempfile
 from pathlib import Path
 
 # the compilation cache of the tests and of the commands they start is a temporary folder: never
 # the user's, and each session starts cold (subprocesses inherit the environment)
 os.environ["FPE_CACHE_DIR"] = tempfile.mkdtemp(prefix="fpe-test-cache-")
+
+# a suite started in the background (`make test &`, nohup) inherits SIGINT ignored, and so would
+# every command it starts: the Ctrl-C tests need the interactive default, in here and in children
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
