@@ -98,24 +98,20 @@ def estimate_state(
     )
 
 
-def estimate_track_frame(
-    t_s: Float[Array, " W"],
+def track_frame_window(
     xy_m: Float[Array, "W 2"],
     valid: Bool[Array, " W"],
     s_hint_m: Float[Array, ""],
     track,
-) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
-    """Arc length s [m], along-track speed ds/dt [m/s], lateral offset d [m] (left positive)
-    at the newest stamp of one window, by Theil-Sen lines in the track frame, and the speed's
-    age [s] (the median observation's age: a slope describes the window's middle).
+) -> tuple[Float[Array, " W"], Float[Array, " W"]]:
+    """Arc length s [m] and lateral offset d [m] (left positive) of each observation of one
+    window (invalid slots: their newer neighbour's arc length, any d).
 
     Each observation is projected onto the path, newest first, each from its newer neighbour's
-    arc length (`Track.project_local`: consecutive observations are close). s and d at the
-    newest stamp are the medians of the observations moved along their Theil-Sen slopes: noise
-    along the line of sight averages out over the window, and unlike a straight line in the map
-    frame the path's curvature adds no bias. The frenet and line rollouts start from these.
+    arc length (`Track.project_local`: consecutive observations are close), so s is continuous
+    over the window (across the seam of a loop too). Both track-frame estimators read these.
     """
-    w = t_s.shape[0]
+    w = xy_m.shape[0]
 
     def back(s_next, k):
         s = track.project_local(xy_m[k], s_next, iters=3)
@@ -129,6 +125,41 @@ def estimate_track_frame(
     d = (xy_m[:, 1] - centre[:, 1]) * jnp.cos(heading) - (xy_m[:, 0] - centre[:, 0]) * jnp.sin(
         heading
     )
+    return s, d
+
+
+def estimate_track_frame(
+    t_s: Float[Array, " W"],
+    xy_m: Float[Array, "W 2"],
+    valid: Bool[Array, " W"],
+    s_hint_m: Float[Array, ""],
+    track,
+) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
+    """Arc length s [m], along-track speed ds/dt [m/s], lateral offset d [m] (left positive)
+    at the newest stamp of one window, by Theil-Sen lines in the track frame, and the speed's
+    age [s] (the median observation's age: a slope describes the window's middle).
+
+    The observations in the track frame come from `track_frame_window`. s and d at the newest
+    stamp are the medians of the observations moved along their Theil-Sen slopes: noise along
+    the line of sight averages out over the window, and unlike a straight line in the map frame
+    the path's curvature adds no bias. The frenet and line rollouts start from these (with the
+    "theil-sen" estimator).
+    """
+    s, d = track_frame_window(xy_m, valid, s_hint_m, track)
+    s_now, sdot, d_now, _, age = track_frame_lines(t_s, s, d, valid)
+    return s_now, sdot, d_now, age
+
+
+def track_frame_lines(
+    t_s: Float[Array, " W"],
+    s_m: Float[Array, " W"],
+    d_m: Float[Array, " W"],
+    valid: Bool[Array, " W"],
+) -> tuple[Float[Array, ""], ...]:
+    """Theil-Sen lines through a window in the track frame: s [m], ds/dt [m/s], d [m],
+    dd/dt [m/s] at the newest stamp, and the median observation's age [s]."""
+    w = t_s.shape[0]
+    s, d = s_m, d_m
     i, j = np.triu_indices(w, 1)
     dt = t_s[j] - t_s[i]
     pair_ok = valid[i] & valid[j] & (dt >= MIN_PAIR_DT_S)
@@ -139,4 +170,4 @@ def estimate_track_frame(
     s_now = s[-1] + _masked_median(s + sdot * ahead - s[-1], valid)
     d_now = _masked_median(d + ddot * ahead, valid)
     age = _masked_median(ahead, valid)
-    return s_now, sdot, d_now, age
+    return s_now, sdot, d_now, ddot, age

@@ -24,7 +24,7 @@ from fpe_jax.errors import InputError
 from fpe_jax.history import distinct_mask, history_windows
 from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
 from fpe_jax.params import Params, Settings
-from fpe_jax.predict import pad_rows, predict_rows, row_blocks, states_from_drive
+from fpe_jax.predict import pad_rows, predict_rows, row_blocks, states_from_drive, uses_filter
 from fpe_jax.state import State
 from fpe_jax.track import Track, project_rollout
 
@@ -86,12 +86,15 @@ class Dataset:
     def states(self, params: Params) -> State:
         """The model's states at the target rows (the seed model uses raw rows).
 
-        Cached: states depend only on the estimator window and on whether the model is the
-        seed's, and a fit asks for them once per solve, for the uncertainty and per preset.
+        Cached: states depend only on the estimator window, on whether the model is the
+        seed's and on whether it uses the Kalman filter (whose windows they then carry), and a
+        fit asks for them once per solve, for the uncertainty and per preset.
         """
-        key = (params.settings.history, params.settings.model == "seed")
+        kalman = uses_filter(params.settings)
+        key = (params.settings.history, params.settings.model == "seed", kalman)
         if key not in self._states:
-            all_states = states_from_drive(params, self.drive, self.track)
+            # the filter's windows kept: `predict` filters them under the params at hand
+            all_states = states_from_drive(params, self.drive, self.track, keep_window=kalman)
             self._states[key] = jax.tree.map(lambda x: x[self.targets.rows], all_states)
         return self._states[key]
 

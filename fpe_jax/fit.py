@@ -42,7 +42,7 @@ from fpe_jax.params import (
     unconstrain,
     with_settings,
 )
-from fpe_jax.predict import bucket, pad_rows, predict
+from fpe_jax.predict import WINDOW_FIELDS, bucket, pad_rows, predict, uses_filter
 from fpe_jax.spec import BLEND_MODES
 from fpe_jax.spec import DEFAULT_FIT as DEFAULT_FIT
 from fpe_jax.spec import DEFAULT_SOLVER as DEFAULT_SOLVER
@@ -54,7 +54,7 @@ from fpe_jax.track import Track
 # the groups each fitted model reads, and its default: the line model has no memorised speed
 MODEL_FIT = {
     "blend": (("lookahead", "lookahead_m", "gain", "weights", "delay", "speed"), DEFAULT_FIT),
-    "line": (("delay", "tau", "smoothing"), ("delay", "tau", "smoothing")),
+    "line": (("delay", "tau", "smoothing", "filter"), ("delay", "tau", "filter")),
 }
 FIT_MODELS = ("auto", *MODEL_FIT)  # spec.FIT_MODELS, which the CLI offers without JAX
 # "auto" chose the blend on a slow oval fit drive and missed the fast test laps (FDE 1.61 m
@@ -71,6 +71,10 @@ PARAM_FIELDS = (
     "offset_tau_s",
     "speed_tau_s",
     "position_smoothing",
+    "filter_accel_mps2",
+    "filter_lat_accel_mps2",
+    "filter_obs_m",
+    "filter_gate_sigma",
     "line_offset_m",
     "line_speed_mps",
     "line_coverage",
@@ -225,9 +229,16 @@ def fit_params(
         for d, n in zip(datasets, sizes)
     ]
 
-    def shape_of(xy):  # every State field is (N,) in the default float dtype
+    kalman = uses_filter(init.settings)
+
+    def shape_of(xy):  # every State field is (N,) in the default float dtype, a window (N, W)
         leaf = jax.ShapeDtypeStruct(xy.shape[:1], xy.dtype)
-        return State(**{f.name: leaf for f in dataclasses.fields(State)})
+        fields = {f.name: leaf for f in dataclasses.fields(State)}
+        for f in WINDOW_FIELDS:
+            width = 4 if f == "window_prior" else init.settings.history
+            window = jax.ShapeDtypeStruct((xy.shape[0], width), xy.dtype)
+            fields[f] = window if kalman else None
+        return State(**fields)
 
     t0 = time.perf_counter()
     static = dict(max_steps=MAX_STEPS[solver] if max_steps is None else max_steps, solver=solver)
@@ -490,7 +501,7 @@ def _line_init(drives: Sequence[Drive], tracks: Sequence[Track], car: Settings) 
         )
     profile = learn_line(drives, tracks[0])
     init = Params.create(
-        Settings(model="line", **{k: getattr(car, k) for k in USER_SETTINGS}),
+        Settings(model="line", estimator="kalman", **{k: getattr(car, k) for k in USER_SETTINGS}),
         weights=1.0,
         delay_s=0.1,
         offset_tau_s=1.0,
@@ -534,8 +545,14 @@ def format_fitted(result: FitResult) -> str:
         return choice + (
             f"fitted (line model, {info['steps']} {info['solver']} steps): delay "
             f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
-            f"{p['speed_tau_s']:.3f} s, position smoothing {p['position_smoothing']:.2f}\n"
-            f"line: {len(p['line_offset_m'])} points, {covered:.0%} "
+            f"{p['speed_tau_s']:.3f} s, "
+            + (
+                f"filter noise {p['filter_accel_mps2']:.2f} / {p['filter_lat_accel_mps2']:.2f} "
+                f"m/s^2, {p['filter_obs_m']:.3f} m, gate {p['filter_gate_sigma']:.2f} sigma\n"
+                if result.params.settings.estimator == "kalman"
+                else f"position smoothing {p['position_smoothing']:.2f}\n"
+            )
+            + f"line: {len(p['line_offset_m'])} points, {covered:.0%} "
             f"covered, offset rms {np.sqrt(np.mean(np.square(p['line_offset_m']))):.3f} m"
         )
     return choice + (

@@ -4,8 +4,9 @@ Params holds physical values users read (`lookahead_m`, `weights`, ...). The fit
 unconstrained raw values: `unconstrain(params)` and `constrain(raw)` map between the two, so
 every fitted value stays in its valid range without clipping (lookahead >= min_lookahead_m,
 gain >= 0, weights and speed_weight in [0, 1], delay >= 0, speed_mps >= 0, time constants
->= MIN_TAU_S). The learned line's profile arrays are never fitted by the solver (they are learned
-from the fit drives first, `fpe_jax.line`) and pass through both maps unchanged.
+>= MIN_TAU_S, the filter's noise values >= MIN_FILTER_NOISE and its gate >= MIN_GATE_SIGMA).
+The learned line's profile arrays are never fitted by the solver (they are learned from the fit
+drives first, `fpe_jax.line`) and pass through both maps unchanged.
 """
 
 from __future__ import annotations
@@ -21,11 +22,18 @@ from jaxtyping import Array, Float
 
 from fpe_jax import aot
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported for users of params
+from fpe_jax.spec import (
+    DEFAULT_ESTIMATOR,
+    FILTER_DEFAULTS,
+    MIN_FILTER_NOISE,
+    MIN_GATE_SIGMA,
+    check_settings,
+)
+from fpe_jax.spec import ESTIMATORS as ESTIMATORS
 from fpe_jax.spec import LINE_KEYS as LINE_KEYS
 from fpe_jax.spec import MIN_TAU_S as MIN_TAU_S
 from fpe_jax.spec import MODELS as MODELS
 from fpe_jax.spec import USER_SETTINGS as USER_SETTINGS
-from fpe_jax.spec import check_settings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +54,9 @@ class Settings:
             opponent's learned line with its speed profile; the fitted default).
         min_lookahead_m: lower bound of the lookahead distance [m].
         history: number of distinct recent observations the state estimator uses.
+        estimator: the frenet and line models' track-frame state: "kalman" (a Kalman filter
+            over the history window, `fpe_jax.kalman`; its noise values are fitted) or
+            "theil-sen" (robust lines through the window, `estimate_track_frame`).
     """
 
     dt_s: float = 0.1
@@ -56,6 +67,7 @@ class Settings:
     model: str = "blend"
     min_lookahead_m: float = 0.3
     history: int = 10
+    estimator: str = DEFAULT_ESTIMATOR
 
     def __post_init__(self):
         # the rules of fpe_jax.spec (an InputError, i.e. a ValueError, naming the field)
@@ -78,9 +90,18 @@ class Params(eqx.Module):
             from the car's current offset to the line (the centerline for "frenet").
         speed_tau_s: () line model: time constant [s] with which the speed profile's shape
             v(s') / v(s_now) is blended into the car's current along-track speed.
-        position_smoothing: () frenet / line models, in [0, 1]: where the rollout starts along
-            and across the track: 0 = the newest observation's projection, 1 = the track-frame
-            Theil-Sen estimate at the newest stamp (`estimate_track_frame`), linear between.
+        position_smoothing: () frenet / line models with the Theil-Sen estimator, in [0, 1]:
+            where the rollout starts along and across the track: 0 = the newest observation's
+            projection, 1 = the track-frame Theil-Sen estimate at the newest stamp
+            (`estimate_track_frame`), linear between. (The Kalman filter's estimate is used as
+            it is: the filter weighs the newest observation by its own noise values.)
+        filter_accel_mps2: () Kalman estimator: along-track acceleration noise [m/s^2] (the
+            rms acceleration, constant over each interval between observations).
+        filter_lat_accel_mps2: () Kalman estimator: lateral acceleration noise [m/s^2].
+        filter_obs_m: () Kalman estimator: observation noise [m] (one sigma, along and across).
+        filter_gate_sigma: () Kalman estimator: innovation gate [sigma] (>= 1): an observation
+            farther than this (Mahalanobis distance) from the prediction has its gain faded
+            out smoothly (an outlier does not move the state).
         line_offset_m: (P,) line model: the learned line's lateral offset from the centerline
             [m] on P points spread evenly over the track's arc length (left positive); (0,)
             for every other model.
@@ -99,6 +120,10 @@ class Params(eqx.Module):
     offset_tau_s: Float[Array, ""]
     speed_tau_s: Float[Array, ""]
     position_smoothing: Float[Array, ""]
+    filter_accel_mps2: Float[Array, ""]
+    filter_lat_accel_mps2: Float[Array, ""]
+    filter_obs_m: Float[Array, ""]
+    filter_gate_sigma: Float[Array, ""]
     line_offset_m: Float[Array, " P"]
     line_speed_mps: Float[Array, " P"]
     line_coverage: Float[Array, " P"]
@@ -118,6 +143,10 @@ class Params(eqx.Module):
         offset_tau_s=1.0,
         speed_tau_s=0.5,
         position_smoothing=0.0,
+        filter_accel_mps2=FILTER_DEFAULTS["filter_accel_mps2"],
+        filter_lat_accel_mps2=FILTER_DEFAULTS["filter_lat_accel_mps2"],
+        filter_obs_m=FILTER_DEFAULTS["filter_obs_m"],
+        filter_gate_sigma=FILTER_DEFAULTS["filter_gate_sigma"],
         line_offset_m=(),
         line_speed_mps=(),
         line_coverage=(),
@@ -141,6 +170,10 @@ class Params(eqx.Module):
             offset_tau_s=jnp.asarray(offset_tau_s, dtype=float),
             speed_tau_s=jnp.asarray(speed_tau_s, dtype=float),
             position_smoothing=jnp.asarray(position_smoothing, dtype=float),
+            filter_accel_mps2=jnp.asarray(filter_accel_mps2, dtype=float),
+            filter_lat_accel_mps2=jnp.asarray(filter_lat_accel_mps2, dtype=float),
+            filter_obs_m=jnp.asarray(filter_obs_m, dtype=float),
+            filter_gate_sigma=jnp.asarray(filter_gate_sigma, dtype=float),
             line_offset_m=line[0],
             line_speed_mps=line[1],
             line_coverage=line[2],
@@ -160,6 +193,10 @@ class Params(eqx.Module):
             "offset_tau_s": float(self.offset_tau_s),
             "speed_tau_s": float(self.speed_tau_s),
             "position_smoothing": float(self.position_smoothing),
+            "filter_accel_mps2": float(self.filter_accel_mps2),
+            "filter_lat_accel_mps2": float(self.filter_lat_accel_mps2),
+            "filter_obs_m": float(self.filter_obs_m),
+            "filter_gate_sigma": float(self.filter_gate_sigma),
         }
         if self.settings.model == "line":
             for key in LINE_KEYS:
@@ -218,6 +255,10 @@ def unconstrain(params: Params) -> Params:
         offset_tau_s=_inv_softplus(params.offset_tau_s - MIN_TAU_S),
         speed_tau_s=_inv_softplus(params.speed_tau_s - MIN_TAU_S),
         position_smoothing=_logit(params.position_smoothing),
+        filter_accel_mps2=_inv_softplus(params.filter_accel_mps2 - MIN_FILTER_NOISE),
+        filter_lat_accel_mps2=_inv_softplus(params.filter_lat_accel_mps2 - MIN_FILTER_NOISE),
+        filter_obs_m=_inv_softplus(params.filter_obs_m - MIN_FILTER_NOISE),
+        filter_gate_sigma=_inv_softplus(params.filter_gate_sigma - MIN_GATE_SIGMA),
     )
 
 
@@ -236,6 +277,10 @@ def constrain(raw: Params) -> Params:
         offset_tau_s=MIN_TAU_S + jax.nn.softplus(raw.offset_tau_s),
         speed_tau_s=MIN_TAU_S + jax.nn.softplus(raw.speed_tau_s),
         position_smoothing=jax.nn.sigmoid(raw.position_smoothing),
+        filter_accel_mps2=MIN_FILTER_NOISE + jax.nn.softplus(raw.filter_accel_mps2),
+        filter_lat_accel_mps2=MIN_FILTER_NOISE + jax.nn.softplus(raw.filter_lat_accel_mps2),
+        filter_obs_m=MIN_FILTER_NOISE + jax.nn.softplus(raw.filter_obs_m),
+        filter_gate_sigma=MIN_GATE_SIGMA + jax.nn.softplus(raw.filter_gate_sigma),
     )
 
 
@@ -255,7 +300,9 @@ _PRESET_BUILDERS = {
     "pure-pursuit": lambda: Params.create(Settings(), lookahead_m=2.0, weights=0.0),
     "constant-velocity": lambda: Params.create(Settings(model="cv"), weights=1.0),
     "ctrv": lambda: Params.create(Settings(model="ctrv"), weights=1.0),
-    "frenet": lambda: Params.create(Settings(model="frenet"), weights=1.0, offset_tau_s=1.0),
+    "frenet": lambda: Params.create(
+        Settings(model="frenet", estimator="kalman"), weights=1.0, offset_tau_s=1.0
+    ),
     "default": lambda: Params.create(
         Settings(),
         lookahead_m=1.0,

@@ -12,9 +12,15 @@ from jaxtyping import Array, Float
 
 from fpe_jax import aot
 from fpe_jax.drive import Drive
-from fpe_jax.estimate import estimate_state, estimate_track_frame
+from fpe_jax.estimate import (
+    estimate_state,
+    estimate_track_frame,
+    track_frame_lines,
+    track_frame_window,
+)
 from fpe_jax.history import history_windows
-from fpe_jax.params import Params
+from fpe_jax.kalman import kalman_params, kalman_window
+from fpe_jax.params import Params, Settings
 from fpe_jax.rollout import State, rollout
 from fpe_jax.track import Track, arclength_along
 
@@ -23,9 +29,47 @@ from fpe_jax.track import Track, arclength_along
 PREDICT_CHUNK = 1 << 15
 
 
+WINDOW_FIELDS = ("window_age_s", "window_s_m", "window_d_m", "window_valid", "window_prior")
+
+
+def uses_filter(settings: Settings) -> bool:
+    """Whether a model's rollout starts from the track-frame Kalman filter."""
+    return settings.estimator == "kalman" and settings.model in ("frenet", "line")
+
+
+def filtered(params: Params, state: State, track: Track) -> State:
+    """One car's state with its track-frame estimate from the Kalman filter over the state's
+    window (`fpe_jax.kalman`) under params' noise values: s_fit_m, sdot_mps, offset_m at the
+    newest stamp, sdot_age_s 0. Unchanged where the model does not use the filter or the state
+    carries no window."""
+    if not uses_filter(params.settings) or state.window_s_m is None:
+        return state
+    return _filter_state(kalman_params(params), state, track)
+
+
+def _filter_state(values: tuple, state: State, track: Track) -> State:
+    mean, _ = kalman_window(
+        state.window_age_s,
+        state.window_s_m,
+        state.window_d_m,
+        state.window_valid > 0.5,
+        state.window_prior,
+        *values,
+        length_m=track.length_m if track.closed else None,
+    )
+    return dataclasses.replace(
+        state,
+        s_fit_m=mean[0],
+        sdot_mps=mean[1],
+        offset_m=mean[2],
+        sdot_age_s=jnp.zeros_like(mean[0]),
+    )
+
+
 def predict(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
-    """Poses (H, 3) x [m], y [m], yaw [rad] at t + h * dt_s, h = 1..H, for one car."""
-    return rollout(params, state, track)
+    """Poses (H, 3) x [m], y [m], yaw [rad] at t + h * dt_s, h = 1..H, for one car (its
+    window filtered first, `filtered`)."""
+    return rollout(params, filtered(params, state, track), track)
 
 
 def _predict_cars(params: Params, states: State, track: Track) -> Float[Array, "... N H 3"]:
@@ -110,32 +154,62 @@ def predict_rows(params: Params, states: State, track: Track) -> np.ndarray:
 
 
 @aot.jit
-def _states_from_windows(windows: dict, track: Track, s_before_m=None) -> State:
+def _states_from_windows(
+    windows: dict, track: Track, s_before_m, filter_values: tuple | None, keep_window: bool
+) -> State:
+    """States of a block of windows; filter_values: the Kalman estimator's (`kalman_params`),
+    None for the Theil-Sen one (only the filter's values are arguments: every other model
+    shares one executable)."""
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
     )
     p = jnp.stack([states.x_m, states.y_m], axis=1)
     s_m = arclength_along(track, p, s_before_m)
-    s_fit, sdot, offset, age = jax.vmap(estimate_track_frame, in_axes=(0, 0, 0, 0, None))(
-        windows["t_s"], windows["xy_m"], windows["valid"], s_m, track
+    states = dataclasses.replace(states, s_m=s_m)
+    if filter_values is None:
+        s_fit, sdot, offset, age = jax.vmap(estimate_track_frame, in_axes=(0, 0, 0, 0, None))(
+            windows["t_s"], windows["xy_m"], windows["valid"], s_m, track
+        )
+        return dataclasses.replace(
+            states, s_fit_m=s_fit, sdot_mps=sdot, offset_m=offset, sdot_age_s=age
+        )
+    s_win, d_win = jax.vmap(track_frame_window, in_axes=(0, 0, 0, None))(
+        windows["xy_m"], windows["valid"], s_m, track
     )
-    return dataclasses.replace(
-        states, s_m=s_m, s_fit_m=s_fit, sdot_mps=sdot, offset_m=offset, sdot_age_s=age
+    s_ts, sdot_ts, d_ts, ddot_ts, _ = jax.vmap(track_frame_lines)(
+        windows["t_s"], s_win, d_win, windows["valid"]
     )
+    window = dict(
+        window_age_s=windows["t_s"][:, -1:] - windows["t_s"],
+        window_s_m=s_win,
+        window_d_m=d_win,
+        window_valid=windows["valid"].astype(s_win.dtype),
+        window_prior=jnp.stack([s_ts, sdot_ts, d_ts, ddot_ts], axis=1),
+    )
+    states = jax.vmap(_filter_state, in_axes=(None, 0, None))(
+        filter_values, dataclasses.replace(states, **window), track
+    )
+    return states if keep_window else dataclasses.replace(states, **dict.fromkeys(window))
 
 
-def states_from_drive(params: Params, drive: Drive, track: Track) -> State:
+def states_from_drive(
+    params: Params, drive: Drive, track: Track, *, keep_window: bool = False
+) -> State:
     """The state at every observation of a drive (numpy leaves, leading axis N).
 
     For the seed model the original's rules apply: the current row is used alone (position and
-    observed yaw as recorded; the direction of motion stands in when the log has no yaw).
+    observed yaw as recorded; the direction of motion stands in when the log has no yaw). With
+    the Kalman estimator the track-frame estimate is the filter's under params' noise values;
+    keep_window: the states also carry their windows (`State.window_s_m`, ...), so that
+    `predict` filters them again under other values (the fit's).
     """
     # in blocks of PREDICT_CHUNK rows, each block's projection window continuing from the last
     # arc length of the one before: memory stays O(block) for a log of any length
     parts, s_before = [], None
+    values = kalman_params(params) if uses_filter(params.settings) else None
     for rows, size in list(row_blocks(len(drive.t_s))) or [(slice(0, 0), bucket(0))]:
         windows = history_windows(drive, params.settings.history, rows)
-        part = _states_from_windows(pad_rows(windows, size), track, s_before)
+        part = _states_from_windows(pad_rows(windows, size), track, s_before, values, keep_window)
         part = jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], part)
         s_before = np.asarray(part.s_m[-1]) if len(part.s_m) else None
         parts.append(part)

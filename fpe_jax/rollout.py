@@ -248,9 +248,10 @@ FALLBACK_TAU_S = 1.0
 def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
     """Frenet rollout: along-track speed and a lateral offset that decays toward the line.
 
-    s0, d0 = the car's arc length and signed offset from the path (left positive), between the
-    newest observation's projection and the track-frame estimate (`position_smoothing`); its
-    along-track speed v0 is the track-frame estimate's (without one: v cos(course - heading)).
+    s0, d0 = the car's arc length and signed offset from the path (left positive): the Kalman
+    filter's estimate ("kalman" estimator), or between the newest observation's projection and
+    the Theil-Sen estimate (`position_smoothing`); its along-track speed v0 is the track-frame
+    estimate's (without one: v cos(course - heading)).
     Without a line profile ("frenet") the speed is held and the offset decays to 0:
     d(t) = d0 exp(-t / offset_tau_s). With one ("line") the offset decays toward the learned
     line l(s): d(t) = l(s(t)) + (d0 - l(s0)) exp(-t / offset_tau_s), and the speed follows the
@@ -269,7 +270,10 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     age = jnp.zeros_like(v0)
     if state.s_fit_m is not None:  # the track-frame estimate; NaN (an export's input): absent
         ok = jnp.isfinite(state.s_fit_m)
-        w = jnp.where(ok, params.position_smoothing, 0.0)
+        # the filter's estimate as it is (it weighs the newest observation by its noise
+        # values, and its speed is at the newest stamp: age 0); Theil-Sen's blended
+        kalman = params.settings.estimator == "kalman"
+        w = jnp.where(ok, 1.0 if kalman else params.position_smoothing, 0.0)
         fit_s = jnp.where(ok, state.s_fit_m, s0)
         fit_d = jnp.where(ok, state.offset_m, d0)
         s0, d0 = s0 + w * (fit_s - s0), d0 + w * (fit_d - d0)

@@ -5,6 +5,8 @@ Cars (Jetson-class computers) often have no JAX, so this module re-implements, i
 
 - the distinct-observation history window and robust state estimate of `fpe_jax.estimate`
   (repeated rows skipped, Theil-Sen medians, outlier replacement of the newest position);
+- the track-frame estimators of the frenet and line models: Theil-Sen lines or the Kalman
+  filter of `fpe_jax.kalman`, step for step;
 - the windowed track projection of `fpe_jax.track.arclength_along` (global on the first call);
 - every model of `fpe_jax.rollout`: the position and heading blends, linear, pure pursuit, the
   seed's discrete rules, constant velocity and CTRV, with the fractional delay step.
@@ -36,8 +38,8 @@ from fpe_jax.errors import InputError
 from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
 from fpe_jax.path import build_path
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported: the runner's modes
+from fpe_jax.spec import FILTER_DEFAULTS, FILTER_KEYS, check_config
 from fpe_jax.spec import MODELS as MODELS
-from fpe_jax.spec import check_config
 
 # The same constants as fpe_jax.estimate, fpe_jax.params and fpe_jax.track (which import JAX, so
 # they cannot be imported here); tests/test_runner.py checks that they agree.
@@ -48,6 +50,10 @@ TRACK_FRAME_ITERS = 3  # fpe_jax.estimate.estimate_track_frame's project_local i
 MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.rollout's
 MAX_SPEED_RATIO = 3.0
 FALLBACK_TAU_S = 1.0
+INIT_POS_SIGMA_M = 0.3  # fpe_jax.kalman's
+INIT_SPEED_SIGMA_MPS = 2.0
+INIT_LAT_RATE_SIGMA_MPS = 0.5
+GATE_SHARPNESS = 4.0
 
 _PI = math.pi
 _TWO_PI = 2 * math.pi
@@ -257,6 +263,8 @@ class Runner:
         self.dt_s: float = float(st["dt_s"])
         self.model: str = st["model"]
         self.blend: str = st["blend"]
+        # the frenet and line models' track-frame estimator (fpe_jax.kalman or Theil-Sen)
+        self._kalman = st["estimator"] == "kalman" and self.model in ("frenet", "line")
         self._wheelbase_m = float(st["wheelbase_m"])
         self._max_steer_rad = float(st["max_steer_rad"])
         self.path = RunnerPath(waypoints_xy_m, source="waypoints")
@@ -274,6 +282,7 @@ class Runner:
         self._offset_tau_s = float(p.get("offset_tau_s", 1.0))
         self._speed_tau_s = float(p.get("speed_tau_s", 0.5))
         self._smoothing = float(p.get("position_smoothing", 0.0))
+        self._filter = tuple(float(p.get(k, FILTER_DEFAULTS[k])) for k in FILTER_KEYS)
         self._line = [[float(v) for v in p[k]] for k in LINE_KEYS] if self.model == "line" else None
         if self.model == "seed":
             self._goal_scan = GoalScan(self.path.raw_xy_m, self._lookahead_m)
@@ -445,7 +454,35 @@ class Runner:
         ahead = [t_new - o[0] for o in obs]
         s_now = ss[-1] + _median([sk + sdot * a - ss[-1] for sk, a in zip(ss, ahead)])
         d_now = _median([dk + ddot * a for dk, a in zip(ds, ahead)])
-        return s_now, sdot, d_now, _median(ahead)
+        if not self._kalman:
+            return s_now, sdot, d_now, _median(ahead)
+        s_k, sdot_k, d_k = self._kalman_window(ahead, ss, ds, (s_now, sdot, d_now, ddot))
+        return s_k, sdot_k, d_k, 0.0
+
+    def _kalman_window(self, ages, ss, ds, prior) -> tuple[float, float, float]:
+        """(s, ds/dt, d) [m, m/s, m] at the newest stamp: fpe_jax.kalman.kalman_window over the
+        valid observations (ages [s], arc lengths ss [m], offsets ds [m], oldest first) from
+        the Theil-Sen prior (s, ds/dt, d, dd/dt)."""
+        accel, lat_accel, obs, gate = self._filter
+        q_s, q_d, r2 = accel * accel, lat_accel * lat_accel, obs * obs
+        p0 = r2 + INIT_POS_SIGMA_M**2
+        age0 = max(ages)  # the oldest observation's
+        sx = [prior[0] - prior[1] * age0, prior[1], p0, 0.0, INIT_SPEED_SIGMA_MPS**2]
+        dx = [prior[2] - prior[3] * age0, prior[3], p0, 0.0, INIT_LAT_RATE_SIGMA_MPS**2]
+        length = self.path.length_m if self.path.closed else None
+        age_prev = age0
+        for age, zs, zd in zip(ages, ss, ds):
+            dt = age_prev - age
+            age_prev = age
+            sx, dx = _kf_predict(sx, dt, q_s), _kf_predict(dx, dt, q_d)
+            nu_s, nu_d = zs - sx[0], zd - dx[0]
+            if length is not None:
+                nu_s = (nu_s + 0.5 * length) % length - 0.5 * length
+            ss_inn, sd_inn = sx[2] + r2, dx[2] + r2
+            m = math.sqrt(nu_s * nu_s / ss_inn + nu_d * nu_d / sd_inn + 1e-12)
+            w = _sigmoid(GATE_SHARPNESS * (gate - m))
+            sx, dx = _kf_update(sx, nu_s, ss_inn, w), _kf_update(dx, nu_d, sd_inn, w)
+        return sx[0], sx[1], dx[0]
 
     # ---- rollouts (fpe_jax.rollout), each -> (H, 3) ----------------------------------------------
 
@@ -477,7 +514,7 @@ class Runner:
         cx, cy = path.point_at(s0)
         h = path.heading_at(s0)
         d0 = (est[1] - cy) * math.cos(h) - (est[0] - cx) * math.sin(h)
-        w = self._smoothing
+        w = 1.0 if self._kalman else self._smoothing
         s0, d0 = s0 + w * (s_fit - s0), d0 + w * (d_fit - d0)
         t, s_all, d_all = 0.0, [], []
         l0, tau = 0.0, self._offset_tau_s
@@ -595,6 +632,34 @@ class Runner:
         """The original node's discrete rules (fpe_jax.rollout.rollout_seed)."""
         st = (self.dt_s, self._wheelbase_m, self._max_steer_rad)
         return np.array(seed_rollout(self._goal_scan.goal, x, y, yaw, v, self._weights, *st))
+
+
+def _kf_predict(x: list[float], dt: float, q: float) -> list[float]:
+    """fpe_jax.kalman._predict: [position, rate, a, b, c] one constant-velocity step on."""
+    p, r, a, b, c = x
+    dt2 = dt * dt
+    return [
+        p + r * dt,
+        r,
+        a + 2.0 * b * dt + c * dt2 + 0.25 * q * dt2 * dt2,
+        b + c * dt + 0.5 * q * dt2 * dt,
+        c + q * dt2,
+    ]
+
+
+def _kf_update(x: list[float], nu: float, s_inn: float, w: float) -> list[float]:
+    """fpe_jax.kalman._update: the gate-weighted measurement update of one axis."""
+    p, r, a, b, c = x
+    kp, kr = w * a / s_inn, w * b / s_inn
+    return [p + kp * nu, r + kr * nu, a - kp * a, b - kp * b, c - kr * b]
+
+
+def _sigmoid(x: float) -> float:
+    """1 / (1 + exp(-x)) without overflow for large |x|."""
+    if x >= 0.0:
+        return 1.0 / (1.0 + math.exp(-x))
+    e = math.exp(x)
+    return e / (1.0 + e)
 
 
 def seed_rollout(goal, x_m, y_m, yaw_rad, v_mps, weights, dt_s, wheelbase_m, max_steer_rad):

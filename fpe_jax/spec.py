@@ -24,6 +24,21 @@ SCHEMA_VERSION = 1
 BLEND_MODES = ("position", "heading")
 MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
 MIN_TAU_S = 0.01  # time constants stay above this: exp(-t / tau) must not underflow to 0/0
+# the track-frame state estimators of the frenet and line models: a Kalman filter over the
+# history window (`fpe_jax.kalman`) or Theil-Sen lines (`fpe_jax.estimate.estimate_track_frame`)
+ESTIMATORS = ("kalman", "theil-sen")
+DEFAULT_ESTIMATOR = "theil-sen"  # what a config without settings.estimator was fitted with
+# the filter's noise values stay above these (positive by reparametrisation); a gate below one
+# sigma would reject most good observations
+MIN_FILTER_NOISE = 1e-3
+MIN_GATE_SIGMA = 1.0
+# the Kalman estimator's values before fitting, and for configs written without them
+FILTER_DEFAULTS = {
+    "filter_accel_mps2": 3.0,
+    "filter_lat_accel_mps2": 1.0,
+    "filter_obs_m": 0.15,
+    "filter_gate_sigma": 4.0,
+}
 
 # Declared limits on sizes, checked before the work starts (each beyond is one line, exit 2).
 # The estimator keeps 1 s of observations (100 at 100 Hz) and compares every pair: 1000 took
@@ -52,6 +67,7 @@ FIT_GROUPS = {
     "speed": ("speed_weight", "speed_mps"),
     "tau": ("offset_tau_s", "speed_tau_s"),
     "smoothing": ("position_smoothing",),
+    "filter": ("filter_accel_mps2", "filter_lat_accel_mps2", "filter_obs_m", "filter_gate_sigma"),
 }
 FIT_NAMES = tuple(FIT_GROUPS)
 DEFAULT_FIT = ("lookahead", "weights", "delay", "speed")
@@ -127,6 +143,10 @@ PARAM_RULES = (
     Rule("offset_tau_s", lo=MIN_TAU_S, hi=1000.0, unit="s", optional=True),
     Rule("speed_tau_s", lo=MIN_TAU_S, hi=1000.0, unit="s", optional=True),
     Rule("position_smoothing", lo=0.0, hi=1.0, optional=True),
+    Rule("filter_accel_mps2", lo=MIN_FILTER_NOISE, hi=1000.0, unit="m/s^2", optional=True),
+    Rule("filter_lat_accel_mps2", lo=MIN_FILTER_NOISE, hi=1000.0, unit="m/s^2", optional=True),
+    Rule("filter_obs_m", lo=MIN_FILTER_NOISE, hi=100.0, unit="m", optional=True),
+    Rule("filter_gate_sigma", lo=MIN_GATE_SIGMA, hi=1000.0, optional=True),
 )
 # the line model's profile along the track (`fpe_jax.line`), P values each; required for it
 LINE_RULES = (
@@ -144,11 +164,14 @@ SETTING_RULES = (
     Rule("model", "choice", choices=MODELS),
     Rule("min_lookahead_m", lo=0.0, hi=1000.0, unit="m"),
     Rule("history", "int", lo=2, hi=MAX_HISTORY),
+    Rule("estimator", "choice", choices=ESTIMATORS, optional=True),
 )
 PARAM_KEYS = tuple(r.key for r in PARAM_RULES if not r.optional)
+FILTER_KEYS = FIT_GROUPS["filter"]
 OPTIONAL_PARAM_KEYS = tuple(r.key for r in PARAM_RULES if r.optional)
 LINE_KEYS = tuple(r.key for r in LINE_RULES)
 SETTING_KEYS = tuple(r.key for r in SETTING_RULES)
+SETTING_DEFAULTS = {"estimator": DEFAULT_ESTIMATOR}  # the optional settings' values when absent
 SECTIONS = {"params": PARAM_RULES, "settings": SETTING_RULES}
 
 
@@ -284,6 +307,8 @@ def check_config(cfg: Any, source) -> dict:
         if not (isinstance(line, dict) and isinstance(line.get("waypoints_sha256"), str)):
             what = "model 'line' without line.waypoints_sha256"
             raise InputError(source, what, "a config written by `fpe fit`")
+    for key, value in SETTING_DEFAULTS.items():  # configs written before the key
+        cfg["settings"].setdefault(key, value)
     cfg.setdefault("uncertainty", None)
     _check_uncertainty(cfg["uncertainty"], cfg["settings"]["horizon"], source)
     cfg.setdefault("provenance", {})

@@ -22,6 +22,13 @@ class State(eqx.Module):
             length [m], along-track speed [m/s] and lateral offset [m] at the newest stamp,
             and sdot_age_s, how old the speed is [s] (the window's middle); None: the frenet
             and line rollouts take them from x, y, v and the course.
+        window_age_s, window_s_m, window_d_m, window_valid: (W,) the history window in the
+            track frame, oldest first, for the Kalman estimator to filter with the params at
+            hand (`fpe_jax.predict.filtered`; a fit changes the filter's values): each slot's
+            age before the newest observation [s], arc length [m], lateral offset [m] and 1.0
+            where it holds an observation (0.0 where not); window_prior (4,): the window's
+            Theil-Sen s [m], ds/dt [m/s], d [m], dd/dt [m/s] at the newest stamp (the filter's
+            start). None: the track-frame estimate above is used as it is.
     """
 
     x_m: Float[Array, ""]
@@ -35,6 +42,11 @@ class State(eqx.Module):
     sdot_mps: Float[Array, ""] | None = None
     offset_m: Float[Array, ""] | None = None
     sdot_age_s: Float[Array, ""] | None = None
+    window_age_s: Float[Array, " W"] | None = None
+    window_s_m: Float[Array, " W"] | None = None
+    window_d_m: Float[Array, " W"] | None = None
+    window_valid: Float[Array, " W"] | None = None
+    window_prior: Float[Array, " 4"] | None = None
 
     def __post_init__(self):
         # omitted fields: no turn, moving along the body heading

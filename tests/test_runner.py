@@ -82,8 +82,13 @@ def test_mirrored_constants_match_the_jax_modules():
     assert runner.MIN_PROFILE_SPEED_MPS == rollout.MIN_PROFILE_SPEED_MPS
     assert runner.MAX_SPEED_RATIO == rollout.MAX_SPEED_RATIO
     assert runner.FALLBACK_TAU_S == rollout.FALLBACK_TAU_S
-    src = inspect.getsource(__import__("fpe_jax.estimate").estimate.estimate_track_frame)
+    src = inspect.getsource(__import__("fpe_jax.estimate").estimate.track_frame_window)
     assert f"iters={runner.TRACK_FRAME_ITERS}" in src
+    from fpe_jax import kalman
+
+    for name in ("INIT_POS_SIGMA_M", "INIT_SPEED_SIGMA_MPS", "INIT_LAT_RATE_SIGMA_MPS"):
+        assert getattr(runner, name) == getattr(kalman, name)
+    assert runner.GATE_SHARPNESS == kalman.GATE_SHARPNESS
 
 
 # ---- parity with the JAX predictor -----------------------------------------------------------
