@@ -22,6 +22,7 @@ import numpy as np
 from fpe_jax.config import check_waypoints, read_config, write_config
 from fpe_jax.errors import InputError
 from fpe_jax.io.writers import check_output_paths, write_bytes
+from fpe_jax.spec import FILTER_DEFAULTS
 
 FORMATS = ("json", "ros2", "stablehlo", "all")
 DEFAULT_NODE = "future_pose_estimator"
@@ -40,6 +41,18 @@ INPUTS = (
     ("offset_m", "frenet / line: lateral offset from the path [m], left positive"),
     ("sdot_age_s", "line: age of the speed estimate [s] (the history window's middle)"),
 )
+WINDOW_INPUTS = (
+    ("window_age_s", "kalman: (b, W) age of each window slot before the newest observation [s]"),
+    ("window_s_m", "kalman: (b, W) the slots' arc lengths [m] (oldest first)"),
+    ("window_d_m", "kalman: (b, W) the slots' lateral offsets [m], left positive"),
+    ("window_valid", "kalman: (b, W) 1.0 where a slot holds an observation, else 0.0"),
+    ("window_prior", "kalman: (b, 4) Theil-Sen s, ds/dt, d, dd/dt at the newest stamp"),
+)
+"""With the Kalman estimator (frenet / line models) the artifact runs the filter too: after
+INPUTS it takes the history window in the track frame (`fpe_jax.state.State`'s window fields,
+as `states_from_drive(..., keep_window=True)` gives them); omitted (all slots invalid, prior
+NaN) the track-frame estimate of INPUTS is used as given."""
+
 """The artifact's inputs, in order: each a (b,) float64 array (b >= 1, the batch of cars), the
 fields of `fpe_jax.rollout.State` as `fpe_jax.predict.states_from_drive` estimates them (for the
 seed model: the current row's position and observed yaw, as recorded). Output: (b, H, 3) float64
@@ -60,6 +73,11 @@ ROS2_PARAMS = (
     ("offset_decay_s", "params", "offset_tau_s", float, "frenet/line: lateral offset decay [s]"),
     ("speed_profile_blend_s", "params", "speed_tau_s", float, "line: profile blend-in time [s]"),
     ("position_smoothing", "params", "position_smoothing", float, "frenet/line: 0 newest, 1 fit"),
+    ("estimator", "settings", "estimator", str, "frenet/line start: kalman or theil-sen"),
+    ("filter_accel_mps2", "params", "filter_accel_mps2", float, "kalman: along accel [m/s^2]"),
+    ("filter_lat_accel_mps2", "params", "filter_lat_accel_mps2", float, "kalman: lat [m/s^2]"),
+    ("filter_obs_m", "params", "filter_obs_m", float, "kalman: observation noise, 1 sigma [m]"),
+    ("filter_gate_sigma", "params", "filter_gate_sigma", float, "kalman: innovation gate [sigma]"),
     ("step_s", "settings", "dt_s", float, "time between predicted poses [s]"),
     ("horizon", "settings", "horizon", int, "number of predicted poses H"),
     ("wheelbase_m", "settings", "wheelbase_m", float, "kinematic-bicycle wheelbase [m]"),
@@ -141,6 +159,8 @@ def to_ros2_yaml(
     params.setdefault("offset_tau_s", 1.0)  # configs from before the frenet / line models
     params.setdefault("speed_tau_s", 0.5)
     params.setdefault("position_smoothing", 0.0)
+    for key, value in FILTER_DEFAULTS.items():  # configs from before the Kalman estimator
+        params.setdefault(key, value)
     sections = {"params": params, "settings": cfg["settings"]}
     rows = list(ROS2_PARAMS)
     if cfg["settings"]["model"] == "line":
@@ -169,7 +189,8 @@ def _predictor(params, track):
     from fpe_jax.predict import predict_batch
     from fpe_jax.state import State
 
-    def f(x_m, y_m, yaw_rad, v_mps, yaw_rate_rps, course_rad, s_m, s_fit_m, *frame):
+    def f(x_m, y_m, yaw_rad, v_mps, yaw_rate_rps, course_rad, s_m, s_fit_m, *rest):
+        frame, window = rest[:3], rest[3:]
         states = State(
             x_m=x_m,
             y_m=y_m,
@@ -182,6 +203,7 @@ def _predictor(params, track):
             sdot_mps=frame[0],
             offset_m=frame[1],
             sdot_age_s=frame[2],
+            **dict(zip((n for n, _ in WINDOW_INPUTS), window)),
         )
         # only pure pursuit and the Frenet rollouts read the arc length
         if params.settings.model in ("blend", "frenet", "line"):
@@ -216,6 +238,7 @@ def export_stablehlo(
     from jax import export
 
     from fpe_jax.config import config_to_params
+    from fpe_jax.predict import uses_filter
     from fpe_jax.track import Track
 
     out = Path(out)
@@ -226,9 +249,12 @@ def export_stablehlo(
         track = Track.from_waypoints(np.asarray(waypoints_xy_m, dtype=np.float64))
         (b,) = export.symbolic_shape("b")
         spec = jax.ShapeDtypeStruct((b,), np.float64)
-        exported = export.export(jax.jit(_predictor(params, track)), platforms=platforms)(
-            *[spec] * len(INPUTS)
-        )
+        specs = [spec] * len(INPUTS)
+        if uses_filter(params.settings):  # the filter runs inside: the window is an input
+            w = params.settings.history
+            specs += [jax.ShapeDtypeStruct((b, w), np.float64)] * (len(WINDOW_INPUTS) - 1)
+            specs += [jax.ShapeDtypeStruct((b, 4), np.float64)]
+        exported = export.export(jax.jit(_predictor(params, track)), platforms=platforms)(*specs)
         blob = exported.serialize()
     h = cfg["settings"]["horizon"]
     meta = {
@@ -236,7 +262,11 @@ def export_stablehlo(
         "jax_version": jax.__version__,
         "calling_convention_version": exported.calling_convention_version,
         "platforms": list(exported.platforms),
-        "inputs": [{"name": n, "shape": ["b"], "dtype": "float64", "doc": d} for n, d in INPUTS],
+        "inputs": [{"name": n, "shape": ["b"], "dtype": "float64", "doc": d} for n, d in INPUTS]
+        + [
+            {"name": n, "shape": ["b", int(a.shape[1])], "dtype": "float64", "doc": d}
+            for (n, d), a in zip(WINDOW_INPUTS, exported.in_avals[len(INPUTS) :])
+        ],
         "output": {
             "shape": ["b", h, 3],
             "dtype": "float64",
@@ -263,7 +293,8 @@ def export_stablehlo(
 class ExportedPredictor:
     """A loaded StableHLO predictor: `predictor(x_m=..., y_m=..., ...)` -> (b, H, 3) ndarray.
 
-    Arguments by name or in the order of `INPUTS`; each a scalar or a (b,) array. Omitted
+    Arguments by name or in the order of `INPUTS` (then `WINDOW_INPUTS` where the artifact
+    runs the Kalman filter: (b, W) and (b, 4) arrays); each a scalar or a (b,) array. Omitted
     optional ones take the `State` defaults: yaw_rate_rps 0, course_rad = yaw_rad, and
     s_m NaN (a global projection on the track), the track-frame estimate NaN (taken from x, y, v
     and the course).
@@ -282,7 +313,8 @@ class ExportedPredictor:
     def __call__(self, *args, **kwargs) -> np.ndarray:
         import jax
 
-        names = [n for n, _ in INPUTS]
+        windows = [n for n, _ in WINDOW_INPUTS][: len(self.exported.in_avals) - len(INPUTS)]
+        names = [n for n, _ in INPUTS] + windows
         if len(args) > len(names):
             raise TypeError(f"at most {len(names)} inputs: {', '.join(names)}")
         given = dict(zip(names, args))
@@ -307,8 +339,12 @@ class ExportedPredictor:
         }
         arrays = [
             np.broadcast_to(np.asarray(given.get(n, defaults.get(n)), dtype=np.float64), x.shape)
-            for n in names
+            for n in names[: len(INPUTS)]
         ]
+        for n, aval in zip(windows, self.exported.in_avals[len(INPUTS) :]):
+            shape = (len(x), int(aval.shape[1]))
+            default = math.nan if n == "window_prior" else 0.0  # no window: INPUTS as given
+            arrays.append(np.broadcast_to(np.asarray(given.get(n, default), np.float64), shape))
         with jax.enable_x64(True):  # the artifact computes in float64
             return np.asarray(self.exported.call(*arrays))
 

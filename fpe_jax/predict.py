@@ -57,13 +57,12 @@ def _filter_state(values: tuple, state: State, track: Track) -> State:
         *values,
         length_m=track.length_m if track.closed else None,
     )
-    return dataclasses.replace(
-        state,
-        s_fit_m=mean[0],
-        sdot_mps=mean[1],
-        offset_m=mean[2],
-        sdot_age_s=jnp.zeros_like(mean[0]),
-    )
+    new = dict(s_fit_m=mean[0], sdot_mps=mean[1], offset_m=mean[2])
+    new["sdot_age_s"] = jnp.zeros_like(mean[0])
+    if state.s_fit_m is not None:  # an empty window (an export's default): the state's own
+        has = jnp.any(state.window_valid > 0.5)
+        new = {k: jnp.where(has, v, getattr(state, k)) for k, v in new.items()}
+    return dataclasses.replace(state, **new)
 
 
 def predict(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:

@@ -304,3 +304,34 @@ def test_runner_parity_with_outliers_and_gaps():
     _, pred_jax = predict_drive(p, d, Track.from_waypoints(wp))
     cfg = params_to_config(p, line={"waypoints_sha256": waypoints_sha256(wp)})
     assert_parity(run_drive(Runner(cfg, wp), d), pred_jax)
+
+
+def test_exports_carry_the_filter(tmp_path):
+    """ROS 2 YAML holds the estimator and the noise values; the StableHLO artifact runs the
+    filter on the window inputs (and, without them, takes the track-frame inputs as given)."""
+    import yaml
+
+    from fpe_jax.export import INPUTS, WINDOW_INPUTS, export_stablehlo, load, to_ros2_yaml
+    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.predict import predict_batch
+
+    wp, drive = track_drive("oval")
+    track = Track.from_waypoints(wp)
+    p = kalman_line(wp, drive)
+    cfg = params_to_config(p, line={"waypoints_sha256": waypoints_sha256(wp)})
+    ros = yaml.safe_load(to_ros2_yaml(cfg))["future_pose_estimator"]["ros__parameters"]
+    assert ros["estimator"] == "kalman"
+    for k in FILTER_DEFAULTS:
+        assert ros[k] == cfg["params"][k]
+    out, _ = export_stablehlo(cfg, wp, tmp_path / "p.stablehlo", platforms=("cpu",))
+    f = load(out)
+    assert [i["name"] for i in f.meta["inputs"]] == [n for n, _ in INPUTS + WINDOW_INPUTS]
+    states = states_from_drive(p, drive, track, keep_window=True)
+    states = jax.tree.map(lambda a: a[::5], states)
+    # the filter inside the artifact, under its own noise values: the window decides
+    moved = dataclasses.replace(states, s_fit_m=states.s_fit_m + 5.0)
+    got = f(**{n: np.asarray(getattr(moved, n)) for n, _ in INPUTS + WINDOW_INPUTS})
+    want = np.asarray(predict_batch(p, states, track))
+    assert np.max(np.abs(got - want)) <= 1e-6
+    given = f(**{n: np.asarray(getattr(states, n)) for n, _ in INPUTS})
+    assert np.max(np.abs(given - want)) <= 1e-6

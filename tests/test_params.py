@@ -10,6 +10,7 @@ import pytest
 from helpers import assert_trees_close
 
 from fpe_jax import Params, Settings, constrain, presets, stack_params, unconstrain
+from fpe_jax.spec import FILTER_DEFAULTS
 
 PRESET_NAMES = (
     "seed",
@@ -101,6 +102,7 @@ def test_create_broadcasts_weights_and_reports_physical_values():
         "offset_tau_s": 1.0,
         "speed_tau_s": 0.5,
         "position_smoothing": 0.0,
+        **FILTER_DEFAULTS,
     }
     with pytest.raises(ValueError):
         Params.create(Settings(horizon=4), weights=np.ones(3))
