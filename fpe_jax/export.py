@@ -46,7 +46,7 @@ WINDOW_INPUTS = (
     ("window_s_m", "kalman: (b, W) the slots' arc lengths [m] (oldest first)"),
     ("window_d_m", "kalman: (b, W) the slots' lateral offsets [m], left positive"),
     ("window_valid", "kalman: (b, W) 1.0 where a slot holds an observation, else 0.0"),
-    ("window_prior", "kalman: (b, 4) Theil-Sen s, ds/dt, d, dd/dt at the newest stamp"),
+    ("window_prior", "kalman: (b, 5) Theil-Sen s, ds/dt, d, dd/dt at the newest stamp, age"),
 )
 """With the Kalman estimator (frenet / line models) the artifact runs the filter too: after
 INPUTS it takes the history window in the track frame (`fpe_jax.state.State`'s window fields,
@@ -253,7 +253,7 @@ def export_stablehlo(
         if uses_filter(params.settings):  # the filter runs inside: the window is an input
             w = params.settings.history
             specs += [jax.ShapeDtypeStruct((b, w), np.float64)] * (len(WINDOW_INPUTS) - 1)
-            specs += [jax.ShapeDtypeStruct((b, 4), np.float64)]
+            specs += [jax.ShapeDtypeStruct((b, 5), np.float64)]
         exported = export.export(jax.jit(_predictor(params, track)), platforms=platforms)(*specs)
         blob = exported.serialize()
     h = cfg["settings"]["horizon"]
@@ -294,7 +294,7 @@ class ExportedPredictor:
     """A loaded StableHLO predictor: `predictor(x_m=..., y_m=..., ...)` -> (b, H, 3) ndarray.
 
     Arguments by name or in the order of `INPUTS` (then `WINDOW_INPUTS` where the artifact
-    runs the Kalman filter: (b, W) and (b, 4) arrays); each a scalar or a (b,) array. Omitted
+    runs the Kalman filter: (b, W) and (b, 5) arrays); each a scalar or a (b,) array. Omitted
     optional ones take the `State` defaults: yaw_rate_rps 0, course_rad = yaw_rad, and
     s_m NaN (a global projection on the track), the track-frame estimate NaN (taken from x, y, v
     and the course).

@@ -235,7 +235,7 @@ def fit_params(
         leaf = jax.ShapeDtypeStruct(xy.shape[:1], xy.dtype)
         fields = {f.name: leaf for f in dataclasses.fields(State)}
         for f in WINDOW_FIELDS:
-            width = 4 if f == "window_prior" else init.settings.history
+            width = 5 if f == "window_prior" else init.settings.history
             window = jax.ShapeDtypeStruct((xy.shape[0], width), xy.dtype)
             fields[f] = window if kalman else None
         return State(**fields)

@@ -67,29 +67,35 @@ def kalman_window(
     s_m: Float[Array, " W"],
     d_m: Float[Array, " W"],
     valid: Bool[Array, " W"],
-    prior: Float[Array, " 4"],
+    prior: Float[Array, " 5"],
     accel_mps2: Float[Array, ""],
     lat_accel_mps2: Float[Array, ""],
     obs_m: Float[Array, ""],
     gate_sigma: Float[Array, ""],
     length_m: float | Float[Array, ""] | None = None,
-) -> tuple[Float[Array, " 4"], Float[Array, "4 4"]]:
+) -> tuple[Float[Array, " 4"], Float[Array, "4 4"], Float[Array, ""]]:
     """The filtered state at the newest stamp of one right-aligned window.
 
     Args:
         age_s: (W,) age of each slot's observation before the newest [s] (>= 0, oldest first).
         s_m, d_m: (W,) the observations' arc length [m] and lateral offset [m].
         valid: (W,) which slots hold an observation (at least one must).
-        prior: (4,) s [m], ds/dt [m/s], d [m], dd/dt [m/s] at the newest stamp from robust
-            lines through the window (`fpe_jax.estimate.track_frame_lines`): carried back to
-            the oldest observation, the filter's start.
+        prior: (5,) s [m], ds/dt [m/s], d [m], dd/dt [m/s] at the newest stamp from robust
+            lines through the window (`fpe_jax.estimate.track_frame_lines`), carried back to
+            the oldest observation (the filter's start), and the lines' speed age [s] (the
+            median observation's age).
         accel_mps2, lat_accel_mps2, obs_m, gate_sigma: the noise values and gate (`Params`).
         length_m: the loop's length [m] (innovations along the track wrap to +-L/2), or None
             on an open path.
 
     Returns:
         mean (4,): s [m], ds/dt [m/s], d [m], dd/dt [m/s] at age 0 (the newest stamp);
-        cov (4, 4): its covariance (block-diagonal: along, across).
+        cov (4, 4): its covariance (block-diagonal: along, across);
+        speed_age_s: the age [s] of the speed estimate: the time before the newest stamp at
+            which a car under constant along-track acceleration had the speed the filter
+            reports (a constant-velocity filter's speed averages over the recent window). It
+            is the same linear filter, with the same gains, run on the observations
+            z = age^2 / 2 of a unit acceleration: the rate it ends with is minus that time.
     """
     dtype = s_m.dtype
     q_s, q_d, r2 = accel_mps2 * accel_mps2, lat_accel_mps2 * lat_accel_mps2, obs_m * obs_m
@@ -100,10 +106,12 @@ def kalman_window(
     # the prior at the oldest valid observation's stamp (the robust lines carried back there)
     age0 = jnp.max(jnp.where(valid, age_s, 0.0))
     s_start = (prior[0] - prior[1] * age0, prior[1], p0, zero, v0)
+    # the unit-acceleration channel: exact at the oldest stamp, the lines' speed age as its rate
+    u_start = (0.5 * age0 * age0, -prior[4])
     d_start = (prior[2] - prior[3] * age0, prior[3], p0, zero, vd0)
 
     def step(carry, inp):
-        age_prev, sx, dx = carry
+        age_prev, sx, dx, ux = carry
         age, zs, zd, ok = inp
         dt = age_prev - age
         sp, dp = _predict(*sx, dt, q_s), _predict(*dx, dt, q_d)
@@ -116,10 +124,16 @@ def kalman_window(
         w = jax.nn.sigmoid(GATE_SHARPNESS * (gate_sigma - m))
         su = _update(*sp, nu_s, ss_inn, w)
         du = _update(*dp, nu_d, sd_inn, w)
+        # the same gains on the unit-acceleration observation
+        kp, kr = w * sp[2] / ss_inn, w * sp[3] / ss_inn
+        up = ux[0] + ux[1] * dt
+        nu_u = 0.5 * age * age - up
+        uu = (up + kp * nu_u, ux[1] + kr * nu_u)
         keep = lambda new, old: tuple(jnp.where(ok, n, o) for n, o in zip(new, old))  # noqa: E731
-        return (jnp.where(ok, age, age_prev), keep(su, sx), keep(du, dx)), None
+        return (jnp.where(ok, age, age_prev), keep(su, sx), keep(du, dx), keep(uu, ux)), None
 
-    (age_last, sx, dx), _ = jax.lax.scan(step, (age0, s_start, d_start), (age_s, s_m, d_m, valid))
+    init = (age0, s_start, d_start, u_start)
+    (age_last, sx, dx, ux), _ = jax.lax.scan(step, init, (age_s, s_m, d_m, valid))
     # to the newest stamp (a no-op when the newest slot holds an observation, as it must)
     sx, dx = _predict(*sx, age_last, q_s), _predict(*dx, age_last, q_d)
     mean = jnp.stack([sx[0], sx[1], dx[0], dx[1]])
@@ -131,7 +145,7 @@ def kalman_window(
             jnp.stack([zero, zero, dx[3], dx[4]]),
         ]
     )
-    return mean, cov
+    return mean, cov, -ux[1]
 
 
 def kalman_params(params) -> tuple:

@@ -40,15 +40,15 @@ def uses_filter(settings: Settings) -> bool:
 def filtered(params: Params, state: State, track: Track) -> State:
     """One car's state with its track-frame estimate from the Kalman filter over the state's
     window (`fpe_jax.kalman`) under params' noise values: s_fit_m, sdot_mps, offset_m at the
-    newest stamp, sdot_age_s 0. Unchanged where the model does not use the filter or the state
-    carries no window."""
+    newest stamp, and sdot_age_s, the age of the filter's speed. Unchanged where the model does
+    not use the filter or the state carries no window."""
     if not uses_filter(params.settings) or state.window_s_m is None:
         return state
     return _filter_state(kalman_params(params), state, track)
 
 
 def _filter_state(values: tuple, state: State, track: Track) -> State:
-    mean, _ = kalman_window(
+    mean, _, speed_age = kalman_window(
         state.window_age_s,
         state.window_s_m,
         state.window_d_m,
@@ -58,7 +58,7 @@ def _filter_state(values: tuple, state: State, track: Track) -> State:
         length_m=track.length_m if track.closed else None,
     )
     new = dict(s_fit_m=mean[0], sdot_mps=mean[1], offset_m=mean[2])
-    new["sdot_age_s"] = jnp.zeros_like(mean[0])
+    new["sdot_age_s"] = speed_age
     if state.s_fit_m is not None:  # an empty window (an export's default): the state's own
         has = jnp.any(state.window_valid > 0.5)
         new = {k: jnp.where(has, v, getattr(state, k)) for k, v in new.items()}
@@ -175,7 +175,7 @@ def _states_from_windows(
     s_win, d_win = jax.vmap(track_frame_window, in_axes=(0, 0, 0, None))(
         windows["xy_m"], windows["valid"], s_m, track
     )
-    s_ts, sdot_ts, d_ts, ddot_ts, _ = jax.vmap(track_frame_lines)(
+    s_ts, sdot_ts, d_ts, ddot_ts, age_ts = jax.vmap(track_frame_lines)(
         windows["t_s"], s_win, d_win, windows["valid"]
     )
     window = dict(
@@ -183,7 +183,7 @@ def _states_from_windows(
         window_s_m=s_win,
         window_d_m=d_win,
         window_valid=windows["valid"].astype(s_win.dtype),
-        window_prior=jnp.stack([s_ts, sdot_ts, d_ts, ddot_ts], axis=1),
+        window_prior=jnp.stack([s_ts, sdot_ts, d_ts, ddot_ts, age_ts], axis=1),
     )
     states = jax.vmap(_filter_state, in_axes=(None, 0, None))(
         filter_values, dataclasses.replace(states, **window), track

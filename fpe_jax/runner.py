@@ -456,19 +456,20 @@ class Runner:
         d_now = _median([dk + ddot * a for dk, a in zip(ds, ahead)])
         if not self._kalman:
             return s_now, sdot, d_now, _median(ahead)
-        s_k, sdot_k, d_k = self._kalman_window(ahead, ss, ds, (s_now, sdot, d_now, ddot))
-        return s_k, sdot_k, d_k, 0.0
+        prior = (s_now, sdot, d_now, ddot, _median(ahead))
+        return self._kalman_window(ahead, ss, ds, prior)
 
-    def _kalman_window(self, ages, ss, ds, prior) -> tuple[float, float, float]:
-        """(s, ds/dt, d) [m, m/s, m] at the newest stamp: fpe_jax.kalman.kalman_window over the
-        valid observations (ages [s], arc lengths ss [m], offsets ds [m], oldest first) from
-        the Theil-Sen prior (s, ds/dt, d, dd/dt)."""
+    def _kalman_window(self, ages, ss, ds, prior) -> tuple[float, float, float, float]:
+        """(s, ds/dt, d, the speed's age) [m, m/s, m, s] at the newest stamp:
+        fpe_jax.kalman.kalman_window over the valid observations (ages [s], arc lengths ss [m],
+        offsets ds [m], oldest first) from the Theil-Sen prior (s, ds/dt, d, dd/dt, age)."""
         accel, lat_accel, obs, gate = self._filter
         q_s, q_d, r2 = accel * accel, lat_accel * lat_accel, obs * obs
         p0 = r2 + INIT_POS_SIGMA_M**2
         age0 = max(ages)  # the oldest observation's
         sx = [prior[0] - prior[1] * age0, prior[1], p0, 0.0, INIT_SPEED_SIGMA_MPS**2]
         dx = [prior[2] - prior[3] * age0, prior[3], p0, 0.0, INIT_LAT_RATE_SIGMA_MPS**2]
+        ux = [0.5 * age0 * age0, -prior[4]]  # the unit-acceleration channel
         length = self.path.length_m if self.path.closed else None
         age_prev = age0
         for age, zs, zd in zip(ages, ss, ds):
@@ -481,8 +482,12 @@ class Runner:
             ss_inn, sd_inn = sx[2] + r2, dx[2] + r2
             m = math.sqrt(nu_s * nu_s / ss_inn + nu_d * nu_d / sd_inn + 1e-12)
             w = _sigmoid(GATE_SHARPNESS * (gate - m))
+            kp, kr = w * sx[2] / ss_inn, w * sx[3] / ss_inn
+            up = ux[0] + ux[1] * dt
+            nu_u = 0.5 * age * age - up
+            ux = [up + kp * nu_u, ux[1] + kr * nu_u]
             sx, dx = _kf_update(sx, nu_s, ss_inn, w), _kf_update(dx, nu_d, sd_inn, w)
-        return sx[0], sx[1], dx[0]
+        return sx[0], sx[1], dx[0], -ux[1]
 
     # ---- rollouts (fpe_jax.rollout), each -> (H, 3) ----------------------------------------------
 

@@ -26,9 +26,10 @@ class State(eqx.Module):
             track frame, oldest first, for the Kalman estimator to filter with the params at
             hand (`fpe_jax.predict.filtered`; a fit changes the filter's values): each slot's
             age before the newest observation [s], arc length [m], lateral offset [m] and 1.0
-            where it holds an observation (0.0 where not); window_prior (4,): the window's
-            Theil-Sen s [m], ds/dt [m/s], d [m], dd/dt [m/s] at the newest stamp (the filter's
-            start). None: the track-frame estimate above is used as it is.
+            where it holds an observation (0.0 where not); window_prior (5,): the window's
+            Theil-Sen s [m], ds/dt [m/s], d [m], dd/dt [m/s] at the newest stamp and the
+            median observation's age [s] (the filter's start). None: the track-frame estimate
+            above is used as it is.
     """
 
     x_m: Float[Array, ""]

@@ -30,8 +30,8 @@ def window(t_s, s_m, d_m, valid=None):
     t = jnp.asarray(t_s, dtype=float)
     s, d = jnp.asarray(s_m, dtype=float), jnp.asarray(d_m, dtype=float)
     valid = jnp.ones(t.shape, bool) if valid is None else jnp.asarray(valid)
-    s_ts, sdot, d_ts, ddot, _ = track_frame_lines(t, s, d, valid)
-    return t[-1] - t, s, d, valid, jnp.stack([s_ts, sdot, d_ts, ddot])
+    s_ts, sdot, d_ts, ddot, age = track_frame_lines(t, s, d, valid)
+    return t[-1] - t, s, d, valid, jnp.stack([s_ts, sdot, d_ts, ddot, age])
 
 
 def irregular_stamps(n=W, seed=0, gap_after=None, gap_s=0.0):
@@ -49,11 +49,23 @@ def test_constant_motion_is_recovered_exactly_over_irregular_stamps_and_gaps(gap
     t = irregular_stamps(gap_after=4, gap_s=gap_s)
     t = t[t <= 1.0]  # the window spans at most 1 s
     s, d = 12.0 + 4.5 * t, 0.2 - 0.3 * t
-    mean, cov = kalman(*window(t, s, d), *NOISE)
+    mean, cov, _ = kalman(*window(t, s, d), *NOISE)
     np.testing.assert_allclose(np.asarray(mean), [s[-1], 4.5, d[-1], -0.3], atol=1e-9)
     c = np.asarray(cov)
     assert np.all(np.linalg.eigvalsh(c) > 0) and np.allclose(c, c.T)
     assert c[0, 2] == 0.0  # along and across are independent
+
+
+@pytest.mark.parametrize("accel_mps2", [-3.0, 2.0])
+def test_the_speed_age_is_when_an_accelerating_car_had_the_filtered_speed(accel_mps2):
+    t = irregular_stamps(seed=4)
+    t = t[t <= 1.0]
+    s = 1.0 + 6.0 * t + 0.5 * accel_mps2 * t * t
+    mean, _, age = kalman(*window(t, s, np.zeros(len(t))), *NOISE)
+    speed_then = 6.0 + accel_mps2 * (t[-1] - float(age))
+    assert 0.0 < float(age) < 0.6 * t[-1]
+    # exact but for the prior's (medians, not a linear filter): measured 3e-3 m/s
+    np.testing.assert_allclose(float(mean[1]), speed_then, atol=0.01)
 
 
 def test_the_filter_corrects_a_wrong_prior_speed():
@@ -62,7 +74,7 @@ def test_the_filter_corrects_a_wrong_prior_speed():
     s, d = 3.0 + 5.0 * t, np.zeros(W)
     age, s_m, d_m, valid, prior = window(t, s, d)
     off = prior.at[1].add(-1.0).at[0].add(-0.1)
-    mean, _ = kalman(age, s_m, d_m, valid, off, *NOISE)
+    mean, _, _ = kalman(age, s_m, d_m, valid, off, *NOISE)
     assert abs(float(mean[1]) - 5.0) < 0.3 and abs(float(mean[0]) - s[-1]) < 0.05
 
 
@@ -97,13 +109,13 @@ def test_a_jump_in_the_newest_observation_does_not_move_the_state(jump_m, direct
     d = -0.4 + 0.2 * t + rng.normal(0.0, 0.03, W)
     age, s_m, d_m, valid, prior = window(t, s, d)
     # the same window without its newest observation, carried to the newest stamp
-    without, _ = kalman(age, s_m, d_m, valid.at[-1].set(False), prior, *CLEAN)
+    without, _, _ = kalman(age, s_m, d_m, valid.at[-1].set(False), prior, *CLEAN)
     jumped_s = s_m.at[-1].add(jump_m * direction[0])
     jumped_d = d_m.at[-1].add(jump_m * direction[1])
-    mean, _ = kalman(age, jumped_s, jumped_d, valid, prior, *CLEAN)
+    mean, _, _ = kalman(age, jumped_s, jumped_d, valid, prior, *CLEAN)
     assert np.max(np.abs(np.asarray(mean - without))) < 1e-3
     # and an observation that fits is taken
-    taken, _ = kalman(age, s_m, d_m, valid, prior, *CLEAN)
+    taken, _, _ = kalman(age, s_m, d_m, valid, prior, *CLEAN)
     assert np.max(np.abs(np.asarray(taken - without))) > 1e-3
 
 
@@ -179,7 +191,7 @@ def test_jit_vmap_and_grad_against_finite_differences():
         for _ in range(3)
     ]
     batch = jax.tree.map(lambda *a: jnp.stack(a), *rows)
-    means, covs = jax.jit(jax.vmap(kalman_window, in_axes=(0, 0, 0, 0, 0, *[None] * 4)))(
+    means, covs, _ = jax.jit(jax.vmap(kalman_window, in_axes=(0, 0, 0, 0, 0, *[None] * 4)))(
         *batch, *NOISE
     )
     for i, row in enumerate(rows):
@@ -191,8 +203,8 @@ def test_jit_vmap_and_grad_against_finite_differences():
     s_m = s_m.at[-3].add(0.55)
 
     def f(noise):
-        mean, cov = kalman_window(age, s_m, d_m, valid, prior, *noise)
-        return jnp.sum(mean * jnp.array([1.0, 0.3, 2.0, 0.5])) + jnp.trace(cov)
+        mean, cov, speed_age = kalman_window(age, s_m, d_m, valid, prior, *noise)
+        return jnp.sum(mean * jnp.array([1.0, 0.3, 2.0, 0.5])) + jnp.trace(cov) + speed_age
 
     x = tuple(jnp.asarray(v) for v in (3.0, 1.0, 0.15, 4.0))
     g = jax.grad(f)(x)
