@@ -102,14 +102,14 @@ def test_parity_with_the_jax_predictor(track, name):
     assert_parity(run_drive(Runner(params_to_config(p), wp), drive), pred_jax)
 
 
-def line_params(wp, drive, upto_s: float) -> Params:
+def line_params(wp, drive, upto_s: float, estimator: str = "theil-sen") -> Params:
     """A line-model Params learned from the drive's first upto_s seconds (the rest of the track
     uncovered when that is less than a lap: the fallback is tested too)."""
     from fpe_jax.line import learn_line
 
     profile = learn_line([drive.slice_time(-np.inf, upto_s)], Track.from_waypoints(wp))
     return Params.create(
-        Settings(model="line"),
+        Settings(model="line", estimator=estimator),
         delay_s=0.12,
         offset_tau_s=0.8,
         speed_tau_s=0.3,
@@ -118,14 +118,17 @@ def line_params(wp, drive, upto_s: float) -> Params:
     )
 
 
-@pytest.mark.parametrize("case", ["sim", "sim-partial", "levine"])
+@pytest.mark.parametrize(
+    "case", ["sim", "sim-partial", "levine", "sim-kalman", "sim-partial-kalman", "levine-kalman"]
+)
 def test_parity_of_the_line_model(sim_drive, levine, case):
     from fpe_jax.path import waypoints_sha256
 
-    wp, drive = levine if case == "levine" else sim_drive
-    p = line_params(wp, drive, 4.0 if case == "sim-partial" else np.inf)
+    wp, drive = levine if case.startswith("levine") else sim_drive
+    estimator = "kalman" if case.endswith("kalman") else "theil-sen"
+    p = line_params(wp, drive, 4.0 if "partial" in case else np.inf, estimator)
     cov = np.asarray(p.line_coverage)
-    assert (cov.min() == 0.0) == (case == "sim-partial")
+    assert (cov.min() == 0.0) == ("partial" in case)
     _, pred_jax = predict_drive(p, drive, Track.from_waypoints(wp))
     cfg = params_to_config(p, line={"waypoints_sha256": waypoints_sha256(wp)})
     assert_parity(run_drive(Runner(cfg, wp), drive), pred_jax)
