@@ -7,6 +7,7 @@ raises `InputError`; `main` prints it as one line on stderr and exits with statu
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import math
 import os
@@ -431,6 +432,22 @@ def _waypoint_provenance(path, entries) -> dict | None:
     return {"file": str(Path(path).resolve()), "sha256": sha.pop()}
 
 
+# the arguments of `fit.fit` that `fpe fit` sets from its flags: the library's errors name the
+# argument, the CLI's the flag
+FIT_FLAGS = {"free": "--fit", "model": "--model", "solver": "--solver"}
+
+
+@contextlib.contextmanager
+def _as_flags(flags: dict[str, str]):
+    """Re-raise an InputError that names a library argument of `flags` as naming its flag."""
+    try:
+        yield
+    except InputError as e:
+        if e.source not in flags:
+            raise
+        raise InputError(flags[e.source], e.problem, e.expected) from None
+
+
 def cmd_fit(args) -> int:
     from fpe_jax import io
     from fpe_jax.config import params_to_config, write_config
@@ -452,8 +469,10 @@ def cmd_fit(args) -> int:
         say("loading JAX")
         _start_jax(args)
         from fpe_jax.config import apply_settings
-        from fpe_jax.fit import fit, format_fitted, format_table, provenance
+        from fpe_jax.fit import fit
         from fpe_jax.params import presets
+        from fpe_jax.recipe import solver_named
+        from fpe_jax.report import format_fitted, format_table, provenance
         from fpe_jax.track import Track
 
         # the recipe's [settings], then the flags on top
@@ -466,19 +485,20 @@ def cmd_fit(args) -> int:
         wp_source = args.waypoints or f"{args.logs[0]}: the waypoints"
         for (d, _, desc), tr in zip(drives + tests, tracks + (test_tracks or []), strict=True):
             _check_on_track(args, d, tr, wp_source, desc)
-        result = fit(
-            [d for d, _, _ in drives],
-            tracks,
-            fit=fit_names or opts["fit"] or None,
-            model=opts["model"] or "line",
-            blend=opts["blend"],
-            holdout=opts["holdout"],
-            test_drives=[d for d, _, _ in tests] or None,
-            test_tracks=test_tracks,
-            solver=opts["solver"] or SOLVERS[0],
-            init=init,
-            progress=say,
-        )
+        with _as_flags(FIT_FLAGS):
+            result = fit(
+                [d for d, _, _ in drives],
+                tracks,
+                free=fit_names or opts["fit"] or None,
+                model=opts["model"] or "line",
+                blend=opts["blend"],
+                holdout=opts["holdout"],
+                test_drives=[d for d, _, _ in tests] or None,
+                test_tracks=test_tracks,
+                solver=solver_named(opts["solver"] or SOLVERS[0], "--solver"),
+                init=init,
+                progress=say,
+            )
     topics = {
         "pose": drives[0][0].meta.get("pose_topic"),
         "truth": drives[0][0].meta.get("truth_topic"),
@@ -534,7 +554,7 @@ def cmd_evaluate(args) -> int:
             raise InputError(args.log, "no prediction has a target", "a longer drive")
         say(f"predicting {len(data.targets.rows)} observations and scoring them")
         metrics = evaluate(params, [data], cov)
-    from fpe_jax.fit import format_table
+    from fpe_jax.report import format_table
 
     name = args.config or args.preset
     if args.json:  # strict JSON: a metric without a value is null, never NaN
@@ -856,7 +876,7 @@ def cmd_demo(args) -> int:
         say("loading JAX")
         _start_jax(args)
         from fpe_jax.demo import run_demo
-        from fpe_jax.fit import format_fitted, format_table
+        from fpe_jax.report import format_fitted, format_table
 
         res = run_demo(out, progress=say, force=args.force)
     case, result = res.case, res.result

@@ -192,7 +192,7 @@ def fit_case(
     return fit_drives(
         [case.fit_drive],
         [track],
-        fit=tuple(fit) if fit else None,
+        free=tuple(fit) if fit else None,
         model=model,
         blend=blend,
         test_drives=[case.test_drive],
@@ -327,9 +327,9 @@ def write_demo_outputs(
     from fpe_jax.config import params_to_config, write_config
     from fpe_jax.evaluate import heldout_predictions
     from fpe_jax.export import export_config
-    from fpe_jax.fit import provenance
     from fpe_jax.io.writers import write_text, write_xy_csv
     from fpe_jax.params import presets
+    from fpe_jax.report import provenance
 
     progress("writing the tuned config and the ROS 2 parameters")
     # every digit: a line-model config is tied to the exact waypoint values (sha256)
@@ -399,7 +399,7 @@ def _line_section(result, waypoints: Path) -> dict | None:
 
 def demo_report(case: Case, result, checks) -> str:
     """The demo's Markdown report: what was run, the fitted values, the table, the checks."""
-    from fpe_jax.fit import format_fitted, format_table
+    from fpe_jax.report import format_fitted, format_table
 
     p = result.params.physical()
     if result.params.settings.model == "line":

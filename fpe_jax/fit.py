@@ -9,9 +9,9 @@ only used for the final report (metrics and uncertainty: `fpe_jax.evaluate`).
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import functools
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -88,7 +88,11 @@ WEIGHT_SMOOTHING_M2 = 0.01
 # Both solvers are optimistix's. BFGS is the default: in experiments/results/solvers.md it ends
 # at an equal or lower loss on every drive (LM up to 2e-5 relative higher) in comparable
 # time. An LM step needs the full Jacobian (~18 forward passes), a BFGS step one gradient.
-MAX_STEPS = {"bfgs": 1000, "lm": 200}  # BFGS counts line-search trials too
+# the default step limits of a minimiser (BFGS, which counts line-search trials too) and of a
+# least-squares solver (Levenberg-Marquardt)
+MAX_STEPS = {"minimise": 1000, "least_squares": 200}
+# the names `info["solver"]` (and a config's provenance) give the two solvers the CLI offers
+SOLVER_NAMES = {"BFGS": "bfgs", "LevenbergMarquardt": "lm"}
 # BFGS minimises loss / (target points x BFGS_LOSS_UNIT_M2). Its first inverse Hessian is the
 # identity, so this unit sets the first steps' length: on the raw sum (~1e4 on a 10-minute
 # drive) most line-search trials were rejected. Measured over the solver study's drives plus a
@@ -121,9 +125,9 @@ def _residuals(raw_free, args):
     return jnp.concatenate(out + ridge)
 
 
-def _free_mask(params: Params, fit: Sequence[str]) -> Params:
-    """A Params-shaped filter: True for the fields being fitted."""
-    names = {f for group in fit for f in FIT_GROUPS[group]}
+def _free_mask(params: Params, free: Sequence[str]) -> Params:
+    """A Params-shaped filter: True for the fields of the groups `free`."""
+    names = {f for group in free for f in FIT_GROUPS[group]}
     return dataclasses.replace(params, **{f: f in names for f in PARAM_FIELDS})
 
 
@@ -150,71 +154,142 @@ def _objective_jvp(primals, tangents):
     return value, sum(jnp.vdot(g, t) for g, t in pairs)
 
 
-def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: str):
+def default_solver():
+    """BFGS on the scalar robust loss, the default solver (see the solver notes above MAX_STEPS).
+
+    rms_norm in the stopping test: with the default max_norm a solver stops only once every one of
+    the ~1e5 residuals and every raw value has settled, which a saturating weight or a gain
+    creeping toward its bound never does (LM ran to max_steps on every drive measured)."""
+    # imported here: predict, evaluate and plot use this module but not the solver, and
+    # optimistix adds ~0.3 s to their start
+    import optimistix as optx
+
+    return optx.BFGS(rtol=1e-6, atol=1e-8, norm=optx.rms_norm)
+
+
+class _Static:
+    """A solver as one static argument of the compiled solve. The compiled solve is keyed by the
+    printed form of its static arguments; a solver's pytree leaves include functions (its norm)
+    whose printed form holds a memory address, so the key would change with every process.
+    `eqx.tree_pformat` prints the solver's type and settings with functions by name."""
+
+    def __init__(self, solver):
+        self.solver = solver
+        self._key = eqx.tree_pformat(solver, short_arrays=False)
+
+    def __repr__(self) -> str:
+        return self._key
+
+
+def _is_least_squares(solver) -> bool:
+    import optimistix as optx
+
+    return isinstance(solver, optx.AbstractLeastSquaresSolver)
+
+
+def _solver_object(solver):
+    """`solver` checked to be an optimistix solver; None is `default_solver()`."""
+    import optimistix as optx
+
+    if solver is None:
+        return default_solver()
+    if not isinstance(solver, optx.AbstractMinimiser | optx.AbstractLeastSquaresSolver):
+        what = repr(solver) if isinstance(solver, str) else type(solver).__name__
+        raise InputError(
+            "solver",
+            f"{what} is not an optimistix solver",
+            "an optimistix minimiser or least-squares solver such as optx.BFGS(rtol, atol); "
+            "fpe_jax.recipe.solver_named turns the CLI's names (bfgs, lm) into them",
+        )
+    return solver
+
+
+def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: _Static):
     """Run the optimistix solver; returns (raw values, steps, converged, loss)."""
-    # imported here, at trace time: predict, evaluate and plot use this module but not the solver,
-    # and optimistix adds ~0.3 s to their start
     import optimistix as optx
 
     args = (raw_fixed, groups, huber_m)
-    # rms_norm in the stopping test: with the default max_norm, LM stops only once every one of
-    # the ~1e5 residuals and every raw value has settled, which a saturating weight or a gain
-    # creeping toward its bound never does (it ran to max_steps on every drive measured)
-    if solver == "lm":
+    method = solver.solver
+    least_squares = _is_least_squares(method)
+    if least_squares:
         run, fn = optx.least_squares, _residuals
-        method = optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5, norm=optx.rms_norm)
     else:
         n_points = sum(jnp.sum(mask) for _, _, _, mask in groups)
         scale = BFGS_LOSS_UNIT_M2 * jnp.maximum(n_points, 1).astype(groups[0][2].dtype)
         run, fn = optx.minimise, lambda y, a: _objective(y, a) / scale  # see BFGS_LOSS_UNIT_M2
-        method = optx.BFGS(rtol=1e-6, atol=1e-8, norm=optx.rms_norm)
     sol = run(fn, method, raw_free, args=args, max_steps=max_steps, throw=False)
     ok = sol.result == optx.RESULTS.successful
     # the solver's own evaluation at its last accepted point (sol.value): no further rollout
-    # to trace and compile (the first step is always accepted, so this is never its zero init)
-    info = sol.state.f_info
-    loss = info.f * scale if solver == "bfgs" else 0.5 * jnp.sum(info.residual * info.residual)
+    # to trace and compile (the first step is always accepted, so this is never its zero init);
+    # a solver that keeps no such evaluation costs one more
+    info = getattr(sol.state, "f_info", None)
+    if least_squares and hasattr(info, "residual"):
+        loss = 0.5 * jnp.sum(info.residual * info.residual)
+    elif not least_squares and hasattr(info, "f"):
+        loss = info.f * scale
+    else:
+        loss = _loss(sol.value, args)
     return sol.value, sol.stats["num_steps"], ok, loss
+
+
+def _free_groups(free, fit, caller: str):
+    """The free groups given as `free=`, or as the deprecated `fit=` (one of them)."""
+    if fit is None:
+        return free
+    if free is not None:
+        raise TypeError(f"{caller}: pass free= only (fit= is its deprecated name)")
+    warnings.warn(
+        f"{caller}(fit=...) is deprecated: the free parameter groups are now free=",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    return fit
 
 
 def fit_params(
     datasets: Sequence[Dataset],
     init: Params,
     *,
-    fit: Sequence[str] | None = None,
+    free: Sequence[str] | None = None,
     huber_m: float = HUBER_M,
-    solver: str = DEFAULT_SOLVER,
+    solver=None,
     max_steps: int | None = None,
+    fit: Sequence[str] | None = None,
 ) -> tuple[Params, dict]:
     """Fit the free raw parameters of `init` over all datasets jointly (optimistix, float64).
 
     Args:
-        solver: "bfgs" (default): BFGS on the scalar robust loss, reverse-mode gradients: a
-            step costs about one forward and one backward pass. "lm": Levenberg-Marquardt on
-            the residual vector, forward-mode Jacobians (one pass per fitted value, ~15) per
-            step. See SOLVERS for what was measured.
-        max_steps: solver steps before giving up (default per solver, MAX_STEPS).
+        free: the parameter groups to fit (names of FIT_GROUPS; default: the model's,
+            MODEL_FIT). `fit=` is its deprecated name.
+        solver: an optimistix solver. A minimiser (default `default_solver()`: BFGS) minimises
+            the scalar robust loss with reverse-mode gradients: a step costs about one forward
+            and one backward pass. A least-squares solver (optx.LevenbergMarquardt) works on the
+            residual vector, forward-mode Jacobians (one pass per fitted value, ~15) per step.
+            experiments/results/solvers.md compares the two.
+        max_steps: solver steps before giving up (default per kind of solver, MAX_STEPS).
 
-    Returns the fitted Params and solver info: solver, steps, converged, loss, seconds (all of
-    this call) and of those trace_s (tracing the solver), compile_s (XLA) or load_s (its stored
-    executable, `aot`), all on a second thread while the states are estimated and all 0 when
-    an earlier call made it, and solve_s.
+    Returns the fitted Params and solver info: solver (its name: "bfgs", "lm" or the class
+    name), steps, converged, loss, seconds (all of this call) and of those trace_s (tracing the
+    solver), compile_s (XLA) or load_s (its stored executable, `aot`), all on a second thread
+    while the states are estimated and all 0 when an earlier call made it, and solve_s.
+
+    Raises InputError naming the argument (free, solver) for a value it cannot use.
     """
+    free = _free_groups(free, fit, "fit_params")
     if init.settings.model not in MODEL_FIT:
         raise ValueError(f"fit_params: only the models {tuple(MODEL_FIT)} are fitted, not presets'")
-    fit = tuple(fit) if fit else MODEL_FIT[init.settings.model][1]
-    unknown = [f for f in fit if f not in FIT_GROUPS]
+    names = tuple(free) if free else MODEL_FIT[init.settings.model][1]
+    unknown = [f for f in names if f not in FIT_GROUPS]
     if unknown:
-        raise InputError("--fit", f"unknown name(s) {', '.join(unknown)}", ", ".join(FIT_GROUPS))
-    if solver not in SOLVERS:
-        raise InputError("--solver", f"unknown solver {solver!r}", ", ".join(SOLVERS))
+        raise InputError("free", f"unknown name(s) {', '.join(unknown)}", ", ".join(FIT_GROUPS))
+    solver = _solver_object(solver)
     allowed = MODEL_FIT[init.settings.model][0]
-    if any(f not in allowed for f in fit):
-        wrong = ", ".join(f for f in fit if f not in allowed)
+    if any(f not in allowed for f in names):
+        wrong = ", ".join(f for f in names if f not in allowed)
         msg = f"{wrong} do(es) not apply to model {init.settings.model}"
-        raise InputError("--fit", msg, ", ".join(allowed))
+        raise InputError("free", msg, ", ".join(allowed))
     raw = unconstrain(init)
-    free, fixed = eqx.partition(raw, _free_mask(raw, fit))
+    free, fixed = eqx.partition(raw, _free_mask(raw, names))
     # targets and states padded to a bucketed row count (padded targets masked out): drives of
     # similar length share one compiled solver
     sizes = [bucket(len(d.targets.rows)) for d in datasets]
@@ -231,7 +306,9 @@ def fit_params(
         return State(**{f.name: leaf for f in dataclasses.fields(State)})
 
     t0 = time.perf_counter()
-    static = dict(max_steps=MAX_STEPS[solver] if max_steps is None else max_steps, solver=solver)
+    kind = "least_squares" if _is_least_squares(solver) else "minimise"
+    steps_limit = MAX_STEPS[kind] if max_steps is None else max_steps
+    static = dict(max_steps=steps_limit, solver=_Static(solver))
     abstract = [(shape_of(xy), d.track, xy, m) for d, (xy, m) in zip(datasets, targets)]
     huber = np.float64(huber_m)
     # the solver's executable (from memory, from disk, or traced and compiled: seconds) is made
@@ -249,7 +326,7 @@ def fit_params(
     took["solve_s"] = time.perf_counter() - t
     fitted = constrain(eqx.combine(value, fixed))
     info = {
-        "solver": solver,
+        "solver": SOLVER_NAMES.get(type(solver).__name__, type(solver).__name__),
         "steps": int(steps),
         "converged": bool(ok),
         "loss": float(loss),
@@ -273,21 +350,23 @@ def fit(
     drives: Sequence[Drive],
     tracks: Sequence[Track],
     *,
-    fit: Sequence[str] | None = None,
+    free: Sequence[str] | None = None,
     model: str = DEFAULT_MODEL,
     blend: str = "auto",
     holdout: float = 0.3,
     test_drives: Sequence[Drive] | None = None,
     test_tracks: Sequence[Track] | None = None,
     init: Params | None = None,
-    solver: str = DEFAULT_SOLVER,
+    solver=None,
     progress: Callable[[str], None] = lambda msg: None,
+    fit: Sequence[str] | None = None,
 ) -> FitResult:
     """Fit on the training data, report on held-out data.
 
     Args:
         drives, tracks: the drives to fit and the track each was driven on.
-        fit: which values to fit (names of FIT_GROUPS; default: the model's, MODEL_FIT).
+        free: the parameter groups to fit (names of FIT_GROUPS; default: the model's,
+            MODEL_FIT). `fit=` is its deprecated name.
         model: "line" (the opponent's line and speed profile, learned from the training
             drives, `fpe_jax.line`; every training and test drive must share one set of
             waypoints; the default), "blend" (linear / pure-pursuit blend) or "auto" (each
@@ -302,9 +381,13 @@ def fit(
         test_drives, test_tracks: separate held-out drives (then all of `drives` is training).
         init: starting point (default: the "default" preset). For the line model a Params of
             another model only lends its car and prediction grid (`USER_SETTINGS`).
-        solver: "bfgs" or "lm" (see `fit_params`).
+        solver: an optimistix solver (default `default_solver()`; see `fit_params`).
         progress: called with a short message at each phase.
+
+    Raises InputError naming the argument (free, model, solver) for a value it cannot use.
     """
+    free = _free_groups(free, fit, "fit")
+    solver = _solver_object(solver)
     jax.config.update("jax_enable_x64", True)  # fitting needs float64 (tiny gradients)
     if test_drives is None:
         pairs = [split_drive(d, holdout) for d in drives]
@@ -316,10 +399,10 @@ def fit(
         test_tracks = test_tracks or tracks
         split = {"kind": "drives", "n_test": len(test_d)}
     if model not in FIT_MODELS:
-        raise InputError("--model", f"unknown model {model!r}", ", ".join(FIT_MODELS))
-    fit = tuple(fit) if fit else None
+        raise InputError("model", f"unknown model {model!r}", ", ".join(FIT_MODELS))
+    free = tuple(free) if free else None
     candidates, line_info = _candidates(
-        model, blend, init, fit, train_d, tracks, test_tracks, progress
+        model, blend, init, free, train_d, tracks, test_tracks, progress
     )
     settings = next(iter(candidates.values()))[0].settings  # every candidate's targets
     train = make_datasets(train_d, tracks, settings, "training")
@@ -357,14 +440,14 @@ def fit(
             if p0.settings.model == "line":
                 p0 = dataclasses.replace(p0, **inner_line)
             progress(f"choosing the model: fitting {_label(p0)} on the inner split")
-            p, _ = fit_params(inner_fit, p0, fit=groups, solver=solver)
+            p, _ = fit_params(inner_fit, p0, free=groups, solver=solver)
             selection[label] = score(p)
         best = min(selection, key=selection.get)
     else:
         best = next(iter(candidates))
-    p0, fit = candidates[best]
+    p0, free = candidates[best]
     progress(f"fitting {_label(p0)} on {sum(len(d.targets.rows) for d in train)} predictions")
-    params, info = fit_params(train, p0, fit=fit, solver=solver)
+    params, info = fit_params(train, p0, free=free, solver=solver)
     progress(f"estimating uncertainty on {len(train)} training drive(s)")
     uncertainty = fit_uncertainty(params, train)
     progress(f"evaluating the fit on {len(test)} held-out drive(s)")
@@ -378,7 +461,7 @@ def fit(
         validation_ade_m={k: v for k, v in selection.items() if k in BLEND_CHOICES},
         model={"requested": model, "chosen": chosen, "validation_ade_m": selection},
         split=split,
-        fit=list(fit),
+        fit=list(free),
         **(line_info if chosen == "line" else {}),
     )
     return FitResult(params, uncertainty, report, info)
@@ -433,12 +516,12 @@ def _label(p0: Params) -> str:
 
 
 def _candidates(
-    model, blend, init, fit, train_d, tracks, test_tracks, progress
+    model, blend, init, free, train_d, tracks, test_tracks, progress
 ) -> tuple[dict, dict]:
     """The starting points `fit` chooses among: label ("line" or a blend mode) -> (Params, fit
     groups), and the line's provenance (`waypoints_sha256`).
 
-    "auto" offers the line model (unless the drives use different waypoints or `fit` names a
+    "auto" offers the line model (unless the drives use different waypoints or `free` names a
     group it lacks) and the blend model in each mode of `blend`, each with its own default
     groups. Without `speed` among them the blend starts (and stays) at the measured speed,
     speed_weight 1: no memorised speed. (Such a blend scored better on the inner split of Austin
@@ -451,11 +534,11 @@ def _candidates(
     every_track = list(tracks) + list(test_tracks)
     hashes = {waypoints_sha256(np.asarray(t.raw_xy_m)) for t in every_track}
     if model == "auto":
-        names = tuple(n for n in names if not fit or set(fit) <= set(MODEL_FIT[n][0]))
+        names = tuple(n for n in names if not free or set(free) <= set(MODEL_FIT[n][0]))
         names = tuple(n for n in names if n != "line" or len(hashes) == 1)
         if not names:
             allowed = ", ".join(sorted(set(MODEL_FIT["line"][0]) | set(MODEL_FIT["blend"][0])))
-            raise InputError("--fit", "no model fits all of these groups", allowed)
+            raise InputError("free", "no model fits all of these groups", allowed)
     out, line_info = {}, {}
     for name in names:
         if name == "line":
@@ -466,7 +549,7 @@ def _candidates(
                 progress("learning the line and speed profile from the training drives")
                 p0 = _line_init(train_d, every_track, car)
                 line_info = {"waypoints_sha256": next(iter(hashes))}
-            out["line"] = (p0, fit or MODEL_FIT["line"][1])
+            out["line"] = (p0, free or MODEL_FIT["line"][1])
             continue
         p0 = init if init is not None else presets["default"]
         if init is None and "speed" not in (fit or MODEL_FIT["blend"][1]):
@@ -476,7 +559,7 @@ def _candidates(
             p0 = with_settings(presets["default"], **car)
         for mode in BLEND_CHOICES if blend == "auto" else (blend,):
             p = dataclasses.replace(p0, settings=dataclasses.replace(p0.settings, blend=mode))
-            out[mode] = (p, fit or MODEL_FIT["blend"][1])
+            out[mode] = (p, free or MODEL_FIT["blend"][1])
     return out, line_info
 
 
@@ -490,7 +573,7 @@ def _line_init(drives: Sequence[Drive], tracks: Sequence[Track], car: Settings) 
     hashes = {waypoints_sha256(np.asarray(t.raw_xy_m)) for t in tracks}
     if len(hashes) != 1:
         raise InputError(
-            "--model line", "the drives use different waypoints", "one track, or --model blend"
+            "model", "line: the drives use different waypoints", "one track, or model blend"
         )
     profile = learn_line(drives, tracks[0])
     init = Params.create(
@@ -502,67 +585,3 @@ def _line_init(drives: Sequence[Drive], tracks: Sequence[Track], car: Settings) 
         **profile,
     )
     return init
-
-
-def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
-    """The provenance block of a tuned config."""
-    from fpe_jax import __version__
-
-    return {
-        "drives": list(sources),
-        "topics": topics,
-        "split": result.info["split"],
-        "fit": result.info["fit"],
-        "blend_selection_ade_m": result.info["validation_ade_m"],
-        "model_selection": result.info["model"],
-        "solver": {k: result.info[k] for k in ("solver", "steps", "converged", "loss", "seconds")},
-        "heldout": result.report,
-        "fitted_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "fpe_jax_version": __version__,
-    }
-
-
-def format_fitted(result: FitResult) -> str:
-    """Two lines: the fitted values, and the per-step weights (or the line); after `--model
-    auto` a first line with the validation scores it chose by."""
-    p, info = result.params.physical(), result.info
-    ade = info.get("model", {}).get("validation_ade_m", {})
-    if "line" in ade:  # chosen by --model auto
-        blend = min((v for k, v in ade.items() if k != "line"), default=float("nan"))
-        choice = f"chosen by --model auto: inner validation ADE line {ade['line']:.3f} m, "
-        choice += f"blend {blend:.3f} m\n"
-    else:
-        choice = ""
-    if result.params.settings.model == "line":
-        covered = float(np.mean(np.asarray(result.params.line_coverage) > 0))
-        return choice + (
-            f"fitted (line model, {info['steps']} {info['solver']} steps): delay "
-            f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
-            f"{p['speed_tau_s']:.3f} s, position smoothing {p['position_smoothing']:.2f}\n"
-            f"line: {len(p['line_offset_m'])} points, {covered:.0%} "
-            f"covered, offset rms {np.sqrt(np.mean(np.square(p['line_offset_m']))):.3f} m"
-        )
-    return choice + (
-        f"fitted ({info['blend']} blend, {info['steps']} {info['solver']} steps): "
-        f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
-        f"delay {p['delay_s']:.3f} s, speed {p['speed_weight']:.2f} * measured + "
-        f"{1 - p['speed_weight']:.2f} * {p['speed_mps']:.2f} m/s\n"
-        "weights " + " ".join(f"{w:.3f}" for w in p["weights"])
-    )
-
-
-def format_table(report: dict) -> str:
-    """A Markdown table of held-out metrics, one row per predictor."""
-    h = len(next(iter(report.values()))["per_step_m"])
-    steps = [0, h // 2 - 1, h - 1] if h >= 3 else list(range(h))
-    head = "| predictor | ADE m | FDE m | FDE p90 m | miss rate | " + " | ".join(
-        f"err@{k + 1} m" for k in steps
-    )
-    lines = [head + " | n |", "|" + "---|" * (6 + len(steps))]
-    for name, m in report.items():
-        cells = [m["ade_m"], m["fde_m"], m["fde_p90_m"], m["miss_rate"]]
-        cells += [m["per_step_m"][k] for k in steps]
-        lines.append(
-            f"| {name} | " + " | ".join(f"{c:.3f}" for c in cells) + f" | {m['n_predictions']} |"
-        )
-    return "\n".join(lines)

@@ -50,6 +50,24 @@ SIMULATE_KEYS = {"track", "duration_s", "latency_s", "seed", "raceline", "half_w
 _STR, _BOOL = "a string", "true or false"
 
 
+def solver_named(name: str, source="solver"):
+    """The optimistix solver a solver name of the CLI or a recipe (spec.SOLVERS) stands for.
+
+    "bfgs": BFGS on the scalar robust loss (`fit.default_solver`, the library's default);
+    "lm": Levenberg-Marquardt on the residual vector. Both stop on the rms norm of the change,
+    not its largest entry (`fit.default_solver` says why). Raises InputError naming `source`
+    for another name. Imports JAX: call it only once the solver is needed.
+    """
+    S.check_choice(name, S.SOLVERS, source, "solver")
+    if name == "bfgs":
+        from fpe_jax.fit import default_solver
+
+        return default_solver()
+    import optimistix as optx
+
+    return optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5, norm=optx.rms_norm)
+
+
 def _check(ok: bool, source, field: str, value, expected: str) -> None:
     if not ok:
         raise InputError(source, f"{field} is {S.short(value)}", expected)

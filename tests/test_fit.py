@@ -26,6 +26,8 @@ from fpe_jax.export import INPUTS
 from fpe_jax.metrics import coverage, summarize
 from fpe_jax.params import Settings, presets
 from fpe_jax.predict import predict_batch, states_from_drive
+from fpe_jax.recipe import solver_named
+from fpe_jax.report import format_fitted
 from fpe_jax.runner import Runner
 from fpe_jax.sim import simulate
 from fpe_jax.track import Track
@@ -108,7 +110,7 @@ def test_line_model_coverage_is_calibrated_on_a_separate_drive():
 def test_fit_without_latency_fits_no_delay(model, fit):
     a = simulate("oval", duration_s=40, latency_s=0.0, seed=21)
     track = Track.from_waypoints(a.centerline_xy_m)
-    res = F.fit([a.drive], [track], model=model, blend="position", fit=fit)
+    res = F.fit([a.drive], [track], model=model, blend="position", free=fit)
     assert res.params.settings.model == model
     assert float(res.params.delay_s) <= 0.05
 
@@ -116,8 +118,8 @@ def test_fit_without_latency_fits_no_delay(model, fit):
 def test_line_model_fits_no_speed_and_rejects_blend_values(oval_drives):
     fit_d, _, track = oval_drives
     with pytest.raises(InputError, match="lookahead"):
-        F.fit([fit_d.drive], [track], model="line", fit=("lookahead", "delay"))
-    res = F.fit([fit_d.drive], [track], fit=("tau",))  # auto: only the line model has tau
+        F.fit([fit_d.drive], [track], model="line", free=("lookahead", "delay"))
+    res = F.fit([fit_d.drive], [track], free=("tau",))  # auto: only the line model has tau
     assert res.params.settings.model == "line" and res.info["fit"] == ["tau"]
     assert float(res.params.delay_s) == pytest.approx(0.1)  # not freed: the starting value
     assert "speed_mps" not in res.info["fit"] and len(res.info["waypoints_sha256"]) == 64
@@ -155,14 +157,14 @@ def test_auto_model_chooses_on_the_inner_split_and_fits_the_choice_as_named(
     for a, b in zip(jax.tree.leaves(res.params), jax.tree.leaves(named.params)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert res.report["fitted"] == named.report["fitted"]
-    assert F.format_fitted(res).startswith("chosen by --model auto")
+    assert format_fitted(res).startswith("chosen by --model auto")
 
 
 def test_fit_subset_keeps_the_rest_fixed(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
     data = E.make_datasets([fit_d.drive], [track], init.settings, "training")
-    p, info = F.fit_params(data, init, fit=("delay",), max_steps=30)
+    p, info = F.fit_params(data, init, free=("delay",), max_steps=30)
     assert float(p.lookahead_m) == pytest.approx(float(init.lookahead_m), abs=1e-9)
     np.testing.assert_allclose(np.asarray(p.weights), np.asarray(init.weights), atol=1e-9)
     assert float(p.delay_s) != pytest.approx(float(init.delay_s), abs=1e-3)
@@ -174,7 +176,10 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
     data = E.make_datasets([fit_d.drive.slice_time(0, 30)], [track], init.settings, "training")
-    fits = {s: F.fit_params(data, init, fit=("delay", "speed"), solver=s) for s in F.SOLVERS}
+    fits = {
+        s: F.fit_params(data, init, free=("delay", "speed"), solver=solver_named(s))
+        for s in F.SOLVERS
+    }
     (p_bfgs, i_bfgs), (p_lm, i_lm) = fits["bfgs"], fits["lm"]
     assert i_bfgs["converged"] and i_lm["converged"]
     assert i_bfgs["loss"] == pytest.approx(i_lm["loss"], rel=1e-4)
@@ -192,6 +197,48 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
         F.fit_params(data, init, solver="adam")
 
 
+def test_fit_params_takes_solver_objects_and_the_old_fit_keyword_with_a_warning(oval_drives):
+    """Solvers are optimistix objects (a name is an error that says how to make one); the old
+    `fit=` keyword still works, deprecated, with the same result."""
+    import optimistix as optx
+
+    fit_d, _, track = oval_drives
+    init = presets["default"]
+    data = E.make_datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
+    loose = optx.BFGS(rtol=1e-3, atol=1e-5, norm=optx.rms_norm)
+    p, info = F.fit_params(data, init, free=("delay",), solver=loose)
+    assert info["solver"] == "bfgs" and info["converged"]
+    with pytest.warns(DeprecationWarning, match="free="):
+        old, old_info = F.fit_params(data, init, fit=("delay",), solver=loose)
+    assert float(old.delay_s) == float(p.delay_s) and old_info["loss"] == info["loss"]
+    _, lm_info = F.fit_params(data, init, free=("delay",), solver=solver_named("lm"))
+    assert lm_info["solver"] == "lm"
+    with pytest.raises(InputError, match="^solver: 'lm' is not an optimistix solver.*solver_named"):
+        F.fit_params(data, init, solver="lm")
+    with pytest.raises(TypeError, match="free="):
+        F.fit_params(data, init, free=("delay",), fit=("delay",))
+    with pytest.raises(InputError, match="^solver: dict is not an optimistix solver"):
+        F.fit_params(data, init, solver={"rtol": 1e-3})
+    # the compiled solve is stored under the solver's printed form: no memory addresses in it
+    assert "0x" not in repr(F._Static(F.default_solver()))
+
+
+def test_fit_errors_name_the_argument_and_the_cli_names_its_flag(oval_drives, tmp_path, capsys):
+    fit_d, _, track = oval_drives
+    with pytest.raises(InputError, match="^free: "):
+        F.fit([fit_d.drive], [track], model="line", free=("lookahead",))
+    with pytest.raises(InputError, match="^model: unknown model 'best'"):
+        F.fit([fit_d.drive], [track], model="best")
+    from fpe_jax.sim import write_simulation
+
+    write_simulation(simulate("oval", duration_s=10, seed=3), tmp_path / "sim")
+    log, wp = tmp_path / "sim" / "drive.mcap", tmp_path / "sim" / "waypoints.csv"
+    out = tmp_path / "c.json"
+    args = ["fit", str(log), "--waypoints", str(wp), "--out", str(out), "--model", "line"]
+    assert main([*args, "--fit", "lookahead"]) == 2
+    assert "fpe: error: --fit: lookahead do(es) not apply to model line" in capsys.readouterr().err
+
+
 def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
@@ -202,9 +249,9 @@ def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     due = d.drive.t_s[d.targets.rows, None] + 0.1 * np.arange(1, 11)[None, :]
     assert not np.any(inner.targets.mask & (due >= cut - 0.05))  # nothing from after the cut
     np.testing.assert_array_equal(inner.targets.mask, d.targets.mask & (due < cut - 0.05))
-    a, _ = F.fit_params([inner], init, fit=("delay",))
+    a, _ = F.fit_params([inner], init, free=("delay",))
     n_compiled = len(aot._MEMO)
-    b, info = F.fit_params([d], init, fit=("delay",))  # other mask, same shapes: no new compile
+    b, info = F.fit_params([d], init, free=("delay",))  # other mask, same shapes: no new compile
     assert len(aot._MEMO) == n_compiled
     assert info["trace_s"] == info["compile_s"] == info["load_s"] == 0.0  # the timing says so
     assert 0.0 < info["solve_s"] <= info["seconds"]

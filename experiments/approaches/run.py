@@ -38,8 +38,9 @@ from fpe_jax.demo import (
     presets_beating_fitted,
     study_cases,
 )
-from fpe_jax.fit import DEFAULT_MODEL, format_fitted
+from fpe_jax.fit import DEFAULT_MODEL
 from fpe_jax.progress import Progress
+from fpe_jax.report import format_fitted
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"

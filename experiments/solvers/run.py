@@ -25,6 +25,7 @@ from fpe_jax.demo import simulated_case, study_cases  # noqa: E402
 from fpe_jax.evaluate import evaluate, make_datasets  # noqa: E402
 from fpe_jax.fit import SOLVERS, fit_params  # noqa: E402
 from fpe_jax.params import presets  # noqa: E402
+from fpe_jax.recipe import solver_named  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
@@ -41,7 +42,7 @@ def main() -> None:
         train = make_datasets([case.fit_drive], [track], init.settings, "training")
         test = make_datasets([case.test_drive], [track], init.settings, "held-out")
         for solver in SOLVERS:
-            params, info = fit_params(train, init, solver=solver)
+            params, info = fit_params(train, init, solver=solver_named(solver))
             fde = evaluate(params, test)["fde_m"]
             rows.append((case.name, solver, info, fde))
             print(

@@ -1,0 +1,77 @@
+"""What a fit reports: the provenance block of a tuned config, the fitted values in two lines and
+the Markdown table of held-out metrics (`fpe fit`, `fpe evaluate`, the demo and the studies)."""
+
+from __future__ import annotations
+
+import datetime
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from fpe_jax.fit import FitResult
+
+
+def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
+    """The provenance block of a tuned config."""
+    from fpe_jax import __version__  # the package root imports nothing eagerly
+
+    return {
+        "drives": list(sources),
+        "topics": topics,
+        "split": result.info["split"],
+        "fit": result.info["fit"],
+        "blend_selection_ade_m": result.info["validation_ade_m"],
+        "model_selection": result.info["model"],
+        "solver": {k: result.info[k] for k in ("solver", "steps", "converged", "loss", "seconds")},
+        "heldout": result.report,
+        "fitted_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "fpe_jax_version": __version__,
+    }
+
+
+def format_fitted(result: FitResult) -> str:
+    """Two lines: the fitted values, and the per-step weights (or the line); after `--model
+    auto` a first line with the validation scores it chose by."""
+    p, info = result.params.physical(), result.info
+    ade = info.get("model", {}).get("validation_ade_m", {})
+    if "line" in ade:  # chosen by --model auto
+        blend = min((v for k, v in ade.items() if k != "line"), default=float("nan"))
+        choice = f"chosen by --model auto: inner validation ADE line {ade['line']:.3f} m, "
+        choice += f"blend {blend:.3f} m\n"
+    else:
+        choice = ""
+    if result.params.settings.model == "line":
+        covered = float(np.mean(np.asarray(result.params.line_coverage) > 0))
+        return choice + (
+            f"fitted (line model, {info['steps']} {info['solver']} steps): delay "
+            f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
+            f"{p['speed_tau_s']:.3f} s, position smoothing {p['position_smoothing']:.2f}\n"
+            f"line: {len(p['line_offset_m'])} points, {covered:.0%} "
+            f"covered, offset rms {np.sqrt(np.mean(np.square(p['line_offset_m']))):.3f} m"
+        )
+    return choice + (
+        f"fitted ({info['blend']} blend, {info['steps']} {info['solver']} steps): "
+        f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
+        f"delay {p['delay_s']:.3f} s, speed {p['speed_weight']:.2f} * measured + "
+        f"{1 - p['speed_weight']:.2f} * {p['speed_mps']:.2f} m/s\n"
+        "weights " + " ".join(f"{w:.3f}" for w in p["weights"])
+    )
+
+
+def format_table(report: dict) -> str:
+    """A Markdown table of held-out metrics, one row per predictor."""
+    h = len(next(iter(report.values()))["per_step_m"])
+    steps = [0, h // 2 - 1, h - 1] if h >= 3 else list(range(h))
+    head = "| predictor | ADE m | FDE m | FDE p90 m | miss rate | " + " | ".join(
+        f"err@{k + 1} m" for k in steps
+    )
+    lines = [head + " | n |", "|" + "---|" * (6 + len(steps))]
+    for name, m in report.items():
+        cells = [m["ade_m"], m["fde_m"], m["fde_p90_m"], m["miss_rate"]]
+        cells += [m["per_step_m"][k] for k in steps]
+        lines.append(
+            f"| {name} | " + " | ".join(f"{c:.3f}" for c in cells) + f" | {m['n_predictions']} |"
+        )
+    return "\n".join(lines)
