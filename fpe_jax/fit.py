@@ -552,11 +552,12 @@ def _candidates(
             out["line"] = (p0, free or MODEL_FIT["line"][1])
             continue
         p0 = init if init is not None else presets["default"]
-        if init is None and "speed" not in (fit or MODEL_FIT["blend"][1]):
-            p0 = dataclasses.replace(p0, speed_weight=jnp.ones_like(p0.speed_weight))
         if p0.settings.model != "blend":  # a line config lends only its car and grid
             car = {k: getattr(p0.settings, k) for k in USER_SETTINGS}
             p0 = with_settings(presets["default"], **car)
+        if p0 is not init and "speed" not in (free or MODEL_FIT["blend"][1]):
+            # the preset's shrinkage toward 2 m/s would stay: drive at the measured speed
+            p0 = dataclasses.replace(p0, speed_weight=jnp.ones_like(p0.speed_weight))
         for mode in BLEND_CHOICES if blend == "auto" else (blend,):
             p = dataclasses.replace(p0, settings=dataclasses.replace(p0.settings, blend=mode))
             out[mode] = (p, free or MODEL_FIT["blend"][1])
