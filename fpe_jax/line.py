@@ -5,8 +5,8 @@ onto the centerline: arc length s, signed lateral offset d (left positive) and a
 ds/dt. These samples are spread onto P points evenly spaced in arc length (linear weights) and
 smoothed with a Gaussian kernel in arc length (circular on loops): a smooth periodic function
 whose smoothness is the kernel width. A point's coverage is the kernel-weighted sample count,
-capped at 1: where the fit drives never went it is 0 and the rollout falls back to the centerline
-and the current speed (`fpe_jax.rollout.rollout_frenet`).
+capped at 1: where the fit drives never went it is 0 and the rollout holds the car's own offset
+(slowly decaying) and its current speed (`fpe_jax.rollout.rollout_frenet`).
 
 The profile is tied to the waypoints it was learned on by `waypoints_sha256`.
 """

@@ -107,7 +107,7 @@ class Params(eqx.Module):
             for every other model.
         line_speed_mps: (P,) line model: along-track speed profile [m/s] on the same points.
         line_coverage: (P,) line model: in [0, 1], how well the fit drives covered each point;
-            where 0 the rollout falls back to the centerline and the current speed.
+            where 0 the rollout holds the car's own offset (slowly decaying) and speed.
         settings: static `Settings`.
     """
 

@@ -234,15 +234,17 @@ def profile_at(values: Float[Array, " P"], s_m, track: Track):
     else:
         u = jnp.clip(s_m / track.length_m, 0.0, 1.0) * (p - 1)
         i = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, p - 2)
-        j, f = i + 1, u - i
+        j, f = i + 1, u - i.astype(u.dtype)
     return values[i] + f * (values[j] - values[i])
 
 
 MIN_PROFILE_SPEED_MPS = 0.2  # a profile slower than this is no speed reference (ratio held at 1)
 MAX_SPEED_RATIO = 3.0  # the profile may at most triple or cut to 0 the current speed
-# Where the fit drives never went the offset decays as the frenet preset's does: a fitted time
-# constant describes how the car holds a line it knows, not the centerline.
-FALLBACK_TAU_S = 1.0
+# Where the fit drives never went the car is taken to hold its current offset, decaying to the
+# centerline only slowly, with this time constant [s]: a racing car's line changes little within
+# a second, and the centerline is rarely where it drives.
+FALLBACK_TAU_S = 3.0
+SLOPE_DS_M = 0.5  # half the arc-length step of the target offset's slope [m]
 
 
 def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
@@ -257,9 +259,12 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     line l(s): d(t) = l(s(t)) + (d0 - l(s0)) exp(-t / offset_tau_s), and the speed follows the
     profile's shape scaled to the car's own: v(t) = v0 (1 + (v_p(s(t)) / v_p(s_ref) - 1)
     (1 - exp(-t / speed_tau_s))), s_ref where the speed was measured, so the car keeps its pace
-    and brakes where the profile brakes. Where the profile's coverage c(s) is 0 both fall back
-    (line 0, ratio 1, the offset's time constant FALLBACK_TAU_S). The yaw is the path heading
-    turned by the offset's slope.
+    and brakes where the profile brakes. Where the profile's coverage c(s) is 0 the speed ratio is
+    1 and the target offset is the car's own, d0 exp(-t / FALLBACK_TAU_S), held and slowly
+    decaying. The line model's return to its target L starts at the car's lateral rate relative
+    to the target's, r0 = v sin(course - heading) - L'(s0) v0 (critically damped): d(t) = L(t) +
+    (e0 + (r0 + e0 / tau) t) exp(-t / tau), e0 = d0 - L(s0). The yaw is the path heading turned
+    by the offset's slope.
     """
     p0 = jnp.stack([state.x_m, state.y_m])
     s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
@@ -292,8 +297,13 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
         )
 
     if has_line:
-        l0, c_now, _ = line(s0)
-        tau = c_now * tau + (1.0 - c_now) * FALLBACK_TAU_S
+
+        def target(x):  # the offset the car returns to: its line, where uncovered its own
+            lx, cx, _ = line(x)
+            return lx + (1.0 - cx) * d0
+
+        l0 = target(s0)
+        hold = d0 * jnp.exp(-t_end / FALLBACK_TAU_S)  # uncovered: held, slowly decaying
         # the measured speed is the window's average: the profile's shape from where the car
         # was then (s0 - v0 age) carries it to now and over the horizon
         _, cov0, vp0 = line(s0 - v0 * age)
@@ -310,10 +320,17 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
             return s, s
 
         _, s = jax.lax.scan(step, s0, (dts, t_end - dts))
-        l_s = jax.vmap(lambda x: line(x)[0])(s)
+        l_s, c_s, _ = jax.vmap(line)(s)
+        l_s = l_s + (1.0 - c_s) * hold
+        # the return to the target starts at the car's own lateral rate relative to the
+        # target's (critically damped): the course says where the car is heading now
+        slope = (target(s0 + SLOPE_DS_M) - target(s0 - SLOPE_DS_M)) / (2.0 * SLOPE_DS_M)
+        rate = state.v_mps * jnp.sin(state.course_rad - h0) - slope * v0
+        e0 = d0 - l0
+        d = l_s + (e0 + (rate + e0 / tau) * t_end) * jnp.exp(-t_end / tau)
     else:
         s, l0, l_s = s0 + v0 * t_end, 0.0, 0.0
-    d = l_s + (d0 - l0) * jnp.exp(-t_end / tau)
+        d = l_s + (d0 - l0) * jnp.exp(-t_end / tau)
     heading = jax.vmap(track.heading_at)(s)
     xy = jax.vmap(track.point_at)(s)
     xs = xy[:, 0] - d * jnp.sin(heading)

@@ -49,7 +49,8 @@ LOCAL_PROJECTION_ITERS = 2
 TRACK_FRAME_ITERS = 3  # fpe_jax.estimate.estimate_track_frame's project_local iterations
 MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.rollout's
 MAX_SPEED_RATIO = 3.0
-FALLBACK_TAU_S = 1.0
+FALLBACK_TAU_S = 3.0
+SLOPE_DS_M = 0.5
 INIT_POS_SIGMA_M = 0.3  # fpe_jax.kalman's
 INIT_SPEED_SIGMA_MPS = 2.0
 INIT_LAT_RATE_SIGMA_MPS = 0.5
@@ -510,6 +511,11 @@ class Runner:
         c = self._profile_at(coverage, s_m)
         return c * self._profile_at(offset, s_m), c, self._profile_at(speed, s_m)
 
+    def _target_at(self, s_m: float, d0_m: float) -> float:
+        """fpe_jax.rollout.rollout_frenet's target offset at the start: the line, uncovered d0."""
+        line, c, _ = self._line_at(s_m)
+        return line + (1.0 - c) * d0_m
+
     def _frenet(self, frame, est) -> np.ndarray:
         """fpe_jax.rollout.rollout_frenet from the track-frame estimate and the state."""
         s_fit, v0, d_fit, age = frame
@@ -524,8 +530,10 @@ class Runner:
         t, s_all, d_all = 0.0, [], []
         l0, tau = 0.0, self._offset_tau_s
         if self._line is not None:
-            l0, c_now, _ = self._line_at(s0)
-            tau = c_now * tau + (1.0 - c_now) * FALLBACK_TAU_S
+            l0 = self._target_at(s0, d0)
+            rate = est[3] * math.sin(est[5] - h) - v0 * (
+                self._target_at(s0 + SLOPE_DS_M, d0) - self._target_at(s0 - SLOPE_DS_M, d0)
+            ) / (2.0 * SLOPE_DS_M)
             _, cov0, vp0 = self._line_at(s0 - v0 * age)
             ok0 = cov0 * (1.0 if vp0 > MIN_PROFILE_SPEED_MPS else 0.0)
             vp0 = max(vp0, MIN_PROFILE_SPEED_MPS)
@@ -542,9 +550,14 @@ class Runner:
                 v = v0 * (1.0 + (ratio - 1.0) * -math.expm1(-(t + age) / self._speed_tau_s))
                 s = s + v * dt
                 t += dt
-                line = self._line_at(s)[0]
+                line, c, _ = self._line_at(s)
+                line += (1.0 - c) * d0 * math.exp(-t / FALLBACK_TAU_S)
             s_all.append(s)
-            d_all.append(line + (d0 - l0) * math.exp(-t / tau))
+            if self._line is None:
+                d_all.append(line + (d0 - l0) * math.exp(-t / tau))
+            else:
+                e0 = d0 - l0
+                d_all.append(line + (e0 + (rate + e0 / tau) * t) * math.exp(-t / tau))
         rows, s_prev, d_prev = [], s0, d0
         for k, (s, d) in enumerate(zip(s_all, d_all)):
             h = path.heading_at(s)

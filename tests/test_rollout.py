@@ -13,12 +13,14 @@ from helpers import fd_gradient
 from fpe_jax import Params, Settings, State, Track
 from fpe_jax.path import wrap_angle
 from fpe_jax.rollout import (
+    FALLBACK_TAU_S,
     _sincos,
     pure_pursuit_steer,
     rollout,
     rollout_blend,
     rollout_ctrv,
     rollout_cv,
+    rollout_frenet,
     rollout_linear,
     rollout_pure_pursuit,
     rollout_seed,
@@ -417,3 +419,47 @@ def test_gradients_match_central_differences(levine, blend):
     # L = lookahead + gain * v: the two gradients are exactly proportional (v the rollout speed)
     v_roll = 0.8 * v + 0.2 * 1.5
     assert float(grad.lookahead_gain_s) == pytest.approx(v_roll * float(grad.lookahead_m), rel=1e-9)
+
+
+# ---- the line model's fallback and lateral rate ----------------------------------------------
+
+
+def line_model(coverage: float, offset_m: float = 0.0, **kw) -> Params:
+    """A line-model Params on the 30 m straight: the line at offset_m, covered by `coverage`."""
+    p = 60
+    return params(
+        model="line",
+        line_offset_m=np.full(p, offset_m),
+        line_speed_mps=np.full(p, 2.0),
+        line_coverage=np.full(p, coverage),
+        **kw,
+    )
+
+
+def lateral_offsets(p: Params, st: State, track: Track) -> np.ndarray:
+    """(H,) the rollout's left offset [m] from the straight along +x."""
+    return np.asarray(eqx.filter_jit(rollout_frenet)(p, st, track))[:, 1]
+
+
+def test_uncovered_line_holds_the_cars_offset_decaying_slowly():
+    """Where the fit drives never went the car keeps its own offset (the centerline is rarely
+    where it drives), decaying with FALLBACK_TAU_S, not with the fitted time constant."""
+    track, st = line_track(0.0), state(5.0, 0.8, 0.0, 2.0)
+    p = line_model(0.0, offset_tau_s=0.2)
+    expected = 0.8 * np.exp(-STEPS / FALLBACK_TAU_S)
+    np.testing.assert_allclose(lateral_offsets(p, st, track), expected, atol=1e-9)
+    # covered: the offset returns to the line with the fitted time constant
+    covered = lateral_offsets(line_model(1.0, offset_tau_s=0.2), st, track)
+    e0, t = 0.8, STEPS
+    np.testing.assert_allclose(covered, (e0 + e0 / 0.2 * t) * np.exp(-t / 0.2), atol=1e-9)
+
+
+def test_the_return_to_the_line_starts_at_the_cars_lateral_rate():
+    """A car on its line but heading away from it keeps moving away at first (its course), then
+    returns: the offset's first step follows v sin(course - heading)."""
+    track = line_track(0.0)
+    st = state(5.0, 0.0, 0.0, 2.0, course_rad=0.1)
+    d = lateral_offsets(line_model(1.0, offset_tau_s=0.5), st, track)
+    rate = 2.0 * np.sin(0.1)
+    np.testing.assert_allclose(d, rate * STEPS * np.exp(-STEPS / 0.5), atol=1e-9)
+    assert d[0] == pytest.approx(rate * DT, rel=0.2) and abs(d[-1]) < d[2]

@@ -82,6 +82,7 @@ def test_mirrored_constants_match_the_jax_modules():
     assert runner.MIN_PROFILE_SPEED_MPS == rollout.MIN_PROFILE_SPEED_MPS
     assert runner.MAX_SPEED_RATIO == rollout.MAX_SPEED_RATIO
     assert runner.FALLBACK_TAU_S == rollout.FALLBACK_TAU_S
+    assert runner.SLOPE_DS_M == rollout.SLOPE_DS_M
     src = inspect.getsource(__import__("fpe_jax.estimate").estimate.track_frame_window)
     assert f"iters={runner.TRACK_FRAME_ITERS}" in src
     from fpe_jax import kalman

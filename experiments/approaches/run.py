@@ -5,8 +5,8 @@ Approach 1 (displacement) = the `constant-velocity` preset, 2 = `linear`, 3 = `p
 4 = `seed` (the 0.7 blend exactly as the 2019 node ran it, speed hard-coded to 1 m/s) and
 `seed-measured-speed` (the same rules with the measured speed); `ctrv` and `frenet` (along-track
 speed held, lateral offset decaying to the centerline) are extra baselines. The fitted predictor
-is `fpe fit`'s default (`--model auto`: the line model, the car's own line and speed profile, or
-the blend, whichever predicts an inner validation split of the fit drive better).
+is `fpe fit`'s default (`fpe_jax.fit.DEFAULT_MODEL`, the line model: the car's own line and
+speed profile learned from the fit drive).
 
 - Levine: fit on the first 60 % of the lap, report on the last 40 % (targets are the trace itself).
 - Simulated: a 60 s fit drive and a separate 40 s test drive (other seed) per track, detection
@@ -38,6 +38,7 @@ from fpe_jax.demo import (
     presets_beating_fitted,
     study_cases,
 )
+from fpe_jax.fit import DEFAULT_MODEL
 from fpe_jax.progress import Progress
 from fpe_jax.report import format_fitted
 
@@ -50,6 +51,7 @@ BLEND_FDE_M = {"oval": 0.848, "hairpin": 1.002, "Austin": 0.883, "Catalunya": 0.
 BLEND_FDE_M |= {"Monza": 0.429, "Silverstone": 0.626, "Spielberg": 0.760}
 ORDER = ("fitted", "seed", "seed-measured-speed", "constant-velocity", "linear", "pure-pursuit")
 ORDER += ("ctrv", "frenet")
+MODEL = DEFAULT_MODEL  # the fitted predictor: what `fpe fit` fits with no flags
 
 
 def cases(say):
@@ -85,9 +87,9 @@ def main() -> None:
         say("simulating the drives and reading the Levine lap")
         todo = cases(say)
         for i, case in enumerate(todo):
-            say(f"[{i + 1}/{len(todo)}] {case.name}: fitting the line model")
+            say(f"[{i + 1}/{len(todo)}] {case.name}: fitting the {MODEL} model")
             res = fit_case(
-                case, model="auto", blend="auto", progress=lambda m, n=case.name: say(f"{n}: {m}")
+                case, model=MODEL, blend="auto", progress=lambda m, n=case.name: say(f"{n}: {m}")
             )
             results.append((case, res))
         say("writing the results")
@@ -111,8 +113,10 @@ def main() -> None:
 
 
 def _choice(model: dict) -> str:
-    """The chosen model and the inner validation ADEs it was chosen by."""
+    """The chosen model and the inner validation ADEs it was chosen by (if it was chosen)."""
     ade = model["validation_ade_m"]
+    if not ade:
+        return model["chosen"]
     blend = min((v for k, v in ade.items() if k != "line"), default=float("nan"))
     return f"{model['chosen']} ({ade.get('line', float('nan')):.3f} / {blend:.3f})"
 
@@ -130,11 +134,15 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
         "hard-coded to 1 m/s) and `seed-measured-speed` (same rules, measured speed); `ctrv` "
         "(constant turn rate and velocity) and `frenet` (along-track speed held, lateral offset "
         "decaying to the centerline) are extra baselines. The fitted predictor is `fpe fit`'s "
-        "default, `--model auto`: the line model (the car's own line and speed profile learned "
-        "from the fit drive, a Frenet rollout on it) or the linear / pure-pursuit blend, "
-        "whichever predicts the last quarter of the fit drive better when fitted on the rest "
-        "(the line learned from the rest only). Errors are on data the fit did "
-        "not see. Simulated drives: a "
+        f"default, `--model {MODEL}`: "
+        + (
+            "the line model (the car's own line and speed profile learned from the fit drive, a "
+            "Frenet rollout on it; where the fit drive never went it holds the car's own "
+            "offset and speed)"
+            if MODEL == "line"
+            else f"the {MODEL} model"
+        )
+        + ". Errors are on data the fit did not see. Simulated drives: a "
         f"{STUDY_FIT_S:g} s fit drive (seed {STUDY_FIT_SEED}) and a separate {STUDY_TEST_S:g} s "
         f"test drive (seed {STUDY_TEST_SEED}) per track, detection latency {LATENCY_S} s, "
         "targets = the true positions; "
@@ -155,7 +163,8 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
         "",
         "| case | fitted ADE m | fitted FDE m | frenet FDE m | seed FDE m | "
         "seed-measured-speed FDE m | ratio | ratio <= 0.5 | blend FDE m | vs blend | beaten at "
-        "| fitted delay s (true) | model (line / blend validation ADE m) | predictions |",
+        "| fitted delay s (true) | model (line / blend validation ADE m, after auto) | "
+        "predictions |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for case, r in results:

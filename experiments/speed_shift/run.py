@@ -67,6 +67,12 @@ def speed_shift(track: str, **kw) -> dict:
         out[f"{name}_params"] = res.params.physical()
     out["ratio"] = out["slow"] / out["fast"]
     out["ratio_far"] = out["far"] / out["fast"]
+    # the blend model's default fit has no memorised speed either: the same shift for it
+    for name, drv in (("slow", slow), ("fast", fast)):
+        res = fit([drv], [trk], test_drives=[test], test_tracks=[trk], model="blend")
+        out[f"blend_{name}"] = res.report["fitted"]["fde_m"]
+        out[f"blend_{name}_speed_weight"] = res.params.physical()["speed_weight"]
+    out["blend_ratio"] = out["blend_slow"] / out["blend_fast"]
     return out
 
 
@@ -88,7 +94,8 @@ def main() -> None:
         "",
         f"Per track: line-model configs (`fpe fit`'s default) fitted on a {FIT_S:g} s drive at "
         f"speed factor {FAST} (fast fit), on a {FIT_S:g} s drive at {SLOW} (slow fit, {FIT_S:g} "
-        f"s: it covers less of the track, where the line falls back to the centerline) and on a "
+        f"s: it covers less of the track, where the line model holds the car's own offset and "
+        f"speed) and on a "
         f"drive at {SLOW} over the fast one's distance ({FIT_S * FAST / SLOW:.0f} s), all scored "
         f"on a separate {TEST_S:g} s test drive at {FAST} (seed 2); latency 0.3 s. Ratio = "
         "FDE(slow fit) / FDE(fast fit); the acceptance asks <= 1.15 on at least three tracks, "
@@ -112,7 +119,20 @@ def main() -> None:
         f"Ratio <= 1.15 on {n} of {len(rows)} tracks with the {FIT_S:g} s slow drive, on "
         f"{n_far} of {len(rows)} with the slow drive over the same distance.",
         "",
+        f"The blend model (`--model blend`, default groups: no `speed`, so it drives at the "
+        f"measured speed) fitted on the same {FIT_S:g} s slow and fast drives:",
+        "",
+        "| track | blend FDE fast fit m | blend FDE slow fit m | ratio | speed_weight (slow, "
+        "fast) |",
+        "|---|---|---|---|---|",
     ]
+    for track, r in rows:
+        lines.append(
+            f"| {track} | {r['blend_fast']:.3f} | {r['blend_slow']:.3f} | "
+            f"{r['blend_ratio']:.2f} | {r['blend_slow_speed_weight']:.2f}, "
+            f"{r['blend_fast_speed_weight']:.2f} |"
+        )
+    lines.append("")
     for track, r in rows:
         for name in ("slow", "far", "fast"):
             p = r[f"{name}_params"]
