@@ -115,6 +115,24 @@ def test_fit_without_latency_fits_no_delay(model, fit):
     assert float(res.params.delay_s) <= 0.05
 
 
+def test_the_line_models_estimator_follows_its_fit_groups(oval_drives):
+    """Theil-Sen with `smoothing` by default; naming `filter` runs the Kalman filter, and each
+    estimator's own group is refused with the other."""
+    fit_d, _, track = oval_drives
+    drive = fit_d.drive.slice_time(0, 20)
+    res = F.fit([drive], [track], model="line")
+    assert res.params.settings.estimator == "theil-sen"
+    assert res.info["fit"] == ["delay", "tau", "smoothing"]
+    kal = F.fit([drive], [track], model="line", free=("delay", "filter"))
+    assert kal.params.settings.estimator == "kalman" and kal.info["fit"] == ["delay", "filter"]
+    assert F.default_groups(kal.params.settings) == ("delay", "tau", "filter")
+    data = E.make_datasets([drive], [track], kal.params.settings, "training")
+    with pytest.raises(InputError, match="smoothing do.es. not apply to model line with the kal"):
+        F.fit_params(data, kal.params, free=("smoothing",))
+    with pytest.raises(InputError, match="filter do.es. not apply to model line with the theil"):
+        F.fit_params(data, res.params, free=("filter",))
+
+
 def test_blend_default_fit_drives_at_the_measured_speed(oval_drives):
     """No memorised speed: the blend's default groups leave out `speed`, and it starts (and so
     stays) at speed_weight 1; naming `speed` still fits the shrinkage."""
