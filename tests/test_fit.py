@@ -96,7 +96,7 @@ def test_line_model_coverage_is_calibrated_on_a_separate_drive():
     """The line model's covariance comes from cross-fitted residuals; on a separate drive of the
     same track (whose line is learned on all of the fit drive) the ellipses hold within 10
     points of the ideal 39.3 % / 86.5 % (two halves gave 1-sigma 53 % on the hairpin study)."""
-    from fpe_jax.demo import fit_case, simulated_case
+    from fpe_jax.cases import fit_case, simulated_case
 
     res = fit_case(simulated_case("hairpin"), model="line")  # the uncertainty study's case
     fitted = res.report["fitted"]
@@ -483,7 +483,7 @@ def test_levine_fit_beats_seed_and_constant_velocity(shared_data):
     rep = res.report
     # the default beats every preset at every step, though the test part lies mostly where the
     # fit part never went (the line model holds the car's own offset there)
-    from fpe_jax.demo import presets_beating_fitted
+    from fpe_jax.cases import presets_beating_fitted
 
     assert presets_beating_fitted(rep) == [], res.info["model"]
     for base in ("seed", "constant-velocity"):

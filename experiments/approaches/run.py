@@ -27,7 +27,7 @@ from pathlib import Path
 import jax
 
 from fpe_jax import plots
-from fpe_jax.demo import (
+from fpe_jax.cases import (
     LATENCY_S,
     STUDY_FIT_S,
     STUDY_FIT_SEED,

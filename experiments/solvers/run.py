@@ -21,7 +21,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from fpe_jax.demo import simulated_case, study_cases  # noqa: E402
+from fpe_jax.cases import simulated_case, study_cases  # noqa: E402
 from fpe_jax.evaluate import evaluate, make_datasets  # noqa: E402
 from fpe_jax.fit import SOLVERS, fit_params  # noqa: E402
 from fpe_jax.params import presets  # noqa: E402

@@ -24,7 +24,7 @@ import jax
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.demo import LATENCY_S, fit_case, levine_case, simulated_case
+from fpe_jax.cases import LATENCY_S, fit_case, levine_case, simulated_case
 from fpe_jax.evaluate import heldout_predictions
 from fpe_jax.params import presets
 from fpe_jax.progress import Progress

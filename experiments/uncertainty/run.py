@@ -26,7 +26,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.demo import LATENCY_S, fit_case, levine_case, simulated_case
+from fpe_jax.cases import LATENCY_S, fit_case, levine_case, simulated_case
 from fpe_jax.evaluate import heldout_predictions
 from fpe_jax.metrics import coverage, track_frame_residuals
 from fpe_jax.path import nearest_index

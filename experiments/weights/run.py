@@ -20,7 +20,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.demo import DELAY_TOLERANCE_S, fde_ratio, fit_case, levine_case, simulated_case
+from fpe_jax.cases import DELAY_TOLERANCE_S, fde_ratio, fit_case, levine_case, simulated_case
 from fpe_jax.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[2]
