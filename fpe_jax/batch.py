@@ -45,7 +45,6 @@ import math
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -62,7 +61,6 @@ from fpe_jax.track import Track
 
 DTYPES = {"float32": np.float32, "float64": np.float64}
 DEFAULT_CHUNK = 1 << 14  # 16384 cars: working set stays in cache (1.3x the rate of 65536 here)
-STATE_COLUMNS = ("x", "y", "yaw", "v", "yaw_rate")  # the (N, 4|5) layout of `cars`
 _SLOW_BATCH = 256  # cars per exhaustive projection in the off-grid fallback: bounds its memory
 
 
@@ -588,127 +586,3 @@ def _store(out: np.ndarray, start: int, stop: int, result, n_sets) -> None:
         out[start:stop] = res[: stop - start]
     else:
         out[:, start:stop] = res[:, : stop - start]
-
-
-# ---- files for `fpe batch` ---------------------------------------------------------------------
-
-
-def _check_npy_header(p: Path) -> None:
-    """Refuse a .npy whose header declares more data than the file holds, or than MAX_CARS rows,
-    before anything is allocated (a forged header once asked for 29 TiB)."""
-    try:
-        with open(p, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            read = {(1, 0): np.lib.format.read_array_header_1_0}.get(
-                version, np.lib.format.read_array_header_2_0
-            )
-            shape, _, dtype = read(f)
-            data_start = f.tell()
-    except Exception as e:  # a forged header fails in numpy's parser in many ways (TokenError...)
-        raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
-    n_bytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
-    available = p.stat().st_size - data_start
-    if n_bytes > available:
-        raise InputError(
-            p, f"header declares shape {shape} ({n_bytes} bytes) but holds {available}",
-            "an intact np.save file",
-        )  # fmt: skip
-    if shape and shape[0] > spec.MAX_CARS:
-        raise InputError(p, f"{shape[0]} cars", f"at most {spec.MAX_CARS} per call; split the file")
-
-
-def read_cars(path) -> np.ndarray:
-    """Cars from a CSV with header `x,y,yaw,v[,yaw_rate]` or a `.npy` (N, 4|5) array.
-
-    Returns (N, 4|5) float64 rows x [m], y [m], yaw [rad], v [m/s][, yaw_rate [rad/s]].
-    Raises InputError naming the file and the problem (missing column, NaN row, bad shape).
-    """
-    p = Path(path)
-    if p.suffix.lower() == ".npy":
-        if not p.is_file():
-            raise InputError(p, "does not exist", "a .npy array or a CSV of cars")
-        _check_npy_header(p)
-        try:
-            arr = np.load(p, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as e:
-            raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
-        real = np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
-        if arr.ndim != 2 or arr.shape[1] not in (4, 5) or not real:
-            raise InputError(
-                p,
-                f"array of shape {arr.shape} dtype {arr.dtype}",
-                "(N, 4|5) x, y, yaw, v[, yaw_rate]",
-            )
-        arr = arr.astype(np.float64)
-    else:
-        from fpe_jax.io.tables import read_table
-
-        table = read_table(p)
-        if table.header is None:
-            raise InputError(p, "has no header", "a header line x,y,yaw,v[,yaw_rate]")
-        missing = [c for c in STATE_COLUMNS[:4] if c not in table.header]
-        if missing:
-            raise InputError(
-                p,
-                f"header {','.join(table.header)!r} lacks {', '.join(missing)}",
-                "columns x,y,yaw,v[,yaw_rate]",
-            )
-        names = [c for c in STATE_COLUMNS if c in table.header]
-        arr = np.column_stack([table.data[:, table.header.index(c)] for c in names])
-    if arr.shape[0] == 0:
-        raise InputError(p, "holds no cars", "at least one row")
-    if arr.shape[0] > spec.MAX_CARS:
-        raise InputError(p, f"{arr.shape[0]} cars", f"at most {spec.MAX_CARS}; split the file")
-    bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
-    if bad.size:
-        raise InputError(
-            p, f"{bad.size} row(s) with NaN or inf, first car index {bad[0]}", "finite numbers"
-        )
-    # beyond these a float32 rollout overflows (1e308 becomes inf): refused, not predicted
-    limits = (spec.MAX_COORD_M, spec.MAX_COORD_M, spec.MAX_YAW_RAD, spec.MAX_SPEED_MPS)
-    limits += (spec.MAX_YAW_RATE_RPS,)
-    for c in range(arr.shape[1]):
-        out = np.flatnonzero(np.abs(arr[:, c]) > limits[c])
-        if out.size:
-            raise InputError(
-                p,
-                f"{STATE_COLUMNS[c]} of car {out[0]} is {arr[out[0], c]:g}",
-                f"|{STATE_COLUMNS[c]}| <= {limits[c]:g}",
-            )
-    return arr
-
-
-def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) -> Path:
-    """Write (N, H, 3) poses as `.npy`, or as CSV with columns car,step,horizon_s,x,y,yaw.
-
-    Written to a temporary file in the target's folder and renamed into place, so a failure
-    never leaves a partial file; an existing file is replaced only with `force`.
-    """
-    from fpe_jax.io.writers import atomic_output
-
-    target = Path(path)
-    suffix = target.suffix.lower()
-    if suffix not in (".npy", ".csv"):
-        raise InputError(target, f"unknown output type {suffix!r}", "OUT.npy or OUT.csv")
-    with atomic_output(target, force) as tmp:
-        if suffix == ".npy":
-            with open(tmp, "xb") as f:
-                np.save(f, poses)
-        else:
-            _write_poses_csv(tmp, poses, dt_s)
-    return target
-
-
-def _write_poses_csv(path: Path, poses: np.ndarray, dt_s: float, rows_per_block: int = 200_000):
-    n, h, _ = poses.shape
-    step = np.arange(1, h + 1)
-    with open(path, "w") as f:
-        f.write("car,step,horizon_s,x,y,yaw\n")
-        cars_per_block = max(rows_per_block // h, 1)
-        for start in range(0, n, cars_per_block):
-            block = poses[start : start + cars_per_block].astype(np.float64)
-            k = block.shape[0]
-            car = np.repeat(np.arange(start, start + k), h)
-            st = np.tile(step, k)
-            table = np.column_stack([car, st, st * dt_s, block.reshape(-1, 3)])
-            np.savetxt(f, table, fmt=["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"], delimiter=",")

@@ -829,7 +829,7 @@ def cmd_batch(args) -> int:
         say("loading JAX")
         # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
         _start_jax(args, x64=False, executables=False)
-        from fpe_jax.batch import predict_chunked, read_cars, write_poses
+        from fpe_jax.batch import predict_chunked
         from fpe_jax.drive import map_origin
         from fpe_jax.track import Track
 
@@ -838,7 +838,7 @@ def cmd_batch(args) -> int:
         wp = waypoints.xy_m
         origin = map_origin(wp)  # removed in float64 before the (float32) computation
         track = Track.from_waypoints(wp - origin)
-        cars = np.array(read_cars(args.states), dtype=np.float64)
+        cars = np.array(io.read_cars(args.states), dtype=np.float64)
         cars[:, :2] -= origin
         say(f"predicting {len(cars)} cars")
         t0 = time.perf_counter()
@@ -857,7 +857,7 @@ def cmd_batch(args) -> int:
         poses[..., :2] += origin
         poses = poses.astype(dtype)
         say(f"writing {out}")
-        write_poses(out, poses, params.settings.dt_s, force=args.force)
+        io.write_poses(out, poses, params.settings.dt_s, force=args.force)
     print(
         f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
         f"({args.dtype}, {wall_s:.2f} s incl. compilation)",

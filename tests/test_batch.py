@@ -14,12 +14,11 @@ from fpe_jax.batch import (
     cast_floats,
     chunk_size,
     predict_chunked,
-    read_cars,
     states_from_array,
-    write_poses,
 )
 from fpe_jax.cli import main
 from fpe_jax.errors import InputError
+from fpe_jax.io import read_cars, write_poses
 
 # Most tests share these shapes, so each compiled chunk is reused instead of recompiled.
 N_CARS, CHUNK = 70, 32

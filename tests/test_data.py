@@ -107,7 +107,7 @@ def test_xyz_sample_is_the_newest_detection_every_tenth_of_a_second(reference):
 
 
 def test_cars_sample_feeds_batch():
-    from fpe_jax.batch import read_cars
+    from fpe_jax.io import read_cars
 
     cars = read_cars(SAMPLES / "cars.csv")
     xy, _ = builtin_track("oval")

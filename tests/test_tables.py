@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from fpe_jax import io
-from fpe_jax.batch import read_cars
 from fpe_jax.config import params_to_config
 from fpe_jax.io.tables import read_table
 from fpe_jax.params import presets
@@ -64,7 +63,7 @@ def test_waypoints_and_cars_with_a_bom(tmp_path):
     wp = io.load_waypoints(_write(tmp_path / "wp.csv", WAYPOINTS, bom=True))
     ref = io.load_waypoints(_write(tmp_path / "wp0.csv", WAYPOINTS, bom=False))
     np.testing.assert_array_equal(wp.xy_m, ref.xy_m)
-    cars = read_cars(_write(tmp_path / "cars.csv", CARS, bom=True))
+    cars = io.read_cars(_write(tmp_path / "cars.csv", CARS, bom=True))
     np.testing.assert_array_equal(cars, [[1, 2, 0.1, 3], [4, 5, 0.2, 6]])
 
 

@@ -6,7 +6,8 @@ One parser for every table format we meet:
   comment line before the data (the F1TENTH centerline/raceline style `# x_m, y_m, ...`);
 - no header at all (the 2019 project's files);
 - a UTF-8 byte-order mark at the start of the file (ignored).
-Malformed input raises InputError naming the file and the line.
+Malformed input raises InputError naming the file and the line. `read_cars` reads the cars of
+`fpe batch` from such a table or from a `.npy` array.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fpe_jax import spec
 from fpe_jax.errors import InputError
 
 TABLE_SUFFIXES = (".csv", ".txt")
@@ -27,6 +29,7 @@ X_NAMES = ("x", "x_m")
 Y_NAMES = ("y", "y_m")
 YAW_NAMES = ("yaw", "yaw_rad", "psi", "psi_rad")
 SPEED_NAMES = ("v", "v_mps", "speed", "speed_mps", "vx_mps")
+STATE_COLUMNS = ("x", "y", "yaw", "v", "yaw_rate")  # the (N, 4|5) layout of `fpe batch`'s cars
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,3 +134,86 @@ def read_table(path) -> Table:
         if len(set(header)) != len(header):
             raise InputError(p, f"repeated column names in header {','.join(header)!r}")
     return Table(p, np.asarray(rows, dtype=np.float64), header)
+
+
+def _check_npy_header(p: Path) -> None:
+    """Refuse a .npy whose header declares more data than the file holds, or than MAX_CARS rows,
+    before anything is allocated (a forged header once asked for 29 TiB)."""
+    try:
+        with open(p, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = {(1, 0): np.lib.format.read_array_header_1_0}.get(
+                version, np.lib.format.read_array_header_2_0
+            )
+            shape, _, dtype = read(f)
+            data_start = f.tell()
+    except Exception as e:  # a forged header fails in numpy's parser in many ways (TokenError...)
+        raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
+    n_bytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    available = p.stat().st_size - data_start
+    if n_bytes > available:
+        raise InputError(
+            p, f"header declares shape {shape} ({n_bytes} bytes) but holds {available}",
+            "an intact np.save file",
+        )  # fmt: skip
+    if shape and shape[0] > spec.MAX_CARS:
+        raise InputError(p, f"{shape[0]} cars", f"at most {spec.MAX_CARS} per call; split the file")
+
+
+def read_cars(path) -> np.ndarray:
+    """Cars from a CSV with header `x,y,yaw,v[,yaw_rate]` or a `.npy` (N, 4|5) array.
+
+    Returns (N, 4|5) float64 rows x [m], y [m], yaw [rad], v [m/s][, yaw_rate [rad/s]].
+    Raises InputError naming the file and the problem (missing column, NaN row, bad shape).
+    """
+    p = Path(path)
+    if p.suffix.lower() == ".npy":
+        if not p.is_file():
+            raise InputError(p, "does not exist", "a .npy array or a CSV of cars")
+        _check_npy_header(p)
+        try:
+            arr = np.load(p, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as e:
+            raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
+        real = np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+        if arr.ndim != 2 or arr.shape[1] not in (4, 5) or not real:
+            raise InputError(
+                p,
+                f"array of shape {arr.shape} dtype {arr.dtype}",
+                "(N, 4|5) x, y, yaw, v[, yaw_rate]",
+            )
+        arr = arr.astype(np.float64)
+    else:
+        table = read_table(p)
+        if table.header is None:
+            raise InputError(p, "has no header", "a header line x,y,yaw,v[,yaw_rate]")
+        missing = [c for c in STATE_COLUMNS[:4] if c not in table.header]
+        if missing:
+            raise InputError(
+                p,
+                f"header {','.join(table.header)!r} lacks {', '.join(missing)}",
+                "columns x,y,yaw,v[,yaw_rate]",
+            )
+        names = [c for c in STATE_COLUMNS if c in table.header]
+        arr = np.column_stack([table.data[:, table.header.index(c)] for c in names])
+    if arr.shape[0] == 0:
+        raise InputError(p, "holds no cars", "at least one row")
+    if arr.shape[0] > spec.MAX_CARS:
+        raise InputError(p, f"{arr.shape[0]} cars", f"at most {spec.MAX_CARS}; split the file")
+    bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
+    if bad.size:
+        raise InputError(
+            p, f"{bad.size} row(s) with NaN or inf, first car index {bad[0]}", "finite numbers"
+        )
+    # beyond these a float32 rollout overflows (1e308 becomes inf): refused, not predicted
+    limits = (spec.MAX_COORD_M, spec.MAX_COORD_M, spec.MAX_YAW_RAD, spec.MAX_SPEED_MPS)
+    limits += (spec.MAX_YAW_RATE_RPS,)
+    for c in range(arr.shape[1]):
+        out = np.flatnonzero(np.abs(arr[:, c]) > limits[c])
+        if out.size:
+            raise InputError(
+                p,
+                f"{STATE_COLUMNS[c]} of car {out[0]} is {arr[out[0], c]:g}",
+                f"|{STATE_COLUMNS[c]}| <= {limits[c]:g}",
+            )
+    return arr

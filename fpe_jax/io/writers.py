@@ -1,4 +1,5 @@
-"""Writing files: predictions (CSV or ROS 2 MCAP) and simulated drives (ROS 2 MCAP).
+"""Writing files: predictions (CSV or ROS 2 MCAP), simulated drives (ROS 2 MCAP) and the poses of
+`fpe batch` (.npy or CSV).
 
 Every file fpe-jax writes goes through `atomic_output` (or `write_text` / `write_bytes` on top of
 it): it writes a uniquely named hidden temporary file next to the target and renames it into
@@ -338,3 +339,37 @@ def write_drive_csv(path, drive, *, force: bool = False) -> Path:
     with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
         np.savetxt(f, np.column_stack(cols), fmt="%.9f", delimiter=",", header=header, comments="")
     return Path(path)
+
+
+def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) -> Path:
+    """Write (N, H, 3) poses as `.npy`, or as CSV with columns car,step,horizon_s,x,y,yaw.
+
+    Written to a temporary file in the target's folder and renamed into place, so a failure
+    never leaves a partial file; an existing file is replaced only with `force`.
+    """
+    target = Path(path)
+    suffix = target.suffix.lower()
+    if suffix not in (".npy", ".csv"):
+        raise InputError(target, f"unknown output type {suffix!r}", "OUT.npy or OUT.csv")
+    with atomic_output(target, force) as tmp:
+        if suffix == ".npy":
+            with open(tmp, "xb") as f:
+                np.save(f, poses)
+        else:
+            _write_poses_csv(tmp, poses, dt_s)
+    return target
+
+
+def _write_poses_csv(path: Path, poses: np.ndarray, dt_s: float, rows_per_block: int = 200_000):
+    n, h, _ = poses.shape
+    step = np.arange(1, h + 1)
+    with open(path, "w") as f:
+        f.write("car,step,horizon_s,x,y,yaw\n")
+        cars_per_block = max(rows_per_block // h, 1)
+        for start in range(0, n, cars_per_block):
+            block = poses[start : start + cars_per_block].astype(np.float64)
+            k = block.shape[0]
+            car = np.repeat(np.arange(start, start + k), h)
+            st = np.tile(step, k)
+            table = np.column_stack([car, st, st * dt_s, block.reshape(-1, 3)])
+            np.savetxt(f, table, fmt=["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"], delimiter=",")
