@@ -169,10 +169,8 @@ def fit_case(
 ):
     """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`.
 
-    model, blend: as `fpe_jax.fit.fit` takes them (default: the line model)."""
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
+    model, blend: as `fpe_jax.fit.fit` takes them (default: the line model); needs float64 as
+    `fit` does (the caller enables jax_enable_x64 at start-up)."""
     from fpe_jax.fit import fit as fit_drives
 
     track = case.track()

@@ -255,6 +255,21 @@ def _free_groups(free, fit, caller: str):
     return fit
 
 
+def _require_float64(caller: str) -> None:
+    """Refuse to fit in float32: the loss's gradients are too small for it and the solver stalls.
+
+    The dtype is the program's choice (set once at start-up, as the fpe CLI does), so a library
+    call neither flips the global flag under its caller nor casts: without x64 JAX has no float64
+    to cast to.
+    """
+    if not jax.config.jax_enable_x64:
+        raise InputError(
+            "jax_enable_x64",
+            f"{caller} needs float64 but JAX runs in float32",
+            'jax.config.update("jax_enable_x64", True) at start-up, before any JAX array is made',
+        )
+
+
 def fit_params(
     datasets: Sequence[Dataset],
     init: Params,
@@ -283,8 +298,10 @@ def fit_params(
     solver), compile_s (XLA) or load_s (its stored executable, `aot`), all on a second thread
     while the states are estimated and all 0 when an earlier call made it, and solve_s.
 
-    Raises InputError naming the argument (free, solver) for a value it cannot use.
+    Raises InputError naming the argument (free, solver) for a value it cannot use, and naming
+    jax_enable_x64 when JAX runs in float32 (`_require_float64`).
     """
+    _require_float64("fit_params")
     free = _free_groups(free, fit, "fit_params")
     if init.settings.model not in MODEL_FIT:
         raise ValueError(f"fit_params: only the models {tuple(MODEL_FIT)} are fitted, not presets'")
@@ -404,11 +421,12 @@ def fit(
         solver: an optimistix solver (default `default_solver()`; see `fit_params`).
         progress: called with a short message at each phase.
 
-    Raises InputError naming the argument (free, model, solver) for a value it cannot use.
+    Raises InputError naming the argument (free, model, solver) for a value it cannot use, and
+    naming jax_enable_x64 when JAX runs in float32 (`_require_float64`).
     """
+    _require_float64("fit")
     free = _free_groups(free, fit, "fit")
     solver = _solver_object(solver)
-    jax.config.update("jax_enable_x64", True)  # fitting needs float64 (tiny gradients)
     if test_drives is None:
         pairs = [split_drive(d, holdout) for d in drives]
         train_d, test_d = [p[0] for p in pairs], [p[1] for p in pairs]

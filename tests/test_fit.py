@@ -268,6 +268,17 @@ def test_fit_errors_name_the_argument_and_the_cli_names_its_flag(oval_drives, tm
     assert "fpe: error: --fit: lookahead do(es) not apply to model line" in capsys.readouterr().err
 
 
+def test_fitting_in_float32_is_refused_with_what_to_do(oval_drives):
+    """fit() and fit_params() leave the global x64 flag to the program and say how to set it."""
+    fit_d, _, track = oval_drives
+    with jax.enable_x64(False):
+        with pytest.raises(InputError, match='^jax_enable_x64: fit needs float64.*"jax_enable'):
+            F.fit([fit_d.drive], [track])
+        with pytest.raises(InputError, match="^jax_enable_x64: fit_params needs float64"):
+            F.fit_params([], presets["default"])
+    assert jax.config.jax_enable_x64
+
+
 def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     fit_d, _, track = oval_drives
     init = presets["default"]
