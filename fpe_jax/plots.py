@@ -116,13 +116,6 @@ def ellipse_xy(center_m: np.ndarray, cov_m2: np.ndarray, n_sigma: float, n: int 
     return center_m + n_sigma * circle @ vecs.T
 
 
-def rotate_cov(cov_track_m2: np.ndarray, heading_rad: float) -> np.ndarray:
-    """A (2, 2) covariance in the track frame (along, cross) rotated into the map frame."""
-    c, s = np.cos(heading_rad), np.sin(heading_rad)
-    r = np.array([[c, -s], [s, c]])
-    return r @ cov_track_m2 @ r.T
-
-
 # ---- building blocks -----------------------------------------------------------------------------
 
 

@@ -365,13 +365,10 @@ FIT_SENSOR = dict(rate_hz=10.0, jitter_frac=0.0, miss_prob=0.0, miss_per_radps=0
 
 
 def scipy_objective(groups, raw, free):
-    """The JAX fit's objective 0.5 |residuals|^2 as a function of the raw free values, for SciPy
-    (no autodiff: L-BFGS-B differentiates it by finite differences).
-
-    The predictions are the on-car runner's (`Runner.predict_from_state`, vectorised over
-    samples: the one NumPy copy of the blend model); the raw -> physical map (`constrain`) and the
-    residuals (`fpe_jax.fit.robust_residuals`) are the library's, each one compiled call per
-    evaluation: eager JAX ops would cost more than the NumPy model on a short drive.
+    """The JAX fit's objective 0.5 |residuals|^2 of the raw free values, for SciPy (which
+    differentiates it by finite differences): the on-car runner's predictions (the one NumPy copy
+    of the blend model), scored by the library's `constrain` and `fit.robust_residuals`, each one
+    compiled call (eager JAX ops would cost more than the NumPy model on a short drive).
 
     Args:
         groups: list of (states dict of (N,) float64 arrays x_m, y_m, yaw_rad, v_mps, s_m,
