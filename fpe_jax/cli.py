@@ -781,7 +781,6 @@ def cmd_convert(args) -> int:
 
 def cmd_simulate(args) -> int:
     import dataclasses
-    from pathlib import Path
 
     from fpe_jax import io, sim
 
@@ -865,8 +864,6 @@ def cmd_batch(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from pathlib import Path
-
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
@@ -896,8 +893,6 @@ def cmd_demo(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from pathlib import Path
-
     from fpe_jax import io
     from fpe_jax.plots import FIGURE_SUFFIXES
 

@@ -70,10 +70,9 @@ def closed(xy_m: np.ndarray) -> np.ndarray:
 
 def track_edges(center_xy_m: np.ndarray, half_width_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Left and right edges (K, 2) [m] of a closed centerline (K, 2) at `half_width_m`."""
-    d = np.roll(center_xy_m, -1, axis=0) - np.roll(center_xy_m, 1, axis=0)
-    n = np.stack([-d[:, 1], d[:, 0]], 1) / np.maximum(
-        np.linalg.norm(d, axis=1, keepdims=True), 1e-9
-    )
+    from fpe_jax.path import left_normals
+
+    n = left_normals(np.asarray(center_xy_m, dtype=np.float64))
     return center_xy_m + half_width_m * n, center_xy_m - half_width_m * n
 
 

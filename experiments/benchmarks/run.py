@@ -870,8 +870,6 @@ def rss_child(argv: list[str]) -> None:
 
 
 def bench_fullsize(quick: bool) -> dict:
-    import tempfile
-
     if not AUSTIN.exists():
         return {"skipped": f"{AUSTIN} not found"}
     runs = 1 if quick else FULLSIZE_RUNS
