@@ -19,7 +19,7 @@ from fpe_jax.drive import Drive
 
 LATENCY_S = 0.3  # the thesis measured ~0.4 s of AprilTag delay; the simulator's default is 0.3
 F1TENTH_TRACKS = ("Austin", "Catalunya", "Monza", "Silverstone", "Spielberg")
-DELAY_TOLERANCE_S = 0.05
+DELAY_TOLERANCE_S = 0.05  # how close a fitted delay must come to the true latency [s]
 
 
 @dataclasses.dataclass(frozen=True)

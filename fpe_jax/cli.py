@@ -117,9 +117,11 @@ def _add_run_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
-def _start_jax(args, x64: bool = True, executables: bool = True):
-    """Import JAX for a command: float64 unless told, the compilation cache unless --no-cache
-    (of whole executables, or with executables=False of JAX's XLA output: `cache.enable`)."""
+def _start_jax(args, say, x64: bool = True, executables: bool = True):
+    """Import JAX for a command (telling `say`): float64 unless told, the compilation cache
+    unless --no-cache (of whole executables, or with executables=False of JAX's XLA output:
+    `cache.enable`)."""
+    say("loading JAX")
     import jax
 
     if x64:
@@ -466,8 +468,7 @@ def cmd_fit(args) -> int:
         if out is None:
             raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
         io.check_output_path(out, args.force)
-        say("loading JAX")
-        _start_jax(args)
+        _start_jax(args, say)
         from fpe_jax.config import apply_settings
         from fpe_jax.fit import fit
         from fpe_jax.params import presets
@@ -535,8 +536,7 @@ def cmd_evaluate(args) -> int:
     from fpe_jax.config import read_config
 
     with _progress(args) as say:
-        say("loading JAX")
-        _start_jax(args)
+        _start_jax(args, say)
         from fpe_jax.drive import local_frame
         from fpe_jax.evaluate import Dataset, evaluate, make_targets
         from fpe_jax.track import Track
@@ -617,8 +617,7 @@ def cmd_predict(args) -> int:
     if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
         raise InputError(args.out, "unknown output format", ".csv or .mcap")
     with _progress(args) as say:
-        say("loading JAX")
-        _start_jax(args)
+        _start_jax(args, say)
         from fpe_jax.drive import local_frame
         from fpe_jax.evaluate import covariance_map, path_heading
         from fpe_jax.predict import predict_rows, states_from_drive
@@ -782,7 +781,6 @@ def cmd_convert(args) -> int:
 
 def cmd_simulate(args) -> int:
     import dataclasses
-    from pathlib import Path
 
     from fpe_jax import io, sim
 
@@ -826,9 +824,8 @@ def cmd_batch(args) -> int:
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
     spec.check_chunk(args.chunk)
     with _progress(args) as say:
-        say("loading JAX")
         # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
-        _start_jax(args, x64=False, executables=False)
+        _start_jax(args, say, x64=False, executables=False)
         from fpe_jax.batch import predict_chunked
         from fpe_jax.drive import map_origin
         from fpe_jax.track import Track
@@ -867,14 +864,11 @@ def cmd_batch(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    from pathlib import Path
-
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
     with _progress(args) as say:
-        say("loading JAX")
-        _start_jax(args)
+        _start_jax(args, say)
         from fpe_jax.demo import run_demo
         from fpe_jax.report import format_fitted, format_table
 
@@ -899,8 +893,6 @@ def cmd_demo(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from pathlib import Path
-
     from fpe_jax import io
     from fpe_jax.plots import FIGURE_SUFFIXES
 
@@ -908,8 +900,7 @@ def cmd_plot(args) -> int:
     if out.suffix.lower() not in FIGURE_SUFFIXES:
         raise InputError(out, f"unknown figure type {out.suffix!r}", " or ".join(FIGURE_SUFFIXES))
     with _progress(args) as say:
-        say("loading JAX")
-        _start_jax(args)
+        _start_jax(args, say)
         from fpe_jax.plots import plot_drive
 
         say("reading the drive and waypoints")

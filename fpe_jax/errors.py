@@ -1,5 +1,7 @@
 """The one exception type users see for bad input."""
 
+import os
+
 
 class InputError(ValueError):
     """Bad user input: a file, a value or a flag that cannot be used as given.
@@ -8,7 +10,7 @@ class InputError(ValueError):
     it as one line and exit with status 2.
     """
 
-    def __init__(self, source: str, problem: str, expected: str | None = None):
+    def __init__(self, source: str | os.PathLike, problem: str, expected: str | None = None):
         self.source = str(source)
         self.problem = problem
         self.expected = expected

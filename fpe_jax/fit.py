@@ -117,21 +117,42 @@ def _huber_scale(err_m, delta_m):
     return jnp.where(err_m <= delta_m, 1.0, jnp.sqrt(delta_m * (2.0 * safe - delta_m)) / safe)
 
 
-def _residuals(raw_free, args):
-    """Residual vector: weight smoothness, Huber-scaled masked position errors, the ridge."""
-    raw_fixed, groups, huber_m = args
-    params = constrain(eqx.combine(raw_free, raw_fixed))
-    out = []
-    n_targets = sum(jnp.sum(mask) for _, _, _, mask in groups).astype(params.weights.dtype)
-    out.append(jnp.sqrt(WEIGHT_SMOOTHING_M2 * n_targets) * jnp.diff(params.weights))
-    for states, track, target, mask in groups:
-        pred = jax.vmap(predict, in_axes=(None, 0, None))(params, states, track)[..., :2]
+def robust_residuals(weights, preds, targets, masks, raw_values, huber_m):
+    """The fit's residual vector from its predictions: the smoothness prior on neighbouring
+    weights, the Huber-scaled masked position errors, the ridge on the raw values.
+
+    Any predictor's output can be scored with it (the benchmarks' SciPy baseline scores the
+    on-car runner's NumPy predictions); `_residuals` feeds it the JAX rollout's.
+
+    Args:
+        weights: (H,) the blend weights of the physical params.
+        preds, targets, masks: per dataset the predicted and target positions (N, H, 2) [m] and
+            which targets exist (N, H). `preds` may be an iterator: each prediction is taken
+            after the previous dataset's residuals, the order the JAX fit is compiled in.
+        raw_values: the fitted raw values (arrays of any shape).
+        huber_m: residuals beyond this grow linearly [m].
+    """
+    n_targets = sum(jnp.sum(mask) for mask in masks).astype(weights.dtype)
+    out = [jnp.sqrt(WEIGHT_SMOOTHING_M2 * n_targets) * jnp.diff(weights)]
+    for pred, target, mask in zip(preds, targets, masks):
         d = pred - target
         e = jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12)
         r = jnp.where(mask[..., None], d * _huber_scale(e, huber_m)[..., None], 0.0)
         out.append(r.reshape(-1))
-    ridge = [jnp.sqrt(RAW_RIDGE) * jnp.ravel(x) for x in jax.tree.leaves(raw_free)]
+    ridge = [jnp.sqrt(RAW_RIDGE) * jnp.ravel(x) for x in raw_values]
     return jnp.concatenate(out + ridge)
+
+
+def _residuals(raw_free, args):
+    """Residual vector of the raw free values: `robust_residuals` of the JAX rollout."""
+    raw_fixed, groups, huber_m = args
+    params = constrain(eqx.combine(raw_free, raw_fixed))
+    rollout = jax.vmap(predict, in_axes=(None, 0, None))
+    preds = (rollout(params, states, track)[..., :2] for states, track, _, _ in groups)
+    targets, masks = [g[2] for g in groups], [g[3] for g in groups]
+    return robust_residuals(
+        params.weights, preds, targets, masks, jax.tree.leaves(raw_free), huber_m
+    )
 
 
 def _free_mask(params: Params, free: Sequence[str]) -> Params:

@@ -111,22 +111,22 @@ class Params(eqx.Module):
         settings: static `Settings`.
     """
 
-    lookahead_m: Float[Array, ""]
-    lookahead_gain_s: Float[Array, ""]
-    weights: Float[Array, " H"]
-    delay_s: Float[Array, ""]
-    speed_weight: Float[Array, ""]
-    speed_mps: Float[Array, ""]
-    offset_tau_s: Float[Array, ""]
-    speed_tau_s: Float[Array, ""]
-    position_smoothing: Float[Array, ""]
-    filter_accel_mps2: Float[Array, ""]
-    filter_lat_accel_mps2: Float[Array, ""]
-    filter_obs_m: Float[Array, ""]
-    filter_gate_sigma: Float[Array, ""]
-    line_offset_m: Float[Array, " P"]
-    line_speed_mps: Float[Array, " P"]
-    line_coverage: Float[Array, " P"]
+    lookahead_m: Float[Array, "*sets"]
+    lookahead_gain_s: Float[Array, "*sets"]
+    weights: Float[Array, "*sets H"]
+    delay_s: Float[Array, "*sets"]
+    speed_weight: Float[Array, "*sets"]
+    speed_mps: Float[Array, "*sets"]
+    offset_tau_s: Float[Array, "*sets"]
+    speed_tau_s: Float[Array, "*sets"]
+    position_smoothing: Float[Array, "*sets"]
+    filter_accel_mps2: Float[Array, "*sets"]
+    filter_lat_accel_mps2: Float[Array, "*sets"]
+    filter_obs_m: Float[Array, "*sets"]
+    filter_gate_sigma: Float[Array, "*sets"]
+    line_offset_m: Float[Array, "*sets P"]
+    line_speed_mps: Float[Array, "*sets P"]
+    line_coverage: Float[Array, "*sets P"]
     settings: Settings = eqx.field(static=True)
 
     @classmethod

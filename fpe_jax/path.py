@@ -57,7 +57,7 @@ def nearest_index(points_m: np.ndarray, path_xy_m: np.ndarray) -> np.ndarray:
 def left_normals(loop_xy_m: np.ndarray) -> np.ndarray:
     """(K, 2) unit normals pointing left of the direction of travel of a closed loop (K, 2)."""
     d = np.roll(loop_xy_m, -1, axis=0) - np.roll(loop_xy_m, 1, axis=0)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)  # a point with no direction: 0
     return np.stack([-d[:, 1], d[:, 0]], axis=1)
 
 

@@ -70,10 +70,9 @@ def closed(xy_m: np.ndarray) -> np.ndarray:
 
 def track_edges(center_xy_m: np.ndarray, half_width_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Left and right edges (K, 2) [m] of a closed centerline (K, 2) at `half_width_m`."""
-    d = np.roll(center_xy_m, -1, axis=0) - np.roll(center_xy_m, 1, axis=0)
-    n = np.stack([-d[:, 1], d[:, 0]], 1) / np.maximum(
-        np.linalg.norm(d, axis=1, keepdims=True), 1e-9
-    )
+    from fpe_jax.path import left_normals
+
+    n = left_normals(np.asarray(center_xy_m, dtype=np.float64))
     return center_xy_m + half_width_m * n, center_xy_m - half_width_m * n
 
 
@@ -114,13 +113,6 @@ def ellipse_xy(center_m: np.ndarray, cov_m2: np.ndarray, n_sigma: float, n: int 
     a = np.linspace(0.0, 2 * np.pi, n)
     circle = np.stack([np.cos(a), np.sin(a)], 1) * np.sqrt(np.maximum(vals, 0.0))
     return center_m + n_sigma * circle @ vecs.T
-
-
-def rotate_cov(cov_track_m2: np.ndarray, heading_rad: float) -> np.ndarray:
-    """A (2, 2) covariance in the track frame (along, cross) rotated into the map frame."""
-    c, s = np.cos(heading_rad), np.sin(heading_rad)
-    r = np.array([[c, -s], [s, c]])
-    return r @ cov_track_m2 @ r.T
 
 
 # ---- building blocks -----------------------------------------------------------------------------

@@ -183,7 +183,7 @@ def _bound(b, cfg: dict) -> float | None:
         section, key = b.split(".")
         v = cfg.get(section, {}).get(key)
         return float(v) if is_number(v) else None
-    return b
+    return None if b is None else float(b)
 
 
 def _in_range(x: float, rule: Rule, cfg: dict) -> bool:

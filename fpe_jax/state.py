@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import ArrayLike, Float
 
 
 class State(eqx.Module):
@@ -32,22 +32,22 @@ class State(eqx.Module):
             above is used as it is.
     """
 
-    x_m: Float[Array, ""]
-    y_m: Float[Array, ""]
-    yaw_rad: Float[Array, ""]
-    v_mps: Float[Array, ""]
-    yaw_rate_rps: Float[Array, ""] | None = None
-    course_rad: Float[Array, ""] | None = None
-    s_m: Float[Array, ""] | None = None
-    s_fit_m: Float[Array, ""] | None = None
-    sdot_mps: Float[Array, ""] | None = None
-    offset_m: Float[Array, ""] | None = None
-    sdot_age_s: Float[Array, ""] | None = None
-    window_age_s: Float[Array, " W"] | None = None
-    window_s_m: Float[Array, " W"] | None = None
-    window_d_m: Float[Array, " W"] | None = None
-    window_valid: Float[Array, " W"] | None = None
-    window_prior: Float[Array, " 4"] | None = None
+    x_m: Float[ArrayLike, "*batch"]
+    y_m: Float[ArrayLike, "*batch"]
+    yaw_rad: Float[ArrayLike, "*batch"]
+    v_mps: Float[ArrayLike, "*batch"]
+    yaw_rate_rps: Float[ArrayLike, "*batch"] | None = None
+    course_rad: Float[ArrayLike, "*batch"] | None = None
+    s_m: Float[ArrayLike, "*batch"] | None = None
+    s_fit_m: Float[ArrayLike, "*batch"] | None = None
+    sdot_mps: Float[ArrayLike, "*batch"] | None = None
+    offset_m: Float[ArrayLike, "*batch"] | None = None
+    sdot_age_s: Float[ArrayLike, "*batch"] | None = None
+    window_age_s: Float[ArrayLike, "*batch W"] | None = None
+    window_s_m: Float[ArrayLike, "*batch W"] | None = None
+    window_d_m: Float[ArrayLike, "*batch W"] | None = None
+    window_valid: Float[ArrayLike, "*batch W"] | None = None
+    window_prior: Float[ArrayLike, "*batch 5"] | None = None
 
     def __post_init__(self):
         # omitted fields: no turn, moving along the body heading

@@ -24,6 +24,7 @@ Usage: python experiments/benchmarks/run.py [--quick]   (--quick: small sizes, f
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import math
@@ -48,7 +49,6 @@ NO_GPU = (
 )
 
 sys.path.insert(0, str(ROOT))  # run from a checkout without installing
-sys.path.insert(0, str(HERE))  # numpy_loss
 
 
 # ---- helpers -----------------------------------------------------------------------------------
@@ -201,8 +201,6 @@ def _time_jitted(f, args: tuple, n: int, path: str, dtype: str) -> dict:
 
 def bench_core(track, sizes, dtypes) -> list[dict]:
     """The core `predict_batch` alone: hints given, arrays on the device, no host copies."""
-    import dataclasses
-
     import jax
     import jax.numpy as jnp
 
@@ -355,15 +353,65 @@ def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
 # with a 10 Hz detector (noise and outliers on, no dropouts); targets come from the 50 Hz truth.
 # Each fit runs in a fresh process, so its time includes compilation. Timed: targets, state
 # estimation and the solve (`fpe_jax.fit.fit_params`, the default preset as start, the default
-# fitted values). The SciPy baseline minimises the same objective in NumPy (numpy_loss.py: the
-# on-car runner's model) with L-BFGS-B and finite-difference gradients from the same start, on
-# the 10-minute drive.
+# fitted values). The SciPy baseline minimises the same objective (`scipy_objective`: the
+# on-car runner's NumPy model scored by the fit's own residuals) with L-BFGS-B and
+# finite-difference gradients from the same start, on the 10-minute drive.
 
 FIT_MINUTES = (1, 10, 60)
 SCIPY_MINUTES = 10
 FIT_RUNS = 5  # fresh processes per drive length (the median is reported)
 FIT_TRACK = "oval"
 FIT_SENSOR = dict(rate_hz=10.0, jitter_frac=0.0, miss_prob=0.0, miss_per_radps=0.0)
+
+
+def scipy_objective(groups, raw, free):
+    """The JAX fit's objective 0.5 |residuals|^2 of the raw free values, for SciPy (which
+    differentiates it by finite differences): the on-car runner's predictions (the one NumPy copy
+    of the blend model), scored by the library's `constrain` and `fit.robust_residuals`, each one
+    compiled call (eager JAX ops would cost more than the NumPy model on a short drive).
+
+    Args:
+        groups: list of (states dict of (N,) float64 arrays x_m, y_m, yaw_rad, v_mps, s_m,
+            the blend model's `Runner` on the drive's track, targets (N, H, 2) [m], mask (N, H)).
+        raw: the starting point's raw values (`fpe_jax.params.unconstrain`).
+        free: the fitted field names (the rest stay at their raw value).
+
+    Returns (loss(vector) -> float, the start vector, the fitted field names in vector order).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from fpe_jax.fit import HUBER_M, robust_residuals
+    from fpe_jax.params import constrain
+
+    names = [f.name for f in dataclasses.fields(raw) if f.name in set(free)]
+    shapes = [np.shape(getattr(raw, f)) for f in names]
+    bounds = np.cumsum([0] + [math.prod(shape) for shape in shapes])
+
+    def unpack(vec):
+        parts = [vec[a:b].reshape(shape) for a, b, shape in zip(bounds, bounds[1:], shapes)]
+        return dataclasses.replace(raw, **dict(zip(names, parts)))
+
+    to_physical = jax.jit(lambda vec: constrain(unpack(vec)))
+    half_sum = jax.jit(
+        lambda w, preds, xy, masks, vec: (
+            0.5 * jnp.sum(jnp.square(robust_residuals(w, preds, xy, masks, [vec], HUBER_M)))
+        )
+    )
+    targets = [jnp.asarray(g[2]) for g in groups]
+    masks = [jnp.asarray(g[3]) for g in groups]
+
+    def loss(vec: np.ndarray) -> float:
+        phys = jax.device_get(to_physical(vec)).physical()
+        preds = [
+            runner.with_params(phys).predict_from_state(
+                st["x_m"], st["y_m"], st["yaw_rad"], st["v_mps"], st["s_m"]
+            )[..., :2]
+            for st, runner, _, _ in groups
+        ]
+        return float(half_sum(np.asarray(phys["weights"]), preds, targets, masks, vec))
+
+    return loss, np.concatenate([np.ravel(getattr(raw, f)) for f in names]), names
 
 
 def fit_child(minutes: float, with_scipy: bool) -> None:
@@ -375,10 +423,9 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         from fpe_jax import cache
 
         cache.enable()
-    import fpe_jax.fit as fpe_fit
     from fpe_jax import sim
     from fpe_jax.evaluate import Dataset, make_targets
-    from fpe_jax.fit import DEFAULT_FIT, FIT_GROUPS, HUBER_M, RAW_RIDGE, fit_params
+    from fpe_jax.fit import DEFAULT_FIT, FIT_GROUPS, fit_params
     from fpe_jax.params import presets, unconstrain
     from fpe_jax.track import Track
 
@@ -405,7 +452,6 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         "fitted": fitted.physical(),
     }
     if with_scipy:
-        from numpy_loss import NumpyLoss
         from scipy.optimize import minimize
 
         from fpe_jax.config import params_to_config
@@ -416,12 +462,11 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         runner = Runner(params_to_config(init), res.centerline_xy_m, source="benchmark")
         groups = [(states, runner, data.targets.xy_m, data.targets.mask)]
         free = [f for g in DEFAULT_FIT for f in FIT_GROUPS[g]]
-        smoothing = getattr(fpe_fit, "WEIGHT_SMOOTHING_M2", 0.0)  # the fit's weight prior
-        loss = NumpyLoss(groups, unconstrain(init), free, HUBER_M, RAW_RIDGE, smoothing)
+        loss, x0, names = scipy_objective(groups, unconstrain(init), free)
         raw_fit = unconstrain(fitted)
-        jax_solution = np.concatenate([np.ravel(getattr(raw_fit, f)) for f in loss.free])
+        jax_solution = np.concatenate([np.ravel(getattr(raw_fit, f)) for f in names])
         t0 = time.perf_counter()
-        sol = minimize(loss, loss.x0(), method="L-BFGS-B", options={"maxiter": 1000})
+        sol = minimize(loss, x0, method="L-BFGS-B", options={"maxiter": 1000})
         scipy_s = time.perf_counter() - t0
         out["scipy"] = {
             "method": "L-BFGS-B, 2-point finite differences (scipy.optimize.minimize defaults)",
@@ -430,10 +475,10 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
             "iterations": int(sol.nit),
             "loss_evaluations": int(sol.nfev),
             "message": str(sol.message),
-            "n_free_values": int(loss.x0().size),
+            "n_free_values": int(x0.size),
             # the port reproduces the JAX objective: both evaluated at the JAX solution
             "numpy_loss_at_jax_solution": float(loss(jax_solution)),
-            "numpy_loss_at_start": float(loss(loss.x0())),
+            "numpy_loss_at_start": float(loss(x0)),
         }
     print(json.dumps(out))
 
@@ -759,8 +804,6 @@ def fullsize_drive(out_dir: Path) -> dict:
     and detector's lengths scaled with the track (x6). Truth is thinned to 25 Hz (the rate of a
     full-size car's odometry).
     """
-    import dataclasses as dc
-
     from fpe_jax import sim
     from fpe_jax.io import load_waypoints
     from fpe_jax.tracks import resample_loop
@@ -789,14 +832,14 @@ def fullsize_drive(out_dir: Path) -> dict:
     )
     d = res.drive
     thin = slice(None, None, 2)  # 50 Hz -> 25 Hz
-    drive = dc.replace(
+    drive = dataclasses.replace(
         d,
         truth_t_s=d.truth_t_s[thin],
         truth_xy_m=d.truth_xy_m[thin],
         truth_yaw_rad=d.truth_yaw_rad[thin],
         truth_v_mps=d.truth_v_mps[thin],
     )
-    res = dc.replace(res, drive=drive, truth_yaw_rate_rps=res.truth_yaw_rate_rps[thin])
+    res = dataclasses.replace(res, drive=drive, truth_yaw_rate_rps=res.truth_yaw_rate_rps[thin])
     sim.write_simulation(res, out_dir, force=True)
     v = drive.truth_v_mps
     return {
@@ -827,8 +870,6 @@ def rss_child(argv: list[str]) -> None:
 
 
 def bench_fullsize(quick: bool) -> dict:
-    import tempfile
-
     if not AUSTIN.exists():
         return {"skipped": f"{AUSTIN} not found"}
     runs = 1 if quick else FULLSIZE_RUNS

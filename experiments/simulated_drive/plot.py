@@ -15,6 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from fpe_jax.plots import track_edges  # noqa: E402
 from fpe_jax.sim import SimResult, simulate  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -22,17 +23,10 @@ TRACKS = HERE.parents[1].parent / "shared" / "data" / "tracks"
 DURATION_S, LATENCY_S, SEED = 60.0, 0.3, 0
 
 
-def _edges(center_xy_m: np.ndarray, half_width_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Left and right track edges (K+1, 2) of a closed centerline, closed for plotting."""
-    d = np.roll(center_xy_m, -1, axis=0) - np.roll(center_xy_m, 1, axis=0)
-    n = np.stack([-d[:, 1], d[:, 0]], 1) / np.linalg.norm(d, axis=1, keepdims=True)
-    left, right = center_xy_m + half_width_m * n, center_xy_m - half_width_m * n
-    return np.vstack([left, left[:1]]), np.vstack([right, right[:1]])
-
-
 def _track_panel(ax, res: SimResult, title: str, zoom: tuple[float, float, float] | None = None):
     d = res.drive
-    for edge in _edges(res.centerline_xy_m, res.half_width_m):
+    for edge in track_edges(res.centerline_xy_m, res.half_width_m):
+        edge = np.vstack([edge, edge[:1]])  # closed for drawing
         ax.plot(edge[:, 0], edge[:, 1], color="0.3", lw=0.8)
     c = np.vstack([res.centerline_xy_m, res.centerline_xy_m[:1]])
     ax.plot(

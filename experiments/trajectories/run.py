@@ -95,40 +95,26 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)  # fitting and evaluation in float64
     t0 = time.perf_counter()
     sections = []
+    runs = []  # (case, blend, names drawn, corner by, title, file)
+    if (DATA / "levine").is_dir():
+        levine = levine_case(DATA, holdout=0.4)
+        title = "Levine (real AprilTag trace), held-out last 40 % of the lap: the 2019 seed vs "
+        title += "the fitted predictor"
+        runs.append((levine, "auto", ("seed", "fitted"), "seed", title, "trajectories_levine.png"))
     with Progress() as say:
-        if (DATA / "levine").is_dir():
-            case = levine_case(DATA, holdout=0.4)
-            say("Levine: fitting on the first 60 % (auto blend)")
-            res = fit_case(
-                case, model="blend", blend="auto", progress=lambda m: say(f"Levine: {m}")
-            )
-            say("Levine: drawing")
-            sections += figure(
-                case,
-                res,
-                ("seed", "fitted"),
-                "seed",
-                "Levine (real AprilTag trace), held-out last 40 % of the lap: the 2019 seed vs "
-                "the fitted predictor",
-                "trajectories_levine.png",
-            )
-        else:
+        if not runs:
             say(f"note: {DATA / 'levine'} not found; the Levine figure is left out")
-        case = simulated_case("hairpin", fit_s=60.0, test_s=40.0, latency_s=LATENCY_S)
-        say("hairpin: fitting (position blend)")
-        res = fit_case(
-            case, model="blend", blend="position", progress=lambda m: say(f"hairpin: {m}")
-        )
-        say("hairpin: drawing")
-        sections += figure(
-            case,
-            res,
-            ("seed", "seed-measured-speed", "fitted"),
-            "seed-measured-speed",
-            f"hairpin (simulated, latency {LATENCY_S} s), separate test drive: hand-set blends "
-            "vs the fitted predictor",
-            "trajectories_hairpin.png",
-        )
+        hairpin = simulated_case("hairpin", fit_s=60.0, test_s=40.0, latency_s=LATENCY_S)
+        title = f"hairpin (simulated, latency {LATENCY_S} s), separate test drive: hand-set blends "
+        title += "vs the fitted predictor"
+        names = ("seed", "seed-measured-speed", "fitted")
+        runs.append((hairpin, "position", names, names[1], title, "trajectories_hairpin.png"))
+        for case, blend, names, corner_by, title, png in runs:
+            say(f"{case.name}: fitting ({blend} blend)")
+            progress = lambda m, n=case.name: say(f"{n}: {m}")  # noqa: E731
+            res = fit_case(case, model="blend", blend=blend, progress=progress)
+            say(f"{case.name}: drawing")
+            sections += figure(case, res, names, corner_by, title, png)
     md = RESULTS / "trajectories.md"
     md.write_text(
         "\n".join(

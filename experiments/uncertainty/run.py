@@ -27,7 +27,7 @@ import numpy as np
 
 from fpe_jax import plots
 from fpe_jax.cases import LATENCY_S, fit_case, levine_case, simulated_case
-from fpe_jax.evaluate import heldout_predictions
+from fpe_jax.evaluate import covariance_map, heldout_predictions
 from fpe_jax.metrics import coverage, track_frame_residuals
 from fpe_jax.path import nearest_index
 from fpe_jax.progress import Progress
@@ -76,7 +76,7 @@ def corner_panel(ax, case, held, heading, cov_m2, title: str, loc: str) -> None:
     plots.draw_track(ax, case.waypoints_xy_m, case.half_width_m)
     plots.draw_actual(ax, case.test_drive)
     colors = plt.get_cmap("tab10")
-    pts = []
+    pts, cov_map = [], covariance_map(cov_m2, heading)
     for n, i in enumerate(idx):
         c = colors(n)
         pred = held.pred_xy_m["fitted"][i]
@@ -89,9 +89,8 @@ def corner_panel(ax, case, held, heading, cov_m2, title: str, loc: str) -> None:
             label=f"prediction {n + 1}: fitted, 0.1 ... 1.0 s",
         )
         for k in ELLIPSE_STEPS:
-            cov = plots.rotate_cov(cov_m2[k], heading[i, k])
             for ns, ls in ((1, "-"), (2, "--")):
-                e = plots.ellipse_xy(pred[k], cov, ns)
+                e = plots.ellipse_xy(pred[k], cov_map[i, k], ns)
                 pts.append(e)
                 steps = ", ".join(f"{0.1 * (j + 1):.1f}" for j in ELLIPSE_STEPS)
                 lab = (

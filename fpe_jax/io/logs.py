@@ -79,6 +79,25 @@ def _decompress(data: bytes, compression: str, size: int) -> bytes:
     raise ValueError(f"unknown chunk compression {compression!r}")
 
 
+def _chunk_records(body: bytes, chunk: str) -> bytes:
+    """The records in a chunk's body (start, end time 2 x u64, records size u64, CRC u32,
+    u32-prefixed compression, u64-prefixed records); ValueError naming `chunk` if damaged."""
+    size, crc, n = struct.unpack_from("<QII", body, 16)
+    compression = body[32 : 32 + n].decode("utf-8", "replace")
+    (n_data,) = struct.unpack_from("<Q", body, 32 + n)
+    try:
+        records = _decompress(body[40 + n : 40 + n + n_data], compression, size)
+    except Exception as e:  # noqa: BLE001 -- any failure means the chunk is damaged
+        why = f"{compression}: {type(e).__name__}"
+        raise ValueError(f"{chunk} cannot be decompressed ({why})") from e
+    if len(records) != size:
+        raise ValueError(f"{chunk} holds {len(records)} bytes, its header says {size}")
+    computed = zlib.crc32(records)
+    if crc != 0 and computed != crc:
+        raise ValueError(f"{chunk} fails its CRC (stored {crc:#010x}, computed {computed:#010x})")
+    return records
+
+
 def corrupt_chunk(path) -> str | None:
     """What is wrong with the first damaged chunk of an MCAP file, found by walking its records.
 
@@ -103,22 +122,10 @@ def corrupt_chunk(path) -> str | None:
             if opcode != _OP_CHUNK:
                 offset = f.seek(length, 1)
                 continue
-            # chunk: start, end time (2 x u64), records size (u64), CRC (u32), compression
-            # (u32-prefixed string), compressed records (u64-prefixed)
-            body = f.read(length)
-            size, crc, n = struct.unpack_from("<QII", body, 16)
-            compression = body[32 : 32 + n].decode("utf-8", "replace")
-            (n_data,) = struct.unpack_from("<Q", body, 32 + n)
-            chunk = f"the chunk at byte offset {offset}"
             try:
-                records = _decompress(body[40 + n : 40 + n + n_data], compression, size)
-            except Exception as e:  # noqa: BLE001 -- any failure means the chunk is damaged
-                return f"{chunk} cannot be decompressed ({compression}: {type(e).__name__})"
-            if len(records) != size:
-                return f"{chunk} holds {len(records)} bytes, its header says {size}"
-            computed = zlib.crc32(records)
-            if crc != 0 and computed != crc:
-                return f"{chunk} fails its CRC (stored {crc:#010x}, computed {computed:#010x})"
+                _chunk_records(f.read(length), f"the chunk at byte offset {offset}")
+            except ValueError as e:
+                return str(e)
             offset += 9 + length
     return None
 
@@ -202,13 +209,7 @@ def scan_mcap(path, summary, channels=None, with_data: bool = True):
                 raise ValueError(f"a footer at byte offset {at}, before the end of the file")
             if opcode == _OP_CHUNK:
                 chunks.append(at)
-                body = f.read(n)
-                size, crc, k = struct.unpack_from("<QII", body, 16)
-                compression = body[32 : 32 + k].decode("utf-8", "replace")
-                (n_data,) = struct.unpack_from("<Q", body, 32 + k)
-                records = _decompress(body[40 + k : 40 + k + n_data], compression, size)
-                if len(records) != size or (crc != 0 and zlib.crc32(records) != crc):
-                    raise ValueError(f"the chunk at byte offset {at} is damaged")
+                records = _chunk_records(f.read(n), f"the chunk at byte offset {at}")
                 yield from _records_messages(records, channels, with_data, seen)
             elif opcode == _OP_MESSAGE:
                 record = _RECORD.pack(opcode, n) + f.read(n)

@@ -89,7 +89,7 @@ def atomic_output(path, force: bool) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
-def write_bytes(path, data: bytes, *, force: bool = False) -> Path:
+def write_bytes(path, data: bytes | bytearray, *, force: bool = False) -> Path:
     """Write `data` to `path` atomically (see `atomic_output`); returns the path."""
     with atomic_output(path, force) as tmp:
         tmp.write_bytes(data)
