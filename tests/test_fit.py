@@ -482,7 +482,7 @@ def test_levine_fit_beats_seed_and_constant_velocity(shared_data):
     res = F.fit([drive], [Track.from_waypoints(wp)], holdout=0.4)  # the default model
     rep = res.report
     # the default beats every preset at every step, though the test part lies mostly where the
-    # fit part never went (the line model keeps the car's own offset from its prior there)
+    # fit part never went (the line model holds the car's own offset there)
     from fpe_jax.demo import presets_beating_fitted
 
     assert presets_beating_fitted(rep) == [], res.info["model"]
