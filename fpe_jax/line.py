@@ -5,8 +5,13 @@ onto the centerline: arc length s, signed lateral offset d (left positive) and a
 ds/dt. These samples are spread onto P points evenly spaced in arc length (linear weights) and
 smoothed with a Gaussian kernel in arc length (circular on loops): a smooth periodic function
 whose smoothness is the kernel width. A point's coverage is the kernel-weighted sample count,
-capped at 1: where the fit drives never went it is 0 and the rollout holds the car's own offset
-(slowly decaying) and its current speed (`fpe_jax.rollout.rollout_frenet`).
+capped at 1. Where the fit drives never went (coverage 0) the profile is a prior from the
+track's shape: ridge regressions of the offset on the centerline's curvature, and of the log
+speed on its magnitude, each smoothed at a few widths and read a few metres behind and ahead
+(braking comes before a corner, the apex on its inside), fitted on the covered points. There the
+rollout keeps the car's own offset, following only the prior's change, and the prior's speed
+ratio (`fpe_jax.rollout.rollout_frenet`). With less than PRIOR_MIN_COVERED_M covered the prior
+is the covered mean (no change: the car's offset and speed held).
 
 The profile is tied to the waypoints it was learned on by `waypoints_sha256`.
 """
@@ -28,6 +33,15 @@ PROFILE_DS_M = 0.5  # spacing of the profile's points [m]
 PROFILE_SMOOTH_M = 1.0  # standard deviation of the smoothing kernel [m]
 MAX_GAP_S = 0.5  # samples further apart than this give no speed
 MIN_SAMPLES = 1.0  # kernel-weighted samples for full coverage
+# the uncovered prior: curvature smoothed at these widths [m], read at these distances [m]
+# ahead (positive) and behind, ridge penalty per unit weight on standardised features; fitted
+# only on at least PRIOR_MIN_COVERED_M of covered track
+PRIOR_SMOOTH_M = (1.0, 3.0, 8.0)
+PRIOR_SHIFTS_M = (-8.0, -4.0, -2.0, 0.0, 2.0, 4.0, 8.0)
+PRIOR_RIDGE = 0.1
+PRIOR_MIN_COVERED_M = 20.0
+PRIOR_FOLDS = 5  # held-out runs that set how far the prior's variation is trusted
+PRIOR_LAG_M = 4.0  # ... judged on changes over this distance [m] (about 1 s of driving)
 
 
 @aot.jit
@@ -107,8 +121,91 @@ def learn_line(
     coverage = np.clip(np.minimum(sm["w"], sm["vw"]) / MIN_SAMPLES, 0.0, 1.0)
     offset = np.where(sm["w"] > 1e-9, sm["d"] / np.maximum(sm["w"], 1e-9), 0.0)
     speed = np.where(sm["vw"] > 1e-9, sm["v"] / np.maximum(sm["vw"], 1e-9), 0.0)
-    return {
-        "line_offset_m": np.where(coverage > 0, offset, 0.0),
-        "line_speed_mps": np.where(coverage > 0, speed, 0.0),
-        "line_coverage": coverage,
-    }
+    offset, speed = np.where(coverage > 0, offset, 0.0), np.where(coverage > 0, speed, 0.0)
+    if coverage.any():
+        prior_offset, prior_speed = _prior(track, offset, speed, coverage, spacing)
+        offset = coverage * offset + (1.0 - coverage) * prior_offset
+        speed = coverage * speed + (1.0 - coverage) * prior_speed
+    return {"line_offset_m": offset, "line_speed_mps": speed, "line_coverage": coverage}
+
+
+def _curvature_features(track: Track, n: int, spacing: float, magnitude: bool) -> np.ndarray:
+    """(n, F) standardised features of the centerline's curvature at the profile's n points: a
+    constant, then the (signed or absolute) curvature smoothed at each PRIOR_SMOOTH_M and read
+    at each PRIOR_SHIFTS_M."""
+    heading = np.asarray(track.heading_rad)
+    turn = np.angle(
+        np.exp(1j * np.diff(heading, append=heading[:1] if track.closed else heading[-1:]))
+    )
+    ds = float(track.ds_m)
+    at = np.arange(n) * spacing
+    kappa = np.interp(
+        at,
+        (np.arange(len(heading)) + 0.5) * ds,
+        turn / ds,
+        period=float(track.length_m) if track.closed else None,
+    )
+    cols = [np.ones(n)]
+    for width in PRIOR_SMOOTH_M:
+        k = _smooth(kappa, track.closed, width / spacing)
+        k = np.abs(k) if magnitude else k
+        for shift in PRIOR_SHIFTS_M:
+            i = np.arange(n) + int(round(shift / spacing))
+            cols.append(k[i % n] if track.closed else k[np.clip(i, 0, n - 1)])
+    feats = np.stack(cols, axis=1)
+    scale = feats.std(axis=0)
+    scale[0] = 1.0
+    return feats / np.where(scale > 1e-12, scale, 1.0)
+
+
+def _ridge(feats: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted ridge regression of y on feats (the constant, column 0, unpenalised): the
+    coefficients."""
+    penalty = PRIOR_RIDGE * w.sum() * np.eye(feats.shape[1])
+    penalty[0, 0] = 0.0
+    return np.linalg.solve((feats.T * w) @ feats + penalty, (feats.T * w) @ y)
+
+
+def _shrunk_fit(feats: np.ndarray, y: np.ndarray, w: np.ndarray, lag: int) -> np.ndarray:
+    """The ridge fit of y on feats with its variation about the weighted mean shrunk by how well
+    it predicts, held out, y's change over `lag` points: the covered points (w > 0) fall into
+    PRIOR_FOLDS runs in arc length, each predicted from the others; the factor is the
+    least-squares slope of the held-out changes on the predicted ones, within [0, 1] (the
+    rollout follows only the prior's change where uncovered)."""
+    mean = np.sum(w * y) / np.sum(w)
+    fitted = feats @ _ridge(feats, y, w) - mean
+    idx = np.flatnonzero(w > 0)
+    fold = np.zeros(len(y), dtype=np.int64) - 1
+    fold[idx] = np.arange(len(idx)) * PRIOR_FOLDS // len(idx)
+    num = den = 0.0
+    for k in range(PRIOR_FOLDS):
+        held = fold == k
+        pred = feats @ _ridge(feats, y, np.where(held, 0.0, w))
+        i = np.flatnonzero(held)
+        j = (i + lag) % len(y)
+        i, j = i[held[j]], j[held[j]]
+        dp, dy = pred[j] - pred[i], y[j] - y[i]
+        num, den = num + np.sum(dp * dy), den + np.sum(dp * dp)
+    return mean + float(np.clip(num / den, 0.0, 1.0) if den > 0 else 0.0) * fitted
+
+
+def _prior(track: Track, offset, speed, coverage, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """The uncovered prior (P,) offset [m] and speed [m/s] from the track's curvature, fitted on
+    the covered points (weights: coverage), within the covered values' range."""
+    has_v = coverage * (speed > 0)
+    seen = coverage >= 0.5
+    if not seen.any() or coverage.sum() * spacing < PRIOR_MIN_COVERED_M:
+        mean = lambda y, w: np.full_like(y, np.sum(w * y) / max(np.sum(w), 1e-12))  # noqa: E731
+        return mean(offset, coverage), mean(speed, has_v)
+    n = len(offset)
+    lim = np.abs(offset[seen]).max()
+    lag = max(int(round(PRIOR_LAG_M / spacing)), 1)
+    feats = _curvature_features(track, n, spacing, False)
+    prior_offset = _shrunk_fit(feats, offset, coverage, lag)
+    feats = _curvature_features(track, n, spacing, True)
+    log_v = _shrunk_fit(feats, np.log(np.maximum(speed, 1e-3)), has_v, lag)
+    v_seen = speed[seen & (speed > 0)]
+    prior_speed = (
+        np.clip(np.exp(log_v), v_seen.min(), v_seen.max()) if len(v_seen) else np.exp(log_v)
+    )
+    return np.clip(prior_offset, -lim, lim), prior_speed

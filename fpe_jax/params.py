@@ -107,7 +107,9 @@ class Params(eqx.Module):
             for every other model.
         line_speed_mps: (P,) line model: along-track speed profile [m/s] on the same points.
         line_coverage: (P,) line model: in [0, 1], how well the fit drives covered each point;
-            where 0 the rollout holds the car's own offset (slowly decaying) and speed.
+            where 0 the profile is a prior from the track's curvature (`fpe_jax.line`) and the
+            rollout keeps the car's own offset from it (slowly decaying), following only its
+            change.
         settings: static `Settings`.
     """
 

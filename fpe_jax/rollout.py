@@ -240,9 +240,9 @@ def profile_at(values: Float[Array, " P"], s_m, track: Track):
 
 MIN_PROFILE_SPEED_MPS = 0.2  # a profile slower than this is no speed reference (ratio held at 1)
 MAX_SPEED_RATIO = 3.0  # the profile may at most triple or cut to 0 the current speed
-# Where the fit drives never went the car is taken to hold its current offset, decaying to the
-# centerline only slowly, with this time constant [s]: a racing car's line changes little within
-# a second, and the centerline is rarely where it drives.
+# Where the fit drives never went the car is taken to hold its current offset from the prior
+# profile, decaying to it only slowly, with this time constant [s]: a racing car's line changes
+# little within a second, and the prior is a guess from the track's shape.
 FALLBACK_TAU_S = 3.0
 SLOPE_DS_M = 0.5  # half the arc-length step of the target offset's slope [m]
 
@@ -259,9 +259,12 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     line l(s): d(t) = l(s(t)) + (d0 - l(s0)) exp(-t / offset_tau_s), and the speed follows the
     profile's shape scaled to the car's own: v(t) = v0 (1 + (v_p(s(t)) / v_p(s_ref) - 1)
     (1 - exp(-t / speed_tau_s))), s_ref where the speed was measured, so the car keeps its pace
-    and brakes where the profile brakes. Where the profile's coverage c(s) is 0 the speed ratio is
-    1 and the target offset is the car's own, d0 exp(-t / FALLBACK_TAU_S), held and slowly
-    decaying. The line model's return to its target L starts at the car's lateral rate relative
+    and brakes where the profile brakes (a profile speed below MIN_PROFILE_SPEED_MPS: ratio 1).
+    Where the profile's coverage c(s) is 0 (the profile there is `fpe_jax.line`'s prior from the
+    track's curvature) the car keeps its own offset and follows only the profile's change:
+    target l(s) + (d0 - l(s0)) exp(-t / FALLBACK_TAU_S), held and slowly decaying; in general
+    l(s) + (1 - c(s)) (d0 - l(s0)) exp(-t / FALLBACK_TAU_S), which at s0 is c l + (1 - c) d0.
+    The line model's return to its target L starts at the car's lateral rate relative
     to the target's, r0 = v sin(course - heading) - L'(s0) v0 (critically damped): d(t) = L(t) +
     (e0 + (r0 + e0 / tau) t) exp(-t / tau), e0 = d0 - L(s0). The yaw is the path heading turned
     by the offset's slope.
@@ -288,33 +291,35 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     has_line = params.line_offset_m.shape[0] > 0  # static: the line model
     tau = params.offset_tau_s
 
-    def line(s):  # the line's offset [m] and the speed profile [m/s] at s, coverage applied
-        c = profile_at(params.line_coverage, s, track)
+    def line(s):  # the line's offset [m], its coverage and the speed profile [m/s] at s
         return (
-            c * profile_at(params.line_offset_m, s, track),
-            c,
+            profile_at(params.line_offset_m, s, track),
+            profile_at(params.line_coverage, s, track),
             profile_at(params.line_speed_mps, s, track),
         )
 
     if has_line:
+        own = d0 - line(s0)[0]  # the car's offset from the profile, kept where uncovered
 
         def target(x):  # the offset the car returns to: its line, where uncovered its own
             lx, cx, _ = line(x)
-            return lx + (1.0 - cx) * d0
+            return lx + (1.0 - cx) * own
 
         l0 = target(s0)
-        hold = d0 * jnp.exp(-t_end / FALLBACK_TAU_S)  # uncovered: held, slowly decaying
+        hold = own * jnp.exp(-t_end / FALLBACK_TAU_S)  # uncovered: held, slowly decaying
         # the measured speed is the window's average: the profile's shape from where the car
         # was then (s0 - v0 age) carries it to now and over the horizon
-        _, cov0, vp0 = line(s0 - v0 * age)
-        ok0 = cov0 * (vp0 > MIN_PROFILE_SPEED_MPS).astype(cov0.dtype)
+        _, _, vp0 = line(s0 - v0 * age)
+        ok0 = (vp0 > MIN_PROFILE_SPEED_MPS).astype(vp0.dtype)
         vp0 = jnp.maximum(vp0, MIN_PROFILE_SPEED_MPS)
 
         def step(s, inp):
             dt, t0 = inp
-            _, c, vp = line(s)
-            ratio = jnp.clip(vp / vp0, 0.0, MAX_SPEED_RATIO)
-            ratio = 1.0 + ok0 * c * (ratio - 1.0)
+            _, _, vp = line(s)
+            ratio = jnp.where(
+                vp > MIN_PROFILE_SPEED_MPS, jnp.clip(vp / vp0, 0.0, MAX_SPEED_RATIO), 1.0
+            )
+            ratio = 1.0 + ok0 * (ratio - 1.0)
             v = v0 * (1.0 + (ratio - 1.0) * -jnp.expm1(-(t0 + age) / params.speed_tau_s))
             s = s + v * dt
             return s, s

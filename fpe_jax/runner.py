@@ -508,13 +508,14 @@ class Runner:
 
     def _line_at(self, s_m: float) -> tuple[float, float, float]:
         offset, speed, coverage = self._line
-        c = self._profile_at(coverage, s_m)
-        return c * self._profile_at(offset, s_m), c, self._profile_at(speed, s_m)
+        p = self._profile_at
+        return p(offset, s_m), p(coverage, s_m), p(speed, s_m)
 
-    def _target_at(self, s_m: float, d0_m: float) -> float:
-        """fpe_jax.rollout.rollout_frenet's target offset at the start: the line, uncovered d0."""
+    def _target_at(self, s_m: float, own_m: float) -> float:
+        """fpe_jax.rollout.rollout_frenet's target offset: the line, where uncovered the car's
+        own offset from it (`own_m`) kept."""
         line, c, _ = self._line_at(s_m)
-        return line + (1.0 - c) * d0_m
+        return line + (1.0 - c) * own_m
 
     def _frenet(self, frame, est) -> np.ndarray:
         """fpe_jax.rollout.rollout_frenet from the track-frame estimate and the state."""
@@ -530,12 +531,13 @@ class Runner:
         t, s_all, d_all = 0.0, [], []
         l0, tau = 0.0, self._offset_tau_s
         if self._line is not None:
-            l0 = self._target_at(s0, d0)
+            own = d0 - self._line_at(s0)[0]
+            l0 = self._target_at(s0, own)
             rate = est[3] * math.sin(est[5] - h) - v0 * (
-                self._target_at(s0 + SLOPE_DS_M, d0) - self._target_at(s0 - SLOPE_DS_M, d0)
+                self._target_at(s0 + SLOPE_DS_M, own) - self._target_at(s0 - SLOPE_DS_M, own)
             ) / (2.0 * SLOPE_DS_M)
-            _, cov0, vp0 = self._line_at(s0 - v0 * age)
-            ok0 = cov0 * (1.0 if vp0 > MIN_PROFILE_SPEED_MPS else 0.0)
+            _, _, vp0 = self._line_at(s0 - v0 * age)
+            ok0 = 1.0 if vp0 > MIN_PROFILE_SPEED_MPS else 0.0
             vp0 = max(vp0, MIN_PROFILE_SPEED_MPS)
         s = s0
         for dt in self._times():
@@ -544,14 +546,14 @@ class Runner:
                 s = s0 + v0 * t
                 line = 0.0
             else:
-                _, c, vp = self._line_at(s)
+                _, _, vp = self._line_at(s)
                 ratio = min(max(vp / vp0, 0.0), MAX_SPEED_RATIO)
-                ratio = 1.0 + ok0 * c * (ratio - 1.0)
+                ratio = 1.0 + ok0 * (1.0 if vp > MIN_PROFILE_SPEED_MPS else 0.0) * (ratio - 1.0)
                 v = v0 * (1.0 + (ratio - 1.0) * -math.expm1(-(t + age) / self._speed_tau_s))
                 s = s + v * dt
                 t += dt
                 line, c, _ = self._line_at(s)
-                line += (1.0 - c) * d0 * math.exp(-t / FALLBACK_TAU_S)
+                line += (1.0 - c) * own * math.exp(-t / FALLBACK_TAU_S)
             s_all.append(s)
             if self._line is None:
                 d_all.append(line + (d0 - l0) * math.exp(-t / tau))

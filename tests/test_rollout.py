@@ -463,3 +463,24 @@ def test_the_return_to_the_line_starts_at_the_cars_lateral_rate():
     rate = 2.0 * np.sin(0.1)
     np.testing.assert_allclose(d, rate * STEPS * np.exp(-STEPS / 0.5), atol=1e-9)
     assert d[0] == pytest.approx(rate * DT, rel=0.2) and abs(d[-1]) < d[2]
+
+
+def test_uncovered_line_follows_the_priors_change_from_the_cars_own_offset():
+    """Where coverage is 0 the profile is `fpe_jax.line`'s prior: the car keeps its own offset
+    from it (decaying with FALLBACK_TAU_S) and follows its change, and its speed follows the
+    prior's ratio."""
+    track, p_pts = line_track(0.0), 60
+    s_pts = np.linspace(0.0, 30.0, p_pts)
+    slope = 0.02
+    p = line_model(0.0, offset_tau_s=0.2)
+    p = dataclasses.replace(p, line_offset_m=jnp.asarray(0.1 + slope * s_pts))
+    # heading along the prior's slope: no lateral rate relative to it
+    st = state(5.0, 0.8, 0.0, 2.0, course_rad=np.arctan(slope))
+    v0 = 2.0 * np.cos(np.arctan(slope))
+    s = 5.0 + v0 * STEPS
+    expected = 0.1 + slope * s + (0.8 - 0.1 - slope * 5.0) * np.exp(-STEPS / FALLBACK_TAU_S)
+    np.testing.assert_allclose(lateral_offsets(p, st, track), expected, atol=1e-9)
+    # a prior that speeds up ahead carries the car further than its current speed would
+    faster = dataclasses.replace(p, line_speed_mps=jnp.asarray(2.0 + 0.2 * s_pts))
+    x_end = float(eqx.filter_jit(rollout_frenet)(faster, st, track)[-1, 0])
+    assert x_end > s[-1] + 0.05, x_end

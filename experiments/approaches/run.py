@@ -137,8 +137,8 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
         f"default, `--model {MODEL}`: "
         + (
             "the line model (the car's own line and speed profile learned from the fit drive, a "
-            "Frenet rollout on it; where the fit drive never went it holds the car's own "
-            "offset and speed)"
+            "Frenet rollout on it; where the fit drive never went it keeps the car's own "
+            "offset from a prior profile fitted to the track's curvature, and its speed ratio)"
             if MODEL == "line"
             else f"the {MODEL} model"
         )
