@@ -15,7 +15,6 @@ import dataclasses
 from collections.abc import Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from fpe_jax import aot
@@ -215,7 +214,7 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
         rest = [d.drive.slice_time(-np.inf, lo), d.drive.slice_time(hi, np.inf)]
         line = learn_line([r for r in rest if len(r.t_s)], d.track)
         pred = predict_targets(
-            dataclasses.replace(params, **{k: jnp.asarray(v) for k, v in line.items()}), d
+            dataclasses.replace(params, **{k: aot.device_array(v) for k, v in line.items()}), d
         )
         fold = (t_rows >= lo) & (t_rows < hi)
         out[fold] = pred[fold]

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from fpe_jax.aot import device_array
 from fpe_jax.path import build_path
 
 
@@ -51,12 +52,12 @@ class Track(eqx.Module):
         seg = np.concatenate([xy, tangent], axis=1)  # the next point's row: point, tangent
         nxt = np.roll(seg, -1, axis=0) if p["closed"] else np.vstack([seg[1:], seg[-1:]])
         return cls(
-            xy_m=jnp.asarray(p["xy_m"]),
-            heading_rad=jnp.asarray(p["heading_rad"]),
-            ds_m=jnp.asarray(p["ds_m"]),
-            length_m=jnp.asarray(p["length_m"]),
-            raw_xy_m=jnp.asarray(p["raw_xy_m"]),
-            seg_m=jnp.asarray(np.concatenate([xy, nxt[:, :2] - xy, tangent, nxt[:, 2:]], axis=1)),
+            xy_m=device_array(p["xy_m"]),
+            heading_rad=device_array(p["heading_rad"]),
+            ds_m=device_array(p["ds_m"]),
+            length_m=device_array(p["length_m"]),
+            raw_xy_m=device_array(p["raw_xy_m"]),
+            seg_m=device_array(np.concatenate([xy, nxt[:, :2] - xy, tangent, nxt[:, 2:]], axis=1)),
             closed=p["closed"],
             window_ds_m=p["ds_m"],
         )
