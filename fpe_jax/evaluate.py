@@ -159,7 +159,7 @@ def path_heading(track: Track, xy_m: np.ndarray, states: State) -> np.ndarray:
     """Path heading [rad] (N, H) at predicted positions (N, H, 2): the frame of the uncertainty.
 
     Each prediction is projected near its own car's arc length (`states`, leading axis N, with
-    `s_m`), in bucketed blocks of rows: memory O(block x H + track points), not
+    `s_m`), in the padded blocks of `row_blocks`: memory O(block x H + track points), not
     (N, H, track points).
     """
     out = []

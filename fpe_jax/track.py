@@ -172,11 +172,16 @@ def wrap_to(x, period):
 def arclength_along(track: Track, xy_m: Float[Array, "N 2"], s_before_m=None) -> Float[Array, " N"]:
     """Arc length [m] of each point of a drive (N, 2), each projected in a window around the last.
 
-    The first point is projected globally, or in the window around `s_before_m` [m] (the arc
-    length of the point before it, for a drive cut in blocks); later points stay continuous (no
-    jumps across a hairpin or the seam), so s may exceed the lap length on loops (it counts laps).
+    The first point is projected globally (`s_before_m` None or NaN), or in the window around
+    `s_before_m` [m] (the arc length of the point before it, for a drive cut in blocks); later
+    points stay continuous (no jumps across a hairpin or the seam), so s may exceed the lap length
+    on loops (it counts laps). A NaN start lets the first block of a drive share the compiled
+    function of the blocks after it.
     """
-    s0 = track.project(xy_m[0]) if s_before_m is None else s_before_m
+    if s_before_m is None:
+        s0 = track.project(xy_m[0])
+    else:
+        s0 = jnp.where(jnp.isnan(s_before_m), track.project(xy_m[0]), s_before_m)
 
     def step(s_prev, p):
         s = track.project_window(p, s_prev)
