@@ -15,7 +15,6 @@ import dataclasses
 from collections.abc import Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from fpe_jax import aot
@@ -160,7 +159,7 @@ def path_heading(track: Track, xy_m: np.ndarray, states: State) -> np.ndarray:
     """Path heading [rad] (N, H) at predicted positions (N, H, 2): the frame of the uncertainty.
 
     Each prediction is projected near its own car's arc length (`states`, leading axis N, with
-    `s_m`), in bucketed blocks of rows: memory O(block x H + track points), not
+    `s_m`), in the padded blocks of `row_blocks`: memory O(block x H + track points), not
     (N, H, track points).
     """
     out = []
@@ -215,7 +214,7 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
         rest = [d.drive.slice_time(-np.inf, lo), d.drive.slice_time(hi, np.inf)]
         line = learn_line([r for r in rest if len(r.t_s)], d.track)
         pred = predict_targets(
-            dataclasses.replace(params, **{k: jnp.asarray(v) for k, v in line.items()}), d
+            dataclasses.replace(params, **{k: aot.device_array(v) for k, v in line.items()}), d
         )
         fold = (t_rows >= lo) & (t_rows < hi)
         out[fold] = pred[fold]

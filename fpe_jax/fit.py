@@ -488,7 +488,7 @@ def fit(
             # learned from the inner fit part only: the validation part must be as new to the
             # line as held-out data is (on Levine it lies mostly where the fit never went)
             line = learn_line([p[0] for p in inner], tracks[0])
-            inner_line = {k: jnp.asarray(v) for k, v in line.items()}
+            inner_line = {k: aot.device_array(v) for k, v in line.items()}
             p_line = candidates["line"][0]
             final_cover = float(np.mean(np.asarray(p_line.line_coverage)))
             covered = [_row_coverage(line["line_coverage"], d, p_line) > 0 for d in inner_val]

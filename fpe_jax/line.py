@@ -26,7 +26,7 @@ import numpy as np
 from fpe_jax import aot
 from fpe_jax.drive import Drive
 from fpe_jax.history import distinct_mask
-from fpe_jax.predict import bucket, pad_rows
+from fpe_jax.predict import no_arclength, pad_rows, row_blocks
 from fpe_jax.track import Track, arclength_along
 
 PROFILE_DS_M = 0.5  # spacing of the profile's points [m]
@@ -45,10 +45,10 @@ PRIOR_LAG_M = 4.0  # ... judged on changes over this distance [m] (about 1 s of 
 
 
 @aot.jit
-def _project(track: Track, xy_m):
-    """Arc length s (N,) [m] of points (N, 2) [m], the centerline point (N, 2) [m] and heading
-    (N,) [rad] there."""
-    s = arclength_along(track, xy_m)
+def _project(track: Track, xy_m, s_before_m):
+    """Arc length s (N,) [m] of points (N, 2) [m] (continuing from s_before_m, NaN: none), the
+    centerline point (N, 2) [m] and heading (N,) [rad] there."""
+    s = arclength_along(track, xy_m, s_before_m)
     return s, jax.vmap(track.point_at)(s), jax.vmap(track.heading_at)(s)
 
 
@@ -59,10 +59,17 @@ def _samples(drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray, np.nda
     else:
         keep = distinct_mask(drive.xy_m)
         t, xy = drive.t_s[keep], drive.xy_m[keep]
-    # padded to a bucketed length: a drive and both halves of it (the cross-fitted
-    # uncertainty) reuse two stored executables instead of tracing three shapes
-    n = len(xy)
-    s, centre, heading = (np.asarray(a)[:n] for a in _project(track, pad_rows(xy, bucket(n))))
+    # in the padded blocks of `row_blocks`: a drive and every fold of it (the cross-fitted
+    # uncertainty) reuse one stored executable
+    s, centre, heading = np.zeros(0), np.zeros((0, 2)), np.zeros(0)
+    parts, s_before = [], no_arclength()
+    for rows, size in row_blocks(len(xy)):
+        part = _project(track, pad_rows(xy[rows], size), s_before)
+        part = [np.asarray(a)[: rows.stop - rows.start] for a in part]
+        s_before = part[0][-1]
+        parts.append(part)
+    if parts:
+        s, centre, heading = (np.concatenate(a) for a in zip(*parts))
     d = (xy[:, 1] - centre[:, 1]) * np.cos(heading) - (xy[:, 0] - centre[:, 0]) * np.sin(heading)
     v = np.full_like(s, np.nan)
     if len(t) >= 3:

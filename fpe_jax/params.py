@@ -155,27 +155,30 @@ class Params(eqx.Module):
     ) -> Params:
         """Params from plain numbers; a scalar `weights` is broadcast to all H steps."""
         settings = settings or Settings()
-        w = jnp.broadcast_to(jnp.asarray(weights, dtype=float), (settings.horizon,))
-        line = [jnp.asarray(a, dtype=float).reshape(-1) for a in (line_offset_m, line_speed_mps)]
-        line.append(jnp.asarray(line_coverage, dtype=float).reshape(-1))
+        if isinstance(weights, jax.Array):
+            w = jnp.broadcast_to(jnp.asarray(weights, dtype=float), (settings.horizon,))
+        else:
+            w = aot.device_array(np.broadcast_to(np.asarray(weights, float), (settings.horizon,)))
+        profiles = (line_offset_m, line_speed_mps, line_coverage)
+        line = [aot.device_array(a, dtype=float).reshape(-1) for a in profiles]
         if len({a.shape for a in line}) != 1:
             raise ValueError("Params: line_offset_m, line_speed_mps, line_coverage differ in size")
         if (settings.model == "line") != (line[0].shape[0] > 0):
             raise ValueError("Params: the line model needs a line profile, other models none")
         return cls(
-            lookahead_m=jnp.asarray(lookahead_m, dtype=float),
-            lookahead_gain_s=jnp.asarray(lookahead_gain_s, dtype=float),
+            lookahead_m=aot.device_array(lookahead_m, dtype=float),
+            lookahead_gain_s=aot.device_array(lookahead_gain_s, dtype=float),
             weights=w,
-            delay_s=jnp.asarray(delay_s, dtype=float),
-            speed_weight=jnp.asarray(speed_weight, dtype=float),
-            speed_mps=jnp.asarray(speed_mps, dtype=float),
-            offset_tau_s=jnp.asarray(offset_tau_s, dtype=float),
-            speed_tau_s=jnp.asarray(speed_tau_s, dtype=float),
-            position_smoothing=jnp.asarray(position_smoothing, dtype=float),
-            filter_accel_mps2=jnp.asarray(filter_accel_mps2, dtype=float),
-            filter_lat_accel_mps2=jnp.asarray(filter_lat_accel_mps2, dtype=float),
-            filter_obs_m=jnp.asarray(filter_obs_m, dtype=float),
-            filter_gate_sigma=jnp.asarray(filter_gate_sigma, dtype=float),
+            delay_s=aot.device_array(delay_s, dtype=float),
+            speed_weight=aot.device_array(speed_weight, dtype=float),
+            speed_mps=aot.device_array(speed_mps, dtype=float),
+            offset_tau_s=aot.device_array(offset_tau_s, dtype=float),
+            speed_tau_s=aot.device_array(speed_tau_s, dtype=float),
+            position_smoothing=aot.device_array(position_smoothing, dtype=float),
+            filter_accel_mps2=aot.device_array(filter_accel_mps2, dtype=float),
+            filter_lat_accel_mps2=aot.device_array(filter_lat_accel_mps2, dtype=float),
+            filter_obs_m=aot.device_array(filter_obs_m, dtype=float),
+            filter_gate_sigma=aot.device_array(filter_gate_sigma, dtype=float),
             line_offset_m=line[0],
             line_speed_mps=line[1],
             line_coverage=line[2],

@@ -107,9 +107,9 @@ MIN_BUCKET = 64
 def bucket(n: int) -> int:
     """Padded row count for n rows: the smallest of 64, 96, 128, 192, 256, 384, ... that is >= n.
 
-    Executables are compiled per shape: padding every drive, split and target set to one of these
-    sizes (at most a third more rows) lets different drives and commands reuse the same ones,
-    in one process and from the persistent cache.
+    Executables are compiled per shape: the fit's solver takes each drive's targets whole, and
+    padding them to one of these sizes (at most a third more rows) lets drives of similar length
+    and the inner and final fits share one, in one process and from the persistent cache.
     """
     size = MIN_BUCKET
     while size < n:
@@ -132,17 +132,35 @@ def pad_rows(tree, n: int):
     return jax.tree.map(pad, tree)
 
 
+# Rows of the commands' other blocks: every drive, split and fold runs in blocks of this one
+# size, so predict, evaluate, plot and fit share one executable per function and model (a warm
+# 10-minute fit loaded 19 executables, 3 of them the state estimator's for three sizes, and
+# compiled each cold); padding a short drive to it costs less than one more shape.
+BLOCK_ROWS = 1024
+
+
 def row_blocks(n: int):
-    """Slices of at most PREDICT_CHUNK rows covering 0..n, each with its bucketed row count."""
-    for a in range(0, n, PREDICT_CHUNK):
-        rows = slice(a, min(n, a + PREDICT_CHUNK))
-        yield rows, bucket(rows.stop - rows.start)
+    """Slices covering 0..n, each with its padded row count: PREDICT_CHUNK rows while that many
+    are left, then blocks of BLOCK_ROWS. Memory stays O(chunk x H) for any n, and drives of
+    every length run one or two compiled shapes."""
+    small = min(BLOCK_ROWS, PREDICT_CHUNK)
+    a = 0
+    while a < n:
+        size = PREDICT_CHUNK if n - a >= PREDICT_CHUNK else small
+        yield slice(a, min(n, a + size)), size
+        a += size
+
+
+def no_arclength() -> np.ndarray:
+    """The start arc length of a drive's first block: NaN, projected globally
+    (`arclength_along`)."""
+    return np.full((), np.nan, jax.dtypes.canonicalize_dtype(np.float64))
 
 
 def predict_rows(params: Params, states: State, track: Track) -> np.ndarray:
-    """(N, H, 3) NumPy predictions of N states (leading axis N): `predict_batch` over blocks of
-    at most PREDICT_CHUNK rows, each padded to its bucket, so intermediates stay O(chunk x H) for
-    any N and every drive reuses a few compiled shapes."""
+    """(N, H, 3) NumPy predictions of N states (leading axis N): `predict_batch` over the padded
+    blocks of `row_blocks`, so intermediates stay O(chunk x H) for any N and every drive reuses
+    the same compiled shapes."""
     out = []
     for rows, size in row_blocks(len(states.x_m)):
         part = pad_rows(jax.tree.map(lambda x, r=rows: x[r], states), size)
@@ -204,13 +222,13 @@ def states_from_drive(
     """
     # in blocks of PREDICT_CHUNK rows, each block's projection window continuing from the last
     # arc length of the one before: memory stays O(block) for a log of any length
-    parts, s_before = [], None
+    parts, s_before = [], no_arclength()
     values = kalman_params(params) if uses_filter(params.settings) else None
-    for rows, size in list(row_blocks(len(drive.t_s))) or [(slice(0, 0), bucket(0))]:
+    for rows, size in list(row_blocks(len(drive.t_s))) or [(slice(0, 0), BLOCK_ROWS)]:
         windows = history_windows(drive, params.settings.history, rows)
         part = _states_from_windows(pad_rows(windows, size), track, s_before, values, keep_window)
         part = jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], part)
-        s_before = np.asarray(part.s_m[-1]) if len(part.s_m) else None
+        s_before = np.asarray(part.s_m[-1]) if len(part.s_m) else no_arclength()
         parts.append(part)
     states = jax.tree.map(lambda *xs: np.concatenate(xs), *parts) if len(parts) > 1 else parts[0]
     if params.settings.model == "seed":

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from fpe_jax.aot import device_array
 from fpe_jax.path import build_path
 
 
@@ -51,12 +52,12 @@ class Track(eqx.Module):
         seg = np.concatenate([xy, tangent], axis=1)  # the next point's row: point, tangent
         nxt = np.roll(seg, -1, axis=0) if p["closed"] else np.vstack([seg[1:], seg[-1:]])
         return cls(
-            xy_m=jnp.asarray(p["xy_m"]),
-            heading_rad=jnp.asarray(p["heading_rad"]),
-            ds_m=jnp.asarray(p["ds_m"]),
-            length_m=jnp.asarray(p["length_m"]),
-            raw_xy_m=jnp.asarray(p["raw_xy_m"]),
-            seg_m=jnp.asarray(np.concatenate([xy, nxt[:, :2] - xy, tangent, nxt[:, 2:]], axis=1)),
+            xy_m=device_array(p["xy_m"]),
+            heading_rad=device_array(p["heading_rad"]),
+            ds_m=device_array(p["ds_m"]),
+            length_m=device_array(p["length_m"]),
+            raw_xy_m=device_array(p["raw_xy_m"]),
+            seg_m=device_array(np.concatenate([xy, nxt[:, :2] - xy, tangent, nxt[:, 2:]], axis=1)),
             closed=p["closed"],
             window_ds_m=p["ds_m"],
         )
@@ -171,11 +172,16 @@ def wrap_to(x, period):
 def arclength_along(track: Track, xy_m: Float[Array, "N 2"], s_before_m=None) -> Float[Array, " N"]:
     """Arc length [m] of each point of a drive (N, 2), each projected in a window around the last.
 
-    The first point is projected globally, or in the window around `s_before_m` [m] (the arc
-    length of the point before it, for a drive cut in blocks); later points stay continuous (no
-    jumps across a hairpin or the seam), so s may exceed the lap length on loops (it counts laps).
+    The first point is projected globally (`s_before_m` None or NaN), or in the window around
+    `s_before_m` [m] (the arc length of the point before it, for a drive cut in blocks); later
+    points stay continuous (no jumps across a hairpin or the seam), so s may exceed the lap length
+    on loops (it counts laps). A NaN start lets the first block of a drive share the compiled
+    function of the blocks after it.
     """
-    s0 = track.project(xy_m[0]) if s_before_m is None else s_before_m
+    if s_before_m is None:
+        s0 = track.project(xy_m[0])
+    else:
+        s0 = jnp.where(jnp.isnan(s_before_m), track.project(xy_m[0]), s_before_m)
 
     def step(s_prev, p):
         s = track.project_window(p, s_prev)
