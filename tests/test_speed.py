@@ -12,7 +12,7 @@ import pytest
 
 from fpe_jax import cache
 from fpe_jax.config import PRESET_DOCS
-from fpe_jax.params import presets
+from fpe_jax.params import presets, with_settings
 from fpe_jax.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -256,7 +256,9 @@ def test_drives_of_similar_length_share_executables():
     b = sim.simulate("oval", duration_s=66.0, seed=2)
     assert len(a.drive.t_s) != len(b.drive.t_s)
     track = Track.from_waypoints(a.centerline_xy_m)
-    params = presets["default"]
+    # a horizon no other test uses: every drive shares the row blocks' executables, so with the
+    # default one an earlier test would have compiled them already
+    params = with_settings(presets["default"], horizon=13)
     events = []
 
     def listen(name, *args, **kw):
