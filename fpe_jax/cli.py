@@ -154,20 +154,27 @@ def _load_predictor(args):
     return params, wp
 
 
+def _log_options(args) -> dict:
+    """The `_add_log_flags` values that both reading and describing a log take."""
+    return dict(
+        pose_topic=args.pose_topic,
+        truth_topic=args.truth_topic,
+        rate_hz=args.rate,
+        tf_parent=args.tf_parent,
+        tf_child=args.tf_child,
+        tag_id=args.tag_id,
+        tag_to_base=args.tag_to_base,
+    )
+
+
 def _load_drive_from_args(args):
     from fpe_jax import io
 
     return io.load_drive(
         args.log,
-        pose_topic=args.pose_topic,
-        truth_topic=args.truth_topic,
-        rate_hz=args.rate,
         log_time=args.log_time,
-        tf_parent=args.tf_parent,
-        tf_child=args.tf_child,
-        tag_id=args.tag_id,
-        tag_to_base=args.tag_to_base,
         drop_outside_tf=args.drop_outside_tf,
+        **_log_options(args),
     )
 
 
@@ -394,16 +401,16 @@ def _fit_inputs(args, say=lambda msg: None):
     if not args.waypoints:
         raise InputError("--waypoints", "missing", "a waypoint file for the drives")
     wp = io.load_waypoints(args.waypoints).xy_m
-    drives = []
-    for i, log in enumerate(args.logs, 1):
-        say(f"reading drive {i}/{len(args.logs)}: {log}")
-        args.log = log
-        drives.append((_load_drive_from_args(args), wp, log))
-    tests = []
-    for i, log in enumerate(args.test or [], 1):
-        say(f"reading test drive {i}/{len(args.test)}: {log}")
-        args.log = log
-        tests.append((_load_drive_from_args(args), wp, log))
+
+    def read(logs, what):
+        entries = []
+        for i, log in enumerate(logs, 1):
+            say(f"reading {what} {i}/{len(logs)}: {log}")
+            args.log = log
+            entries.append((_load_drive_from_args(args), wp, log))
+        return entries
+
+    drives, tests = read(args.logs, "drive"), read(args.test or [], "test drive")
     opts = dict(
         holdout=0.3 if args.holdout is None else args.holdout,
         fit=None,
@@ -521,11 +528,7 @@ def cmd_fit(args) -> int:
     write_config(out, cfg, force=args.force)
     print(format_fitted(result))
     print("\nheld-out:\n" + format_table(result.report))
-    cov = result.report["fitted"]
-    print(
-        f"\nellipse coverage: 1-sigma {cov['coverage_1sigma']:.1%} (ideal 39.3 %), "
-        f"2-sigma {cov['coverage_2sigma']:.1%} (ideal 86.5 %)"
-    )
+    print("\n" + _coverage_line(result.report["fitted"]))
     print(f"wrote {out}")
     return 0
 
@@ -562,11 +565,15 @@ def cmd_evaluate(args) -> int:
     else:
         print(format_table({name: metrics}))
         if cov is not None:
-            print(
-                f"ellipse coverage: 1-sigma {metrics['coverage_1sigma']:.1%} (ideal 39.3 %), "
-                f"2-sigma {metrics['coverage_2sigma']:.1%} (ideal 86.5 %)"
-            )
+            print(_coverage_line(metrics))
     return 0
+
+
+def _coverage_line(metrics: dict) -> str:
+    return (
+        f"ellipse coverage: 1-sigma {metrics['coverage_1sigma']:.1%} (ideal 39.3 %), "
+        f"2-sigma {metrics['coverage_2sigma']:.1%} (ideal 86.5 %)"
+    )
 
 
 def cmd_cache(args) -> int:
@@ -700,16 +707,7 @@ def cmd_info(args) -> int:
         raise InputError("LOG", "missing", "a drive log, or --waypoints W to describe waypoints")
     info = {}
     if args.log is not None:
-        info = io.describe_log(
-            args.log,
-            pose_topic=args.pose_topic,
-            truth_topic=args.truth_topic,
-            rate_hz=args.rate,
-            tf_parent=args.tf_parent,
-            tf_child=args.tf_child,
-            tag_id=args.tag_id,
-            tag_to_base=args.tag_to_base,
-        )
+        info = io.describe_log(args.log, **_log_options(args))
     if args.waypoints is not None:
         info["waypoints"] = _describe_waypoints(args.waypoints)
     if args.json:

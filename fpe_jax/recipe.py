@@ -73,12 +73,16 @@ def _check(ok: bool, source, field: str, value, expected: str) -> None:
         raise InputError(source, f"{field} is {S.short(value)}", expected)
 
 
+def _check_keys(table: dict, keys, source, what: str) -> None:
+    unknown = set(table) - keys
+    if unknown:
+        raise InputError(source, f"unknown {what} {sorted(unknown)}", f"{sorted(keys)}")
+
+
 def _check_entry(entry, source, field: str) -> None:
     """The types and ranges of one [[drives]] entry, before anything is loaded."""
     _check(isinstance(entry, dict), source, field, entry, "a table of drive keys")
-    unknown = set(entry) - DRIVE_KEYS
-    if unknown:
-        raise InputError(source, f"unknown drive keys {sorted(unknown)}", f"{sorted(DRIVE_KEYS)}")
+    _check_keys(entry, DRIVE_KEYS, source, "drive keys")
     for key in ("path", "pose_topic", "truth_topic", "waypoints"):
         if key in entry:
             _check(
@@ -105,13 +109,7 @@ def _check_entry(entry, source, field: str) -> None:
             sim,
             'a table such as { track = "oval", duration_s = 60 }',
         )
-        unknown = set(sim) - SIMULATE_KEYS
-        if unknown:
-            raise InputError(
-                source,
-                f"unknown {field}.simulate keys {sorted(unknown)}",
-                f"{sorted(SIMULATE_KEYS)}",
-            )
+        _check_keys(sim, SIMULATE_KEYS, source, f"{field}.simulate keys")
         for key in ("track", "raceline"):
             if key in sim:
                 _check(isinstance(sim[key], str), source, f"{field}.simulate.{key}", sim[key], _STR)
@@ -209,9 +207,7 @@ def load_recipe(path) -> Recipe:
         raise InputError(
             path, "nested too deeply", "a TOML recipe such as fit/levine.toml"
         ) from None
-    unknown = set(spec) - TOP_KEYS
-    if unknown:
-        raise InputError(path, f"unknown keys {sorted(unknown)}", f"{sorted(TOP_KEYS)}")
+    _check_keys(spec, TOP_KEYS, path, "keys")
     if not spec.get("drives"):
         raise InputError(path, "no [[drives]]", "at least one [[drives]] entry")
     # every value is checked before any drive is read or simulated

@@ -210,9 +210,8 @@ def simulate(
     ref = _reference_path(ref_xy, ref_v, center, hw, driver)
     n_steps = int(round(duration_s / DT_S))
     t_steps = np.arange(n_steps + 1) * DT_S
-    offset_m = _smooth_random(
-        rng_offset, t_steps, driver.offset_max_m * hw / 1.1, driver.offset_period_s
-    )
+    offset_m = _smooth_random(rng_offset, driver.offset_max_m * hw / 1.1, driver.offset_period_s)
+    offset_m = offset_m(t_steps)
     start = int(rng_drive.integers(len(ref["xy"])))
     stop_times_s, stop_waits_s = _stop_schedule(rng_drive, duration_s, driver)
     states = _drive(ref, start, offset_m, stop_times_s, stop_waits_s, vehicle, driver)
@@ -360,13 +359,9 @@ def _speed_profile(kappa: np.ndarray, spacing_m: float, driver: Driver) -> np.nd
     return np.maximum(np.array(v), driver.v_min_mps)
 
 
-def _smooth_random(rng, t_s: np.ndarray, amplitude: float, period_s, n: int = 3) -> np.ndarray:
-    """A smooth random signal on `t_s`: n sinusoids of random period/phase, |value| <= amplitude."""
-    return _smooth_random_fn(rng, amplitude, period_s, n)(t_s)
-
-
-def _smooth_random_fn(rng, amplitude: float, period_s, n: int = 3):
-    """The signal of `_smooth_random` as a function of time (N,) [s] -> (N,), to sample anywhere."""
+def _smooth_random(rng, amplitude: float, period_s, n: int = 3):
+    """A smooth random signal, n sinusoids of random period/phase with |value| <= amplitude, as a
+    function of time (N,) [s] -> (N,), to sample anywhere."""
     periods = rng.uniform(*period_s, size=n)
     phases = rng.uniform(0.0, 2 * math.pi, size=n)
     weights = rng.uniform(0.5, 1.0, size=n)
@@ -612,7 +607,7 @@ def _detect(
     jump_m = rng.uniform(*sen.outlier_jump_m, size=n_max)
     jump_dir = rng.uniform(0.0, 2 * math.pi, size=n_max)
     z_along, z_across, z_yaw = rng.standard_normal((3, n_max))
-    wander = _smooth_random_fn(rng, 0.5 * (sen.ego_gap_m[1] - sen.ego_gap_m[0]), (5.0, 15.0))
+    wander = _smooth_random(rng, 0.5 * (sen.ego_gap_m[1] - sen.ego_gap_m[0]), (5.0, 15.0))
     gap_m = np.mean(sen.ego_gap_m) + wander(capture)
 
     keep = capture + latency_s <= duration_s + 1e-9

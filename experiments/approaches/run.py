@@ -54,11 +54,6 @@ ORDER += ("ctrv", "frenet")
 MODEL = DEFAULT_MODEL  # the fitted predictor: what `fpe fit` fits with no flags
 
 
-def cases(say):
-    """Levine when the shared data is there, then the simulated tracks."""
-    return study_cases(DATA, say)
-
-
 def per_step_table(report: dict, dt_s: float) -> str:
     """Markdown: one row per predictor, mean error [m] at every step, then ADE, FDE, miss rate."""
     h = len(report["fitted"]["per_step_m"])
@@ -85,7 +80,7 @@ def main() -> None:
     results = []
     with Progress() as say:
         say("simulating the drives and reading the Levine lap")
-        todo = cases(say)
+        todo = study_cases(DATA, say)
         for i, case in enumerate(todo):
             say(f"[{i + 1}/{len(todo)}] {case.name}: fitting the {MODEL} model")
             res = fit_case(

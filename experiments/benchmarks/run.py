@@ -112,6 +112,28 @@ def timed_runs(fn, n_items: int, runs: int = 5, min_run_s: float = 0.05) -> dict
     }
 
 
+def run_child(*argv: str, env: dict | None = None) -> dict:
+    """Run this script with argv in a fresh process; its last stdout line, parsed as JSON.
+    Raises RuntimeError with the last stderr line when the child fails."""
+    proc = subprocess.run(
+        [sys.executable, str(Path(__file__).resolve()), *argv],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError((proc.stderr.strip().splitlines() or ["no output"])[-1])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def print_rate(label: str, res: dict) -> None:
+    print(
+        f"  {label} {res['dtype']} N={res['n_cars']:>8d}: {res['rate_per_s']:.3g} pred/s "
+        f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {res['compile_s']:.2f} s)",
+        flush=True,
+    )
+
+
 def load_levine():
     if not LEVINE.is_file():
         raise SystemExit(f"bench: Levine waypoints not found at {LEVINE} (../shared/data)")
@@ -173,11 +195,7 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
                 load_avg=load_average(),
             )
             rows.append(res)
-            print(
-                f"  batch {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s "
-                f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {res['compile_s']:.2f} s)",
-                flush=True,
-            )
+            print_rate("batch", res)
     return rows
 
 
@@ -224,11 +242,7 @@ def bench_core(track, sizes, dtypes) -> list[dict]:
                 path = "predict_batch (core, on device, hinted)"
                 res = _time_jitted(predict_batch, (params, st, tr), n, path, dtype)
                 rows.append(res)
-                print(
-                    f"  core  {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s "
-                    f"({res['rate_per_cpu_s']:.3g} per CPU-s; compile {res['compile_s']:.2f} s)",
-                    flush=True,
-                )
+                print_rate("core ", res)
     return rows
 
 
@@ -274,7 +288,7 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
                 )
                 res = _time_jitted(f, args, n, "bare kinematic bicycle (ceiling)", dtype)
                 rows.append(res)
-                print(f"  bare  {dtype} N={n:>8d}: {res['rate_per_s']:.3g} pred/s", flush=True)
+                print_rate("bare ", res)
     return rows
 
 
@@ -484,26 +498,14 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
 
 
 def bench_fit(quick: bool) -> dict:
-    try:
-        import fpe_jax.fit  # noqa: F401
-    except ImportError as e:
-        return {"skipped": f"fpe_jax.fit not importable ({e})"}
     minutes = (0.5,) if quick else FIT_MINUTES
     scipy_minutes = 0.5 if quick else SCIPY_MINUTES
     rows = []
     tmp = Path(tempfile.mkdtemp(prefix="fpe-bench-fit-"))
 
     def child(m, cache_dir, scipy=False):
-        proc = subprocess.run(
-            [sys.executable, str(Path(__file__).resolve()), "--fit-child", str(m)]
-            + (["--with-scipy"] if scipy else []),
-            capture_output=True,
-            text=True,
-            env={**os.environ, "FPE_CACHE_DIR": str(cache_dir)},
-        )
-        if proc.returncode != 0:
-            raise RuntimeError(proc.stderr.strip().splitlines()[-1])
-        return json.loads(proc.stdout.strip().splitlines()[-1])
+        argv = ["--fit-child", str(m)] + (["--with-scipy"] if scipy else [])
+        return run_child(*argv, env={**os.environ, "FPE_CACHE_DIR": str(cache_dir)})
 
     for m in minutes:
         n_runs = 1 if quick else FIT_RUNS
@@ -729,10 +731,8 @@ def commands_markdown(cmd: dict, fit: dict) -> list[str]:
 
 
 def bench_runner(waypoints_xy) -> dict:
-    try:
-        from fpe_jax.runner import benchmark_update
-    except ImportError as e:
-        return {"skipped": f"fpe_jax.runner.benchmark_update not available ({e})"}
+    from fpe_jax.runner import benchmark_update
+
     res = dict(benchmark_update(waypoints_xy, n_updates=2000))
     res["load_avg"] = load_average()
     print(f"  runner: median {res['median_ms']:.3f} ms, p99 {res['p99_ms']:.3f} ms", flush=True)
@@ -796,19 +796,10 @@ def peak_memory_child(n: int, dtype: str) -> None:
 def bench_memory(n: int, dtypes) -> list[dict]:
     rows = []
     for dtype in dtypes:
-        proc = subprocess.run(
-            [sys.executable, str(Path(__file__).resolve()), "--peak-memory-child", str(n), dtype],
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        row = run_child("--peak-memory-child", str(n), dtype)
         rows.append(row)
         print(f"  memory {dtype} N={n}: peak {row['peak_rss_mb']:.0f} MB", flush=True)
     return rows
-
-
-# ---- report ------------------------------------------------------------------------------------
 
 
 # ---- 7. a full-size car on a full-size track ---------------------------------------------------
@@ -889,6 +880,7 @@ def rss_child(argv: list[str]) -> None:
     wall = time.perf_counter() - t0
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
     print(json.dumps({"rc": rc, "wall_s": wall, "peak_rss_mb": peak_mb}))
+    sys.exit(rc)
 
 
 def bench_fullsize(quick: bool) -> dict:
@@ -912,19 +904,11 @@ def bench_fullsize(quick: bool) -> dict:
         }
         rows = {}
         for name, argv in commands.items():
-            out = []
-            for _ in range(runs):
-                proc = subprocess.run(
-                    [sys.executable, str(Path(__file__).resolve()), "--rss-child", *argv]
-                    + (["--force"] if name == "predict" else []),
-                    capture_output=True,
-                    text=True,
-                )
-                last = proc.stdout.strip().splitlines()[-1:] or ["{}"]
-                if proc.returncode != 0 or json.loads(last[0]).get("rc") != 0:
-                    err = (proc.stderr.strip().splitlines() or ["no output"])[-1]
-                    return {"skipped": f"fpe {name} failed: {err}", **facts}
-                out.append(json.loads(last[0]))
+            force = ["--force"] if name == "predict" else []
+            try:
+                out = [run_child("--rss-child", *argv, *force) for _ in range(runs)]
+            except RuntimeError as e:
+                return {"skipped": f"fpe {name} failed: {e}", **facts}
             rows[name] = {
                 "wall_s": float(np.median([r["wall_s"] for r in out])),
                 "wall_s_runs": [r["wall_s"] for r in out],
@@ -1024,9 +1008,8 @@ def summarize(results: dict) -> dict:
             out["fit_warm_speedup_vs_scipy"] = sp["wall_s"] / r["wall_s_warm"]
         best = out.get("fit_warm_speedup_vs_scipy", out["fit_speedup_vs_scipy"])
         out["target_20x_met"] = best >= 20 and r["loss"] <= sp["loss"]
-    if "median_ms" in results["runner"]:
-        out["runner_median_ms"] = results["runner"]["median_ms"]
-        out["target_runner_met"] = results["runner"]["median_ms"] <= 0.2
+    out["runner_median_ms"] = results["runner"]["median_ms"]
+    out["target_runner_met"] = results["runner"]["median_ms"] <= 0.2
     mem = [m for m in results["memory"] if m["dtype"] == "float32"]
     if mem:
         out["peak_memory_1e6_float32_mb"] = mem[0]["peak_rss_mb"]
@@ -1110,11 +1093,10 @@ def write_markdown(results: dict, path: Path) -> None:
             f"{h['fit_speedup_vs_scipy']:.1f} x | >= 20 x at an equal or lower loss "
             f"({_met(h['target_20x_met'])}) |",
         ]
-    if "runner_median_ms" in h:
-        lines.append(
-            f"| runner update, median | {h['runner_median_ms']:.3f} ms | <= 0.2 ms "
-            f"({_met(h['target_runner_met'])}) |"
-        )
+    lines.append(
+        f"| runner update, median | {h['runner_median_ms']:.3f} ms | <= 0.2 ms "
+        f"({_met(h['target_runner_met'])}) |"
+    )
     if "peak_memory_1e6_float32_mb" in h:
         lines.append(
             f"| peak memory, N = 1e6, float32 | {h['peak_memory_1e6_float32_mb']:.0f} MB | "
@@ -1134,13 +1116,10 @@ def write_markdown(results: dict, path: Path) -> None:
         )
     lines += ["", "## NumPy runner (on-car) update latency", ""]
     rr = results["runner"]
-    if "skipped" in rr:
-        lines.append(f"Skipped: {rr['skipped']}")
-    else:
-        lines.append(
-            f"median {rr['median_ms']:.3f} ms, p99 {rr['p99_ms']:.3f} ms "
-            "(2000 updates, Levine waypoints; target <= 0.2 ms)."
-        )
+    lines.append(
+        f"median {rr['median_ms']:.3f} ms, p99 {rr['p99_ms']:.3f} ms "
+        "(2000 updates, Levine waypoints; target <= 0.2 ms)."
+    )
     lines += ["", "## Fitting", ""]
     fit = results["fit"]
     if "skipped" in fit:

@@ -15,7 +15,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from fpe_jax.plots import track_edges  # noqa: E402
+from fpe_jax.plots import closed, track_edges  # noqa: E402
 from fpe_jax.sim import SimResult, simulate  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -26,12 +26,9 @@ DURATION_S, LATENCY_S, SEED = 60.0, 0.3, 0
 def _track_panel(ax, res: SimResult, title: str, zoom: tuple[float, float, float] | None = None):
     d = res.drive
     for edge in track_edges(res.centerline_xy_m, res.half_width_m):
-        edge = np.vstack([edge, edge[:1]])  # closed for drawing
-        ax.plot(edge[:, 0], edge[:, 1], color="0.3", lw=0.8)
-    c = np.vstack([res.centerline_xy_m, res.centerline_xy_m[:1]])
-    ax.plot(
-        c[:, 0], c[:, 1], color="0.6", lw=0.8, ls="--", label="centerline (given to predictors)"
-    )
+        ax.plot(*closed(edge).T, color="0.3", lw=0.8)
+    center = closed(res.centerline_xy_m)
+    ax.plot(*center.T, color="0.6", lw=0.8, ls="--", label="centerline (given to predictors)")
     if res.scenario["raceline"]:
         ax.plot(*res.reference_xy_m.T, color="tab:green", lw=0.8, label="raceline (driver's path)")
     ax.plot(*d.truth_xy_m.T, color="tab:blue", lw=1.0, label="true path (50 Hz)")

@@ -588,13 +588,9 @@ def apriltag_events(
 def write_apriltag_mcap(path, *, odom: dict | None = None, force: bool = False, **layout) -> Any:
     """Write the AprilTag layout (`apriltag_events(**layout)`) plus optional truth odometry
     (`odom` as in `fpe_jax.io.write_drive_mcap`) as a ROS 2 MCAP. Returns the path."""
-    from pathlib import Path
-
-    from fpe_jax.io.writers import _odom_events, _write_ros2_mcap, atomic_output
+    from fpe_jax.io.writers import _odom_events, _write_ros2_mcap
 
     events = apriltag_events(path, **layout)
     if odom is not None:
         events += _odom_events(path, odom)
-    with atomic_output(path, force) as tmp:
-        _write_ros2_mcap(tmp, events)
-    return Path(path)
+    return _write_ros2_mcap(path, events, force)

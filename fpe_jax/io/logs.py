@@ -331,13 +331,7 @@ class Log:
         CDR bytes (`cdr_pose_row`): decoding a message with mcap_ros2 took ~50x longer, and a
         10-minute drive holds 37,000 of them.
         """
-        if self.format != "mcap" or self.topics[topic].msgtype not in CDR_POSE_TYPES:
-            return [
-                row
-                for _, msgtype, log_ns, msg in self.messages([topic])
-                for row in pose_rows(msgtype, msg, log_ns, tf_pair)
-            ]
-        fast = self._summary is not None
+        fast = self.format == "mcap" and self._summary is not None
         if not fast or self.topics[topic].msgtype not in CDR_POSE_TYPES:
             return [
                 row

@@ -108,12 +108,13 @@ def write_xy_csv(path, xy_m, *, fmt: str = "%.6f", force: bool = False) -> Path:
     return Path(path)
 
 
-def _write_ros2_mcap(tmp: Path, events: list[tuple[int, str, str, dict]]) -> None:
-    """Write (log_time_ns, topic, msgtype, message) events, in time order, as a ROS 2 MCAP."""
+def _write_ros2_mcap(path, events: list[tuple[int, str, str, dict]], force: bool = False) -> Path:
+    """Write (log_time_ns, topic, msgtype, message) events, in time order, as a ROS 2 MCAP,
+    atomically (see `atomic_output`); returns the path."""
     from mcap_ros2.writer import Writer  # imported here: only writers need it
 
     events = sorted(events, key=lambda e: e[0])  # stable: equal times keep their given order
-    with open(tmp, "xb") as f:
+    with atomic_output(path, force) as tmp, open(tmp, "xb") as f:
         writer = Writer(f)
         schemas: dict[str, Any] = {}
         for log_ns, topic, msgtype, msg in events:
@@ -123,6 +124,7 @@ def _write_ros2_mcap(tmp: Path, events: list[tuple[int, str, str, dict]]) -> Non
                 )
             writer.write_message(topic, schemas[msgtype], msg, log_time=log_ns, publish_time=log_ns)
         writer.finish()
+    return Path(path)
 
 
 def _stamps_ns(source, t_s, what: str) -> np.ndarray:
@@ -234,9 +236,7 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
         events += _odom_events(path, odom)
     if tf is not None:
         events += _tf_events(path, tf)
-    with atomic_output(path, force) as tmp:
-        _write_ros2_mcap(tmp, events)
-    return Path(path)
+    return _write_ros2_mcap(path, events, force)
 
 
 def _marker(ns: int, ident: int, kind: int, points: list, rgba: tuple) -> dict:
@@ -319,9 +319,7 @@ def write_predictions(
     if drive is not None:
         obs = dict(t_s=drive.t_s, xy_m=drive.xy_m, yaw_rad=drive.yaw_rad)
         events += _pose_events(path, obs, OBSERVATION_TOPIC)
-    with atomic_output(path, force) as tmp:
-        _write_ros2_mcap(tmp, events)
-    return Path(path)
+    return _write_ros2_mcap(path, events, force)
 
 
 def write_drive_csv(path, drive, *, force: bool = False) -> Path:
