@@ -66,18 +66,23 @@ def format_fitted(result: FitResult) -> str:
     )
 
 
+def md_table(head: str, rows) -> list[str]:
+    """The lines of a Markdown table: `head` (its cells joined by " | "), a `|---|` rule, then the
+    rows, each a sequence of cells or a string of them joined the same way."""
+    rows = [r if isinstance(r, str) else " | ".join(map(str, r)) for r in rows]
+    return [f"| {head} |", "|" + "---|" * len(head.split(" | ")), *(f"| {r} |" for r in rows)]
+
+
 def format_table(report: dict) -> str:
     """A Markdown table of held-out metrics, one row per predictor."""
     h = len(next(iter(report.values()))["per_step_m"])
     steps = [0, h // 2 - 1, h - 1] if h >= 3 else list(range(h))
-    head = "| predictor | ADE m | FDE m | FDE p90 m | miss rate | " + " | ".join(
-        f"err@{k + 1} m" for k in steps
-    )
-    lines = [head + " | n |", "|" + "---|" * (6 + len(steps))]
-    for name, m in report.items():
-        cells = [m["ade_m"], m["fde_m"], m["fde_p90_m"], m["miss_rate"]]
-        cells += [m["per_step_m"][k] for k in steps]
-        lines.append(
-            f"| {name} | " + " | ".join(f"{c:.3f}" for c in cells) + f" | {m['n_predictions']} |"
-        )
-    return "\n".join(lines)
+    head = "predictor | ADE m | FDE m | FDE p90 m | miss rate | "
+    head += " | ".join(f"err@{k + 1} m" for k in steps) + " | n"
+    rows = [
+        [name, *(f"{m[k]:.3f}" for k in ("ade_m", "fde_m", "fde_p90_m", "miss_rate"))]
+        + [f"{m['per_step_m'][k]:.3f}" for k in steps]
+        + [m["n_predictions"]]
+        for name, m in report.items()
+    ]
+    return "\n".join(md_table(head, rows))

@@ -27,7 +27,7 @@ from fpe_jax.metrics import coverage, summarize
 from fpe_jax.params import Settings, presets
 from fpe_jax.predict import predict_batch, states_from_drive
 from fpe_jax.recipe import solver_named
-from fpe_jax.report import format_fitted
+from fpe_jax.report import format_fitted, format_table, md_table
 from fpe_jax.runner import Runner
 from fpe_jax.sim import simulate
 from fpe_jax.track import Track
@@ -192,6 +192,23 @@ def test_auto_model_chooses_on_the_inner_split_and_fits_the_choice_as_named(
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert res.report["fitted"] == named.report["fitted"]
     assert format_fitted(res).startswith("chosen by --model auto")
+
+
+def test_markdown_tables():
+    assert md_table("a | b", [[1, "x"], "2 | y"]) == [
+        "| a | b |",
+        "|---|---|",
+        "| 1 | x |",
+        "| 2 | y |",
+    ]
+    m = dict(
+        ade_m=0.5, fde_m=1.0, fde_p90_m=2.0, miss_rate=0.25, per_step_m=[0.1, 0.2], n_predictions=7
+    )
+    assert format_table({"seed": m}).splitlines() == [
+        "| predictor | ADE m | FDE m | FDE p90 m | miss rate | err@1 m | err@2 m | n |",
+        "|---|---|---|---|---|---|---|---|",
+        "| seed | 0.500 | 1.000 | 2.000 | 0.250 | 0.100 | 0.200 | 7 |",
+    ]
 
 
 def test_fit_subset_keeps_the_rest_fixed(oval_drives):
