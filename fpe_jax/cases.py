@@ -134,16 +134,20 @@ def levine_case(data_dir: str | Path, *, holdout: float = 0.4) -> Case:
 STUDY_FIT_S, STUDY_TEST_S, STUDY_FIT_SEED, STUDY_TEST_SEED = 60.0, 40.0, 1, 2
 
 
+def real_cases(data_dir: str | Path, say: Callable[[str], None] = lambda msg: None) -> list[Case]:
+    """[the real Levine lap (fit 60 %, test 40 %)] when `data_dir` has it, else [] and a note."""
+    if (Path(data_dir) / "levine").is_dir():
+        return [levine_case(data_dir, holdout=0.4)]
+    say(f"note: {Path(data_dir) / 'levine'} not found; the real-data part is left out")
+    return []
+
+
 def study_cases(data_dir: str | Path, say: Callable[[str], None] = lambda msg: None) -> list[Case]:
     """The cases the comparison studies share: the real Levine lap (fit 60 %, test 40 %) when
     `data_dir` has it, the built-in oval and hairpin, and the F1TENTH tracks when present. The
     simulated drives have LATENCY_S of detection latency; `say` is told what is left out."""
     data = Path(data_dir)
-    out = []
-    if (data / "levine").is_dir():
-        out.append(levine_case(data, holdout=0.4))
-    else:
-        say(f"note: {data / 'levine'} not found; the real-data part is left out")
+    out = real_cases(data, say)
     kw = dict(
         fit_s=STUDY_FIT_S,
         test_s=STUDY_TEST_S,
