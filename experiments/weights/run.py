@@ -20,8 +20,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.cases import DELAY_TOLERANCE_S, fde_ratio, fit_case, levine_case, simulated_case
+from fpe_jax.cases import DELAY_TOLERANCE_S, fde_ratio, fit_case, real_cases, simulated_case
 from fpe_jax.progress import Progress
+from fpe_jax.report import md_table
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
@@ -153,15 +154,12 @@ def main() -> None:
                 progress=lambda m, a=lat: say(f"{a:.1f} s: {m}"),
             )
             sweep.append((lat, r, median_speed(case.fit_drive)))
-        if (DATA / "levine").is_dir():
-            case = levine_case(DATA, holdout=0.4)
+        for case in real_cases(DATA, say):
             say("Levine: fitting (auto blend)")
             levine = fit_case(
                 case, model="blend", blend="auto", progress=lambda m: say(f"Levine: {m}")
             )
             levine_v = median_speed(case.fit_drive)
-        else:
-            say(f"note: {DATA / 'levine'} not found; the Levine fit is left out")
         say("writing the results")
         dt_s = sweep[0][1].params.settings.dt_s
         png = RESULTS / "weights.png"
@@ -172,6 +170,19 @@ def main() -> None:
 
 
 def markdown(sweep, levine, levine_v, seconds: float) -> str:
+    n_ok = sum(abs(r.params.physical()["delay_s"] - a) <= DELAY_TOLERANCE_S for a, r, _ in sweep)
+    rows = [(f"{TRACK}, latency {a:.1f} s", r) for a, r, _ in sweep]
+    rows += [(f"Levine ({levine.info['blend']} blend)", levine)] if levine is not None else []
+    delays = []
+    for lat, r, v in sweep:
+        p = r.params.physical()
+        err = p["delay_s"] - lat
+        delays.append(
+            f"{lat:.1f} | {p['delay_s']:.3f} | {err:+.3f} | "
+            f"{'yes' if abs(err) <= DELAY_TOLERANCE_S else 'no'} | "
+            f"{p['lookahead_m']:.3f} + {p['lookahead_gain_s']:.3f} v | {lookahead_at(p, v):.2f} | "
+            f"{v:.2f} | {r.report['fitted']['fde_m']:.3f} | {fde_ratio(r.report):.2f}"
+        )
     lines = [
         "# What the fit learns: weights, lookahead, delay",
         "",
@@ -190,37 +201,23 @@ def markdown(sweep, levine, levine_v, seconds: float) -> str:
         "",
         "## Delay offset vs true latency",
         "",
-        f"| true latency s | fitted delay s | error s | within {DELAY_TOLERANCE_S} s | lookahead "
-        "m + gain s * v | lookahead at median speed m | median speed m/s | held-out FDE m | "
-        "FDE / seed-measured-speed FDE |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for lat, r, v in sweep:
-        p = r.params.physical()
-        err = p["delay_s"] - lat
-        lines.append(
-            f"| {lat:.1f} | {p['delay_s']:.3f} | {err:+.3f} | "
-            f"{'yes' if abs(err) <= DELAY_TOLERANCE_S else 'no'} | "
-            f"{p['lookahead_m']:.3f} + {p['lookahead_gain_s']:.3f} v | {lookahead_at(p, v):.2f} | "
-            f"{v:.2f} | {r.report['fitted']['fde_m']:.3f} | {fde_ratio(r.report):.2f} |"
-        )
-    n_ok = sum(abs(r.params.physical()["delay_s"] - a) <= DELAY_TOLERANCE_S for a, r, _ in sweep)
-    lines += [
+        *md_table(
+            f"true latency s | fitted delay s | error s | within {DELAY_TOLERANCE_S} s | lookahead "
+            "m + gain s * v | lookahead at median speed m | median speed m/s | held-out FDE m | "
+            "FDE / seed-measured-speed FDE",
+            delays,
+        ),
         "",
         f"{n_ok} of {len(sweep)} latencies recovered within {DELAY_TOLERANCE_S} s.",
         "",
         "## Per-step weights",
         "",
-        "| fit | " + " | ".join(f"{0.1 * (k + 1):.1f} s" for k in range(10)) + " |",
-        "|---" * 11 + "|",
-        "| seed 0.7^i | " + " | ".join(f"{0.7**k:.3f}" for k in range(10)) + " |",
+        *md_table(
+            "fit | " + " | ".join(f"{0.1 * (k + 1):.1f} s" for k in range(10)),
+            [["seed 0.7^i", *(f"{0.7**k:.3f}" for k in range(10))]]
+            + [[label, *(f"{x:.3f}" for x in r.params.physical()["weights"])] for label, r in rows],
+        ),
     ]
-    rows = [(f"{TRACK}, latency {a:.1f} s", r) for a, r, _ in sweep]
-    if levine is not None:
-        rows.append((f"Levine ({levine.info['blend']} blend)", levine))
-    for label, r in rows:
-        w = r.params.physical()["weights"]
-        lines.append(f"| {label} | " + " | ".join(f"{x:.3f}" for x in w) + " |")
     if levine is not None:
         p = levine.params.physical()
         lines += [
