@@ -27,11 +27,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.cases import LATENCY_S, fit_case, levine_case, simulated_case
+from fpe_jax.cases import LATENCY_S, fit_case, real_cases, simulated_case
 from fpe_jax.evaluate import covariance_map, evaluate, heldout_predictions, make_datasets
 from fpe_jax.metrics import coverage, track_frame_residuals
 from fpe_jax.path import nearest_index
 from fpe_jax.progress import Progress
+from fpe_jax.report import md_table
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
@@ -115,15 +116,9 @@ def main() -> None:
     t0 = time.perf_counter()
     runs = []
     with Progress() as say:
-        cases = []
-        if (DATA / "levine").is_dir():
-            cases.append(levine_case(DATA, holdout=0.4))
-        else:
-            say(f"note: {DATA / 'levine'} not found; the real-data case is left out")
-        for track in ("hairpin", "oval"):
-            cases.append(simulated_case(track, latency_s=LATENCY_S))
+        cases = [simulated_case(track, latency_s=LATENCY_S) for track in ("hairpin", "oval")]
         pooled = {}
-        for case in cases:
+        for case in real_cases(DATA, say) + cases:
             say(f"{case.name}: fitting")
             r = fit_case(case, progress=lambda m, n=case.name: say(f"{n}: {m}"))
             say(f"{case.name}: per-step coverage")
@@ -188,7 +183,14 @@ def figure(runs, png: Path) -> None:
     plots.save(fig, png)
 
 
+def cells(m: dict) -> list:
+    """A report's coverage at 1 and 2 sigma and its number of predictions, as table cells."""
+    return [f"{m['coverage_1sigma']:.1%}", f"{m['coverage_2sigma']:.1%}", m["n_predictions"]]
+
+
 def markdown(runs, pooled: dict, seconds: float) -> str:
+    h = len(runs[0][5])
+    steps = " | ".join(f"{0.1 * (k + 1):.1f} s" for k in range(h))
     lines = [
         "# Fitted uncertainty: ellipses and coverage",
         "",
@@ -208,17 +210,10 @@ def markdown(runs, pooled: dict, seconds: float) -> str:
         "",
         "## Coverage on held-out data (all steps)",
         "",
-        "| case | model | 1-sigma coverage | 2-sigma coverage | held-out predictions |",
-        "|---|---|---|---|---|",
-    ]
-    for case, r, *_ in runs:
-        m = r.report["fitted"]
-        lines.append(
-            f"| {case.name} | {r.params.settings.model} | {m['coverage_1sigma']:.1%} | "
-            f"{m['coverage_2sigma']:.1%} | "
-            f"{m['n_predictions']} |"
-        )
-    lines += [
+        *md_table(
+            "case | model | 1-sigma coverage | 2-sigma coverage | held-out predictions",
+            [[c.name, r.params.settings.model, *cells(r.report["fitted"])] for c, r, *_ in runs],
+        ),
         "",
         "## Pooled over separate test drives",
         "",
@@ -226,39 +221,33 @@ def markdown(runs, pooled: dict, seconds: float) -> str:
         f"{POOLED_SEEDS.start}-{POOLED_SEEDS.stop - 1}) pooled: one drive's coverage moves by "
         "more than 10 points with its seed alone (the simulated driver's wander).",
         "",
-        "| case | 1-sigma coverage | 2-sigma coverage | held-out predictions |",
-        "|---|---|---|---|",
+        *md_table(
+            "case | 1-sigma coverage | 2-sigma coverage | held-out predictions",
+            [[name, *cells(m)] for name, m in pooled.items()],
+        ),
+        "",
+        "## Per step",
+        "",
+        *md_table(
+            "case | sigma | " + steps,
+            [
+                [c.name, s + 1, *(f"{100 * x:.0f} %" for x in cov_k[:, s])]
+                for c, *_, cov_k in runs
+                for s in (0, 1)
+            ],
+        ),
+        "",
+        "## Fitted 1-sigma sizes (sqrt of the diagonal) [m]",
+        "",
+        *md_table(
+            "case | axis | " + steps,
+            [
+                [c.name, axis, *(f"{np.sqrt(x[a, a]):.3f}" for x in cov[:h])]
+                for c, _, _, _, cov, _ in runs
+                for a, axis in enumerate(("along", "cross"))
+            ],
+        ),
     ]
-    for name, m in pooled.items():
-        lines.append(
-            f"| {name} | {m['coverage_1sigma']:.1%} | {m['coverage_2sigma']:.1%} | "
-            f"{m['n_predictions']} |"
-        )
-    lines += ["", "## Per step", ""]
-    h = len(runs[0][5])
-    lines += [
-        "| case | sigma | " + " | ".join(f"{0.1 * (k + 1):.1f} s" for k in range(h)) + " |",
-        "|---|---" + "|---" * h + "|",
-    ]
-    for case, *_, cov_k in runs:
-        for s in (0, 1):
-            lines.append(
-                f"| {case.name} | {s + 1} | "
-                + " | ".join(f"{100 * c:.0f} %" for c in cov_k[:, s])
-                + " |"
-            )
-    lines += ["", "## Fitted 1-sigma sizes (sqrt of the diagonal) [m]", ""]
-    lines += [
-        "| case | axis | " + " | ".join(f"{0.1 * (k + 1):.1f} s" for k in range(h)) + " |",
-        "|---|---" + "|---" * h + "|",
-    ]
-    for case, _, _, _, cov, _ in runs:
-        for a, axis in enumerate(("along", "cross")):
-            lines.append(
-                f"| {case.name} | {axis} | "
-                + " | ".join(f"{np.sqrt(cov[k, a, a]):.3f}" for k in range(h))
-                + " |"
-            )
     return "\n".join(lines) + "\n"
 
 
