@@ -24,10 +24,11 @@ import jax
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.cases import LATENCY_S, fit_case, levine_case, simulated_case
+from fpe_jax.cases import LATENCY_S, fit_case, real_cases, simulated_case
 from fpe_jax.evaluate import heldout_predictions
 from fpe_jax.params import presets
 from fpe_jax.progress import Progress
+from fpe_jax.report import md_table
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"
@@ -35,19 +36,17 @@ RESULTS = ROOT / "experiments" / "results"
 WINDOW = 9  # predictions averaged when choosing the corner (plots.pick_corner)
 
 
-def early_turn_rows(held, names, waypoints_xy_m, corner: int) -> list[str]:
-    """Markdown rows: per predictor, mean inside offset [m] at the zoomed passage and on bends,
-    and the mean 1 s error [m] at the zoomed passage."""
+def early_turn_rows(held, names, waypoints_xy_m, corner: int) -> list[list[str]]:
+    """Table rows: per predictor, mean inside offset [m] at the zoomed passage and on bends, and
+    the mean 1 s error [m] at the zoomed passage."""
     rows = []
     lo, hi = max(corner - WINDOW // 2, 0), corner + WINDOW // 2 + 1
     for name in names:
         score = plots.inside_offset(held, name, waypoints_xy_m)
         err = np.linalg.norm(held.pred_xy_m[name][:, -1] - held.target_xy_m[:, -1], axis=1)
         err = np.where(held.mask[:, -1], err, np.nan)
-        rows.append(
-            f"| {plots.APPROACH[name]} | {np.nanmean(score[lo:hi]):+.3f} | "
-            f"{np.nanmean(score):+.3f} | {np.nanmean(err[lo:hi]):.3f} |"
-        )
+        means = np.nanmean(score[lo:hi]), np.nanmean(score), np.nanmean(err[lo:hi])
+        rows.append([plots.APPROACH[name], *(f"{x:+.3f}" for x in means[:2]), f"{means[2]:.3f}"])
     return rows
 
 
@@ -83,10 +82,11 @@ def figure(case, result, names, corner_by, title, png):
         f"test part; chosen where `{corner_by}` turns earliest (largest mean inside offset over "
         f"{WINDOW} consecutive predictions).",
         "",
-        "| predictor | inside offset at 1 s, zoomed passage m | inside offset at 1 s, all "
-        "bends m | 1 s error, zoomed passage m |",
-        "|---|---|---|---|",
-        *early_turn_rows(held, names, case.waypoints_xy_m, corner),
+        *md_table(
+            "predictor | inside offset at 1 s, zoomed passage m | inside offset at 1 s, all "
+            "bends m | 1 s error, zoomed passage m",
+            early_turn_rows(held, names, case.waypoints_xy_m, corner),
+        ),
         "",
     ]
 
@@ -95,15 +95,11 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)  # fitting and evaluation in float64
     t0 = time.perf_counter()
     sections = []
-    runs = []  # (case, blend, names drawn, corner by, title, file)
-    if (DATA / "levine").is_dir():
-        levine = levine_case(DATA, holdout=0.4)
+    with Progress() as say:
         title = "Levine (real AprilTag trace), held-out last 40 % of the lap: the 2019 seed vs "
         title += "the fitted predictor"
-        runs.append((levine, "auto", ("seed", "fitted"), "seed", title, "trajectories_levine.png"))
-    with Progress() as say:
-        if not runs:
-            say(f"note: {DATA / 'levine'} not found; the Levine figure is left out")
+        drawn = ("seed", "fitted"), "seed", title, "trajectories_levine.png"
+        runs = [(c, "auto", *drawn) for c in real_cases(DATA, say)]  # (case, blend, names, ...)
         hairpin = simulated_case("hairpin", fit_s=60.0, test_s=40.0, latency_s=LATENCY_S)
         title = f"hairpin (simulated, latency {LATENCY_S} s), separate test drive: hand-set blends "
         title += "vs the fitted predictor"
@@ -115,26 +111,22 @@ def main() -> None:
             res = fit_case(case, model="blend", blend=blend, progress=progress)
             say(f"{case.name}: drawing")
             sections += figure(case, res, names, corner_by, title, png)
+    head = [
+        "# Predicted 1 s trajectories: hand-set vs fitted (cf. the thesis's Figure 13)",
+        "",
+        "Regenerate: `.venv/bin/python experiments/trajectories/run.py` (this run: "
+        f"{(time.perf_counter() - t0) / 60:.1f} min).",
+        "",
+        "Top row: the whole held-out drive with one 1 s prediction every few "
+        "observations (each drawn from the observation it started from; the dot is its "
+        "1.0 s point). Bottom row: the zoomed corner, with the car's actual position 1 s "
+        "later (x) joined to each prediction's 1 s point (dotted). 'Inside offset': how "
+        "far the 1 s point lies toward the inside of the bend relative to the actual "
+        "position (> 0: the predictor turned earlier / tighter than the car did).",
+        "",
+    ]
     md = RESULTS / "trajectories.md"
-    md.write_text(
-        "\n".join(
-            [
-                "# Predicted 1 s trajectories: hand-set vs fitted (cf. the thesis's Figure 13)",
-                "",
-                "Regenerate: `.venv/bin/python experiments/trajectories/run.py` (this run: "
-                f"{(time.perf_counter() - t0) / 60:.1f} min).",
-                "",
-                "Top row: the whole held-out drive with one 1 s prediction every few "
-                "observations (each drawn from the observation it started from; the dot is its "
-                "1.0 s point). Bottom row: the zoomed corner, with the car's actual position 1 s "
-                "later (x) joined to each prediction's 1 s point (dotted). 'Inside offset': how "
-                "far the 1 s point lies toward the inside of the bend relative to the actual "
-                "position (> 0: the predictor turned earlier / tighter than the car did).",
-                "",
-                *sections,
-            ]
-        )
-    )
+    md.write_text("\n".join(head + sections))
     print(f"wrote {md}")
 
 
