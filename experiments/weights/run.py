@@ -59,24 +59,13 @@ def figure(sweep, levine, levine_v, dt_s: float, png: Path) -> None:
         t, 0.7 ** np.arange(h), "s--", color="tab:red", lw=2, label="seed: 0.7^i (heading blend)"
     )
     cmap = plt.get_cmap("viridis")
-    for j, (a, r, _) in enumerate(sweep):
-        ax_w.plot(
-            t,
-            r.params.physical()["weights"],
-            "o-",
-            color=cmap(j / max(len(sweep) - 1, 1)),
-            ms=4,
-            label=f"{TRACK}, latency {a:.1f} s ({r.info['blend']} blend)",
-        )
-    if levine is not None:
-        ax_w.plot(
-            t,
-            levine.params.physical()["weights"],
-            "D-",
-            color="black",
-            ms=5,
-            label=f"Levine, real ({levine.info['blend']} blend)",
-        )
+    curves = [
+        (f"{TRACK}, latency {a:.1f} s", r, "o-", cmap(j / max(len(sweep) - 1, 1)), 4)
+        for j, (a, r, _) in enumerate(sweep)
+    ] + ([("Levine, real", levine, "D-", "black", 5)] if levine is not None else [])
+    for label, r, style, c, ms in curves:
+        w = r.params.physical()["weights"]
+        ax_w.plot(t, w, style, color=c, ms=ms, label=f"{label} ({r.info['blend']} blend)")
     ax_w.set_ylim(-0.03, 1.03)
     ax_w.set_xlabel("horizon [s]")
     ax_w.set_ylabel("weight on the linear rollout [-] (1 = linear, 0 = pure pursuit)")
@@ -85,13 +74,8 @@ def figure(sweep, levine, levine_v, dt_s: float, png: Path) -> None:
     ax_w.legend(fontsize=8, loc="upper right")
 
     delay = np.array([r.params.physical()["delay_s"] for _, r, _ in sweep])
-    ax_d.fill_between(
-        lat,
-        lat - DELAY_TOLERANCE_S,
-        lat + DELAY_TOLERANCE_S,
-        color="0.85",
-        label=f"true +- {DELAY_TOLERANCE_S} s",
-    )
+    band = lat - DELAY_TOLERANCE_S, lat + DELAY_TOLERANCE_S
+    ax_d.fill_between(lat, *band, color="0.85", label=f"true +- {DELAY_TOLERANCE_S} s")
     ax_d.plot(lat, lat, "--", color="0.3", label="fitted = true")
     ax_d.plot(lat, delay, "o-", color="tab:green", ms=7, label="fitted delay offset (oval)")
     ax_d.set_xlabel("true detection latency [s]")
@@ -103,21 +87,12 @@ def figure(sweep, levine, levine_v, dt_s: float, png: Path) -> None:
 
     look = [lookahead_at(r.params.physical(), v) for _, r, v in sweep]
     ax_l.axhline(2.0, color="tab:red", ls="--", lw=2, label="seed: 2.0 m")
-    ax_l.plot(
-        lat,
-        look,
-        "o-",
-        color="tab:green",
-        ms=7,
-        label=f"fitted, {TRACK} (at its median speed {sweep[0][2]:.1f} m/s)",
-    )
+    label = f"fitted, {TRACK} (at its median speed {sweep[0][2]:.1f} m/s)"
+    ax_l.plot(lat, look, "o-", color="tab:green", ms=7, label=label)
     if levine is not None:
-        ax_l.axhline(
-            lookahead_at(levine.params.physical(), levine_v),
-            color="black",
-            lw=1.5,
-            label=f"fitted, Levine (at its median speed {levine_v:.2f} m/s)",
-        )
+        label = f"fitted, Levine (at its median speed {levine_v:.2f} m/s)"
+        at_v = lookahead_at(levine.params.physical(), levine_v)
+        ax_l.axhline(at_v, color="black", lw=1.5, label=label)
     ax_l.set_ylim(0, max(max(look), 2.0) * 1.25)
     ax_l.set_xlabel("true detection latency [s]")
     ax_l.set_ylabel("pure-pursuit lookahead L0 + gain * v [m]")
