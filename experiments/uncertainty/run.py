@@ -82,24 +82,16 @@ def corner_panel(ax, case, held, heading, cov_m2, title: str, loc: str) -> None:
     for n, i in enumerate(idx):
         c = colors(n)
         pred = held.pred_xy_m["fitted"][i]
-        ax.plot(
-            *np.vstack([held.origin_xy_m[i], pred]).T,
-            "o-",
-            color=c,
-            ms=3,
-            lw=1.2,
-            label=f"prediction {n + 1}: fitted, 0.1 ... 1.0 s",
-        )
+        path = np.vstack([held.origin_xy_m[i], pred])
+        lab = f"prediction {n + 1}: fitted, 0.1 ... 1.0 s"
+        ax.plot(*path.T, "o-", color=c, ms=3, lw=1.2, label=lab)
+        steps = ", ".join(f"{0.1 * (j + 1):.1f}" for j in ELLIPSE_STEPS)
         for k in ELLIPSE_STEPS:
             for ns, ls in ((1, "-"), (2, "--")):
                 e = plots.ellipse_xy(pred[k], cov_map[i, k], ns)
                 pts.append(e)
-                steps = ", ".join(f"{0.1 * (j + 1):.1f}" for j in ELLIPSE_STEPS)
-                lab = (
-                    f"{ns}-sigma ellipses at {steps} s"
-                    if (n == 0 and k == ELLIPSE_STEPS[0])
-                    else None
-                )
+                first = n == 0 and k == ELLIPSE_STEPS[0]  # one legend entry per sigma
+                lab = f"{ns}-sigma ellipses at {steps} s" if first else None
                 ax.plot(*e.T, ls, color=c, lw=1.0, label=lab)
         tgt = held.target_xy_m[i][held.mask[i]]
         pts += [pred, tgt]
