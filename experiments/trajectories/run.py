@@ -56,15 +56,8 @@ def figure(case, result, names, corner_by, title, png):
     by_name = {n: presets[n] for n in names if n != "fitted"} | {"fitted": result.params}
     held = heldout_predictions(case.test_drive, track, by_name)
     corner = plots.pick_corner(held, corner_by, case.waypoints_xy_m, window=WINDOW)
-    fig = plots.trajectory_figure(
-        case.waypoints_xy_m,
-        case.test_drive,
-        held,
-        names=names,
-        half_width_m=case.half_width_m,
-        corner=corner,
-        title=title,
-    )
+    kw = dict(names=names, half_width_m=case.half_width_m, corner=corner, title=title)
+    fig = plots.trajectory_figure(case.waypoints_xy_m, case.test_drive, held, **kw)
     plots.save(fig, RESULTS / png)
     t_corner = case.test_drive.t_s[held.rows[corner]] - case.test_drive.t_s[0]
     center = held.target_xy_m[corner, held.target_xy_m.shape[1] // 2]
