@@ -112,22 +112,12 @@ def main() -> None:
     t0 = time.perf_counter()
     sweep, levine, levine_v = [], None, None
     with Progress() as say:
+        kw = dict(fit_s=FIT_S, test_s=TEST_S, fit_seed=FIT_SEED, test_seed=TEST_SEED)
         for lat in LATENCIES_S:
-            case = simulated_case(
-                TRACK,
-                fit_s=FIT_S,
-                test_s=TEST_S,
-                latency_s=lat,
-                fit_seed=FIT_SEED,
-                test_seed=TEST_SEED,
-            )
+            case = simulated_case(TRACK, latency_s=lat, **kw)
             say(f"{TRACK}, latency {lat:.1f} s: fitting")
-            r = fit_case(
-                case,
-                model="blend",
-                blend="position",
-                progress=lambda m, a=lat: say(f"{a:.1f} s: {m}"),
-            )
+            progress = lambda m, a=lat: say(f"{a:.1f} s: {m}")  # noqa: E731
+            r = fit_case(case, model="blend", blend="position", progress=progress)
             sweep.append((lat, r, median_speed(case.fit_drive)))
         for case in real_cases(DATA, say):
             say("Levine: fitting (auto blend)")
