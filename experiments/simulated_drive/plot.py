@@ -46,15 +46,8 @@ def _track_panel(ax, res: SimResult, title: str, zoom: tuple[float, float, float
         sel = (d.t_s >= t0) & (d.t_s <= t1)
         x_true = np.interp(d.t_s[sel], d.truth_t_s, d.truth_xy_m[:, 0])
         y_true = np.interp(d.t_s[sel], d.truth_t_s, d.truth_xy_m[:, 1])
-        ax.plot(
-            x_true,
-            y_true,
-            "o",
-            mfc="none",
-            color="tab:blue",
-            ms=6,
-            label=f"true position at the detection's stamp ({t0:.0f}-{t1:.0f} s)",
-        )
+        label = f"true position at the detection's stamp ({t0:.0f}-{t1:.0f} s)"
+        ax.plot(x_true, y_true, "o", mfc="none", color="tab:blue", ms=6, label=label)
         for a, b, p, q in zip(d.xy_m[sel, 0], d.xy_m[sel, 1], x_true, y_true):
             ax.plot([a, p], [b, q], color="tab:purple", lw=0.8)
         ax.plot(*d.xy_m[sel & ok].T, "o", color="tab:red", ms=4)
@@ -67,16 +60,11 @@ def _track_panel(ax, res: SimResult, title: str, zoom: tuple[float, float, float
 
 
 def main() -> None:
-    runs = [("hairpin", simulate("hairpin", duration_s=DURATION_S, latency_s=LATENCY_S, seed=SEED))]
+    kw = dict(duration_s=DURATION_S, latency_s=LATENCY_S, seed=SEED)
+    runs = [("hairpin", simulate("hairpin", **kw))]
     if TRACKS.is_dir():
-        res = simulate(
-            TRACKS / "Spielberg_centerline.csv",
-            raceline=TRACKS / "Spielberg_raceline.csv",
-            duration_s=DURATION_S,
-            latency_s=LATENCY_S,
-            seed=SEED,
-        )
-        runs.append(("Spielberg (F1TENTH)", res))
+        center, race = TRACKS / "Spielberg_centerline.csv", TRACKS / "Spielberg_raceline.csv"
+        runs.append(("Spielberg (F1TENTH)", simulate(center, raceline=race, **kw)))
     else:
         print(f"note: {TRACKS} not found; plotting the built-in track only")
 
@@ -84,12 +72,8 @@ def main() -> None:
     grid = fig.add_gridspec(2, 3, height_ratios=[1.9, 1], width_ratios=[1.4, 1, 1.2])
     hp = runs[0][1]
     _track_panel(fig.add_subplot(grid[0, 0]), hp, "built-in 'hairpin' track")
-    _track_panel(
-        fig.add_subplot(grid[0, 1]),
-        hp,
-        f"hairpin, zoom: detections lag the car by {LATENCY_S} s (+ noise)",
-        zoom=(11.5, 5.5, 3.0),
-    )
+    title = f"hairpin, zoom: detections lag the car by {LATENCY_S} s (+ noise)"
+    _track_panel(fig.add_subplot(grid[0, 1]), hp, title, zoom=(11.5, 5.5, 3.0))
     if len(runs) > 1:
         ax = fig.add_subplot(grid[0, 2])
         _track_panel(ax, runs[1][1], "F1TENTH Spielberg, driver on the raceline")
@@ -100,9 +84,8 @@ def main() -> None:
 
     ax = fig.add_subplot(grid[1, :])
     for (name, res), color in zip(runs, ("tab:blue", "tab:orange")):
-        ax.plot(
-            res.drive.truth_t_s, res.drive.truth_v_mps, color=color, label=f"{name}: true speed"
-        )
+        d = res.drive
+        ax.plot(d.truth_t_s, d.truth_v_mps, color=color, label=f"{name}: true speed")
     ax.axhspan(2.0, 8.0, color="0.9", zorder=0, label="target range 2-8 m/s")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("speed [m/s]")
