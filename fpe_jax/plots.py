@@ -124,9 +124,8 @@ def draw_track(ax, waypoints_xy_m: np.ndarray, half_width_m: float | None = None
         left, right = track_edges(waypoints_xy_m, half_width_m)
         ax.plot(*closed(left).T, color="0.35", lw=0.8, label="track edges")
         ax.plot(*closed(right).T, color="0.35", lw=0.8)
-    ax.plot(
-        *closed(waypoints_xy_m).T, color="gold", lw=1.0, ls="--", label="waypoints (centerline)"
-    )
+    path = closed(waypoints_xy_m)
+    ax.plot(*path.T, color="gold", lw=1.0, ls="--", label="waypoints (centerline)")
 
 
 def draw_actual(ax, drive, label: str = "actual path") -> None:
@@ -135,18 +134,12 @@ def draw_actual(ax, drive, label: str = "actual path") -> None:
         ax.plot(*drive.truth_xy_m.T, color="black", lw=1.0, label=f"{label} (truth)")
     else:
         new = np.r_[True, np.any(drive.xy_m[1:] != drive.xy_m[:-1], axis=1)]
-        ax.plot(
-            *drive.xy_m[new].T, ".-", color="black", lw=0.6, ms=2.5, label=f"{label} (observed)"
-        )
+        xy = drive.xy_m[new]
+        ax.plot(*xy.T, ".-", color="black", lw=0.6, ms=2.5, label=f"{label} (observed)")
 
 
 def draw_predictions(
-    ax,
-    held,
-    name: str,
-    idx: np.ndarray,
-    label: str | None = None,
-    show_truth: bool = False,
+    ax, held, name: str, idx: np.ndarray, label: str | None = None, show_truth: bool = False
 ) -> None:
     """The 1 s predictions idx of predictor `name`, each drawn from the observation it started
     from; with show_truth, also where the car really was 1 s later (x) and the miss (dotted)."""
@@ -274,12 +267,10 @@ def trajectory_figure(
     speed = float(np.nanmedian(np.where(held.mask[:, 0] & held.mask[:, -1], travel, np.nan)))
     speed = speed / 0.9 if np.isfinite(speed) else 1.0  # the 0.1 s ... 1.0 s targets span 0.9 s
     radius = zoom_radius_m or float(np.clip(1.3 * speed + 1.0, 2.0, 10.0))
-    if corner is None:
-        corner = (
-            pick_corner(held, corner_by, waypoints_xy_m)
-            if corner_by
-            else pick_worst(held, names[0])
-        )
+    if corner is None and corner_by:
+        corner = pick_corner(held, corner_by, waypoints_xy_m)
+    elif corner is None:
+        corner = pick_worst(held, names[0])
     center = held.target_xy_m[corner, held.target_xy_m.shape[1] // 2]
     every = max(n // n_whole, 1)
     # the zoom shows the predictions whose start lies in the window: space n_zoom of them
@@ -292,28 +283,20 @@ def trajectory_figure(
         axes = axes.T  # axes[0, 0] whole, axes[1, 0] zoom
     else:
         fig, axes = plt.subplots(2, len(names), figsize=(6.2 * len(names), 12.4), squeeze=False)
+    panels = (
+        (every_index(n, every), False, f"whole drive: one prediction per {every}"),
+        (zoom_idx, True, f"zoom: one prediction per {zoom_every}"),
+    )
     for col, name in enumerate(names):
-        label = f"{APPROACH.get(name, name)}: 1 s prediction"
-        ax = axes[0, col]
-        draw_track(ax, waypoints_xy_m, half_width_m)
-        draw_actual(ax, drive)
-        draw_predictions(ax, held, name, every_index(n, every), label=label)
-        ax.plot(*center, "*", color="magenta", ms=15, ls="none", label="zoom centre")
-        finish_map(
-            ax,
-            f"{APPROACH.get(name, name)}\nwhole drive: one prediction per {every} observations",
-            legend=False,
-        )
-        ax = axes[1, col]
-        draw_track(ax, waypoints_xy_m, half_width_m)
-        draw_actual(ax, drive)
-        draw_predictions(ax, held, name, zoom_idx, label=label, show_truth=True)
-        finish_map(
-            ax,
-            f"{APPROACH.get(name, name)}\nzoom: one prediction per {zoom_every} observations",
-            legend=False,
-        )
-        zoom_to(ax, center, radius)
+        shown = APPROACH.get(name, name)
+        for ax, (idx, zoom, what) in zip(axes[:, col], panels):
+            draw_track(ax, waypoints_xy_m, half_width_m)
+            draw_actual(ax, drive)
+            draw_predictions(ax, held, name, idx, label=f"{shown}: 1 s prediction", show_truth=zoom)
+            if not zoom:
+                ax.plot(*center, "*", color="magenta", ms=15, ls="none", label="zoom centre")
+            finish_map(ax, f"{shown}\n{what} observations", legend=False)
+        zoom_to(axes[1, col], center, radius)
     handles = {}
     for ax in axes.flat:
         for hnd, lab in zip(*ax.get_legend_handles_labels()):
