@@ -51,11 +51,8 @@ def _track_panel(ax, res: SimResult, title: str, zoom: tuple[float, float, float
         for a, b, p, q in zip(d.xy_m[sel, 0], d.xy_m[sel, 1], x_true, y_true):
             ax.plot([a, p], [b, q], color="tab:purple", lw=0.8)
         ax.plot(*d.xy_m[sel & ok].T, "o", color="tab:red", ms=4)
-        ax.set_xlim(x0 - r, x0 + r)
-        ax.set_ylim(y0 - r, y0 + r)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
+        ax.set(xlim=(x0 - r, x0 + r), ylim=(y0 - r, y0 + r))
+    ax.set(aspect="equal", xlabel="x [m]", ylabel="y [m]")
     ax.set_title(title, fontsize=10)
 
 
@@ -87,9 +84,7 @@ def main() -> None:
         d = res.drive
         ax.plot(d.truth_t_s, d.truth_v_mps, color=color, label=f"{name}: true speed")
     ax.axhspan(2.0, 8.0, color="0.9", zorder=0, label="target range 2-8 m/s")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("speed [m/s]")
-    ax.set_ylim(0, 9)
+    ax.set(xlabel="time [s]", ylabel="speed [m/s]", ylim=(0, 9))
     ax.legend(loc="lower right", fontsize=8)
     ax.set_title("speed of the leading car", fontsize=10)
     fig.suptitle(
