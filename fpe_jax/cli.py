@@ -210,7 +210,9 @@ def _build_parser() -> argparse.ArgumentParser:
         "validation split of the training data better",
     )
     p.add_argument(
-        "--fit", help=f"comma list of {','.join(FIT_NAMES)} (default: the model's own values)"
+        "--fit",
+        help=f"comma list of {','.join(FIT_NAMES)} (default: the model's own: line "
+        "delay,tau,smoothing; naming filter runs the line model's Kalman estimator)",
     )
     p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
     _add_settings_flags(p, "saved in the config; a recipe may set them in [settings]")
