@@ -54,7 +54,7 @@ from fpe_jax.track import Track
 # the groups each fitted model reads, and its default: the line model has no memorised speed
 MODEL_FIT = {
     "blend": (("lookahead", "lookahead_m", "gain", "weights", "delay", "speed"), DEFAULT_FIT),
-    "line": (("delay", "tau", "smoothing", "filter"), ("delay", "tau", "smoothing")),
+    "line": (("delay", "tau", "smoothing", "filter"), ("delay", "tau")),  # + its estimator's
 }
 # The line model's estimator follows its groups: "filter" (the Kalman filter's noise values and
 # gate) needs the Kalman estimator, "smoothing" (position_smoothing) the Theil-Sen one. Theil-Sen
@@ -634,11 +634,11 @@ def allowed_groups(settings: Settings) -> tuple[str, ...]:
 
 
 def default_groups(settings: Settings) -> tuple[str, ...]:
-    """The groups `fit_params` frees when told none: the model's defaults, with the Kalman
-    estimator's "filter" in place of Theil-Sen's "smoothing"."""
+    """The groups `fit_params` frees when told none: the model's defaults, for the line model
+    with its estimator's own (ESTIMATOR_GROUPS)."""
     groups = MODEL_FIT[settings.model][1]
-    if settings.model == "line" and settings.estimator == "kalman":
-        groups = tuple("filter" if g == "smoothing" else g for g in groups)
+    if settings.model == "line":
+        groups += ESTIMATOR_GROUPS[settings.estimator]
     return groups
 
 
