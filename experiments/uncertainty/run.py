@@ -141,7 +141,11 @@ def pooled_coverage(case, r) -> dict:
         for seed in POOLED_SEEDS
     ]
     data = make_datasets(drives, [case.track()] * len(drives), r.params.settings, "test")
-    return evaluate(r.params, data, cov_m2=r.uncertainty["cov_m2"])
+    cov = r.uncertainty["cov_m2"]
+    out = evaluate(r.params, data, cov_m2=cov)
+    single = [evaluate(r.params, [d], cov_m2=cov)["coverage_1sigma"] for d in data]
+    out["single_1sigma"] = (min(single), max(single))
+    return out
 
 
 def figure(runs, png: Path) -> None:
@@ -214,8 +218,12 @@ def markdown(runs, pooled: dict, seconds: float) -> str:
         "more than 10 points with its seed alone (the simulated driver's wander).",
         "",
         *md_table(
-            "case | 1-sigma coverage | 2-sigma coverage | held-out predictions",
-            [[name, *cells(m)] for name, m in pooled.items()],
+            "case | 1-sigma coverage | 2-sigma coverage | held-out predictions "
+            "| 1-sigma coverage of single drives",
+            [
+                [name, *cells(m), "{:.1%} - {:.1%}".format(*m["single_1sigma"])]
+                for name, m in pooled.items()
+            ],
         ),
         "",
         "## Per step",
