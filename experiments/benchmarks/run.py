@@ -296,19 +296,9 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
 
 
 def seed_predict_python(
-    waypoints,
-    x,
-    y,
-    yaw,
-    *,
-    v=1.0,
-    lookahead=2.0,
-    dt=0.1,
-    wheelbase=0.325,
-    max_steer=0.5236,
-    alpha=0.7,
-    horizon=10,
-):
+    waypoints, x, y, yaw, *, v=1.0, lookahead=2.0, dt=0.1, wheelbase=0.325, max_steer=0.5236,
+    alpha=0.7, horizon=10
+):  # fmt: skip
     """The 2019 node's prediction for one car, rule by rule (`fpe_jax.runner.seed_rollout`), with
     the original's goal search: the waypoints (a list of (x, y) tuples in file order) scanned from
     the last row backwards for the first one within the lookahead (row 0 when none is), every
@@ -588,11 +578,6 @@ COMMAND_TARGETS_S = {"predict": 2.5, "evaluate": 4.0, "plot": 4.0, "fit 10 min":
 FAST_TARGET_S = 0.5  # fpe presets, fpe info of the 60 s drive, fpe --help
 
 
-def _fpe_wall_s(argv: list[str], cache_dir: Path) -> float:
-    """Wall time [s] of one `fpe` command in a fresh process with the given cache folder."""
-    return _fpe_times_s(argv, cache_dir)[0]
-
-
 def _fpe_times_s(argv: list[str], cache_dir: Path) -> tuple[float, float]:
     """Wall time and CPU time (user + system, all threads) [s] of one `fpe` command in a fresh
     process with the given cache folder: on a shared machine the CPU time shows the command's own
@@ -601,12 +586,11 @@ def _fpe_times_s(argv: list[str], cache_dir: Path) -> tuple[float, float]:
 
     env = {**os.environ, "FPE_CACHE_DIR": str(cache_dir)}
     env.pop("FPE_NO_CACHE", None)
+    quiet = [] if argv[0] in ("presets", "info", "--help") else ["--quiet"]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(
-        [str(Path(sys.executable).parent / "fpe"), *argv, "--quiet"]
-        if argv[0] not in ("presets", "info", "--help")
-        else [str(Path(sys.executable).parent / "fpe"), *argv],
+        [str(Path(sys.executable).parent / "fpe"), *argv, *quiet],
         capture_output=True,
         text=True,
         env=env,
@@ -627,40 +611,32 @@ def bench_commands(runs: int, fit_minutes) -> dict:
     fpe = str(Path(sys.executable).parent / "fpe")
 
     def sim(minutes):
+        """A simulated drive of `minutes`: its log and --waypoints arguments."""
         out = tmp / f"drive-{minutes:g}min"
         subprocess.run(
             [fpe, "simulate", "--duration", str(60 * minutes), "--out", str(out)],
             check=True,
             capture_output=True,
         )
-        return out
+        return [str(out / "drive.mcap"), "--waypoints", str(out / "waypoints.csv")]
 
-    d1 = sim(1)
-    mcap, wp = str(d1 / "drive.mcap"), str(d1 / "waypoints.csv")
+    log1 = sim(1)
     cfg = tmp / "config.json"
-    _fpe_wall_s(["fit", mcap, "--waypoints", wp, "--out", str(cfg)], tmp / "prep")
-    common = [mcap, "--waypoints", wp, "--config", str(cfg)]
+    _fpe_times_s(["fit", *log1, "--out", str(cfg)], tmp / "prep")
+    common = [*log1, "--config", str(cfg)]
     commands = {
         "predict": ["predict", *common, "--out", str(tmp / "p.csv"), "--force"],
         "evaluate": ["evaluate", *common],
         "plot": ["plot", *common, "--out", str(tmp / "p.png"), "--force"],
     }
     for m in fit_minutes:
-        d = d1 if m == 1 else sim(m)
-        commands[f"fit {m:g} min"] = [
-            "fit",
-            str(d / "drive.mcap"),
-            "--waypoints",
-            str(d / "waypoints.csv"),
-            "--out",
-            str(tmp / f"c{m:g}.json"),
-            "--force",
-        ]
+        log = log1 if m == 1 else sim(m)
+        commands[f"fit {m:g} min"] = ["fit", *log, "--out", str(tmp / f"c{m:g}.json"), "--force"]
     rows = {}
     for name, argv in commands.items():
         cold = [_fpe_times_s(argv, tmp / f"cold-{name}-{k}") for k in range(runs)]
         warm_dir = tmp / f"warm-{name}"
-        _fpe_wall_s(argv, warm_dir)  # fills the cache
+        _fpe_times_s(argv, warm_dir)  # fills the cache
         warm = [_fpe_times_s(argv, warm_dir) for _ in range(runs)]
         rows[name] = {
             "cold_s": float(np.median([w for w, _ in cold])),
@@ -676,11 +652,8 @@ def bench_commands(runs: int, fit_minutes) -> dict:
             f"{runs})",
             flush=True,
         )
-    for name, argv in {
-        "presets": ["presets"],
-        "info": ["info", mcap],
-        "--help": ["--help"],
-    }.items():
+    fast = {"presets": ["presets"], "info": ["info", log1[0]], "--help": ["--help"]}
+    for name, argv in fast.items():
         times = [_fpe_times_s(argv, tmp / "fast") for _ in range(runs)]
         walls = [w for w, _ in times]
         rows[name] = {
@@ -845,13 +818,8 @@ def fullsize_drive(out_dir: Path) -> dict:
     )
     d = res.drive
     thin = slice(None, None, 2)  # 50 Hz -> 25 Hz
-    drive = dataclasses.replace(
-        d,
-        truth_t_s=d.truth_t_s[thin],
-        truth_xy_m=d.truth_xy_m[thin],
-        truth_yaw_rad=d.truth_yaw_rad[thin],
-        truth_v_mps=d.truth_v_mps[thin],
-    )
+    truth = ("truth_t_s", "truth_xy_m", "truth_yaw_rad", "truth_v_mps")
+    drive = dataclasses.replace(d, **{k: getattr(d, k)[thin] for k in truth})
     res = dataclasses.replace(res, drive=drive, truth_yaw_rate_rps=res.truth_yaw_rate_rps[thin])
     sim.write_simulation(res, out_dir, force=True)
     v = drive.truth_v_mps
@@ -972,10 +940,7 @@ def summarize(results: dict) -> dict:
     """The headline numbers against the issue's targets."""
 
     def rate(rows, dtype, n, key="rate_per_s"):
-        for r in rows:
-            if r["dtype"] == dtype and r["n_cars"] == n:
-                return r[key]
-        return None
+        return next((r[key] for r in rows if r["dtype"] == dtype and r["n_cars"] == n), None)
 
     big = max(r["n_cars"] for r in results["batch"])
     ref_n = 100_000 if any(r["n_cars"] == 100_000 for r in results["batch"]) else big
@@ -1153,21 +1118,14 @@ def plot(results: dict, path: Path) -> None:
             (r for r in results[section] if r["dtype"] == dtype), key=lambda r: r["n_cars"]
         )
         if rows:
-            ax.plot(
-                [r["n_cars"] for r in rows],
-                [r["rate_per_s"] for r in rows],
-                fmt,
-                color=color,
-                label=label,
-            )
+            n, rate = [r["n_cars"] for r in rows], [r["rate_per_s"] for r in rows]
+            ax.plot(n, rate, fmt, color=color, label=label)
     seed = results["seed_loop"]["rate_per_s"]
     ax.axhline(
         seed, color="C3", ls=":", label=f"original algorithm, pure-Python loop ({seed:.3g}/s)"
     )
     ax.axhline(2e6, color="0.5", ls="-.", lw=1, label="target: 2e6 predictions/s")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("cars per batch N [cars]")
+    ax.set(xscale="log", yscale="log", xlabel="cars per batch N [cars]")
     ax.set_ylabel("throughput [ten-step predictions / s]")
     ax.set_title(
         f"Batch prediction throughput, Levine track, {results['machine']['cpu']} "
