@@ -78,14 +78,6 @@ def _settings_from_args(args) -> dict:
     return {f: (k, getattr(args, f[2:].replace("-", "_"))) for f, k in SETTINGS_FLAGS.items()}
 
 
-def _add_off_track_flag(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--allow-off-track",
-        action="store_true",
-        help="use waypoints that the drive does not follow (off them, or run the other way)",
-    )
-
-
 def _check_on_track(args, drive, track, source: str, name: str) -> None:
     """Exit 2 (InputError) unless the drive's observations follow the track's waypoints (see
     `fpe_jax.path.check_on_track`); `track` is a Track or `path.build_path`'s dict, in the
@@ -107,14 +99,21 @@ def _check_on_track(args, drive, track, source: str, name: str) -> None:
     )
 
 
-def _add_run_flags(p: argparse.ArgumentParser) -> None:
-    """Flags of every command that compiles with JAX."""
+def _add_run_flags(p: argparse.ArgumentParser, off_track: bool = False) -> None:
+    """Flags of every command that compiles with JAX; with off_track, --allow-off-track of those
+    that check a drive against its waypoints."""
     p.add_argument(
         "--no-cache",
         action="store_true",
         help="do not read or write the compilation cache (also FPE_NO_CACHE=1; see `fpe cache`)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    if off_track:
+        p.add_argument(
+            "--allow-off-track",
+            action="store_true",
+            help="use waypoints that the drive does not follow (off them, or run the other way)",
+        )
 
 
 def _start_jax(args, say, x64: bool = True, executables: bool = True):
@@ -184,18 +183,22 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("predict", help="predict every observation of a drive log")
+    def command(name: str, help: str) -> argparse.ArgumentParser:
+        """The subparser of `fpe NAME`, which runs `cmd_NAME`."""
+        p = sub.add_parser(name, help=help)
+        p.set_defaults(func=globals()[f"cmd_{name}"])
+        return p
+
+    p = command("predict", "predict every observation of a drive log")
     p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
     _add_predictor_flags(p, required=False)
     p.add_argument("--out", required=True, help="PRED.csv or PRED.mcap")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
-    _add_run_flags(p)
-    _add_off_track_flag(p)
-    p.set_defaults(func=cmd_predict)
+    _add_run_flags(p, off_track=True)
 
-    p = sub.add_parser(
-        "fit", help="learn the car's line and fit the predictor to drives; report held-out metrics"
+    p = command(
+        "fit", "learn the car's line and fit the predictor to drives; report held-out metrics"
     )
     p.add_argument("logs", nargs="+", metavar="LOG", help="drive logs, or one recipe .toml")
     p.add_argument("--waypoints", help="waypoint / centerline / raceline file")
@@ -223,30 +226,23 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
-    _add_run_flags(p)
-    _add_off_track_flag(p)
-    p.set_defaults(func=cmd_fit)
+    _add_run_flags(p, off_track=True)
 
-    p = sub.add_parser("evaluate", help="metrics of a config or preset on a drive log")
+    p = command("evaluate", "metrics of a config or preset on a drive log")
     p.add_argument("log", help="drive log (any supported format)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _add_log_flags(p)
-    _add_run_flags(p)
-    _add_off_track_flag(p)
-    p.set_defaults(func=cmd_evaluate)
+    _add_run_flags(p, off_track=True)
 
-    p = sub.add_parser("cache", help="the compilation cache: its path, size and entries; clear it")
+    p = command("cache", "the compilation cache: its path, size and entries; clear it")
     p.add_argument("action", choices=("info", "clear"), help="info: path, size; clear: empty it")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.set_defaults(func=cmd_cache)
 
-    p = sub.add_parser("presets", help="list the built-in presets")
-    p.set_defaults(func=cmd_presets)
+    command("presets", "list the built-in presets")
 
-    p = sub.add_parser(
-        "info",
-        help="topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path",
+    p = command(
+        "info", "topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path"
     )
     p.add_argument(
         "log", nargs="?", help="drive log: .mcap, rosbag2 folder, .bag or CSV (or --waypoints)"
@@ -257,9 +253,8 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_log_flags(p)
-    p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("simulate", help="simulate a leading car's drive and its detections")
+    p = command("simulate", "simulate a leading car's drive and its detections")
     p.add_argument(
         "--track",
         default="oval",
@@ -280,16 +275,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="folder for drive.mcap, waypoints.csv, scenario")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty folder")
-    p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("convert", help="write a drive log's observed poses as CSV t,x,y,yaw")
+    p = command("convert", "write a drive log's observed poses as CSV t,x,y,yaw")
     p.add_argument("log", help="drive log: .mcap, rosbag2 folder, .bag or CSV")
     p.add_argument("--out", required=True, help="DRIVE.csv (what `fpe run` reads on stdin)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
-    p.set_defaults(func=cmd_convert)
 
-    p = sub.add_parser("batch", help="predict many cars at once (chunked, compiled once)")
+    p = command("batch", "predict many cars at once (chunked, compiled once)")
     p.add_argument("states", help="cars: CSV with header x,y,yaw,v[,yaw_rate], or .npy (N, 4|5)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="OUT.npy (N, H, 3) or OUT.csv")
@@ -297,9 +290,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--chunk", type=int, default=1 << 14, metavar="N", help="cars per call")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_run_flags(p)
-    p.set_defaults(func=cmd_batch)
 
-    p = sub.add_parser("export", help="export a tuned config for the car: JSON, ROS 2, StableHLO")
+    p = command("export", "export a tuned config for the car: JSON, ROS 2, StableHLO")
     p.add_argument("config", help="a tuned config JSON written by `fpe fit`")
     p.add_argument(
         "--format",
@@ -315,9 +307,8 @@ def _build_parser() -> argparse.ArgumentParser:
         "provenance, the file it was fitted on, checked by its hash)",
     )
     p.add_argument("--force", action="store_true", help="overwrite existing files")
-    p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("run", help="stream predictions: observations on stdin, JSON lines out")
+    p = command("run", "stream predictions: observations on stdin, JSON lines out")
     p.add_argument("--config", required=True, help="a tuned config JSON")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     p.add_argument(
@@ -326,25 +317,19 @@ def _build_parser() -> argparse.ArgumentParser:
         metavar="HZ",
         help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
     )
-    p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser(
-        "demo", help="simulate, fit, compare with every preset, plot and export (~1 min)"
-    )
+    p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
     _add_run_flags(p)
     p.add_argument("--force", action="store_true", help="replace the demo's files in --out")
-    p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("plot", help="draw a drive with its 1 s predictions (trajectory overlay)")
+    p = command("plot", "draw a drive with its 1 s predictions (trajectory overlay)")
     p.add_argument("log", help="drive log (any supported format)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="FIG.png (or .pdf, .svg)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
-    _add_run_flags(p)
-    _add_off_track_flag(p)
-    p.set_defaults(func=cmd_plot)
+    _add_run_flags(p, off_track=True)
     return parser
 
 
@@ -387,19 +372,21 @@ def _fit_inputs(args, say=lambda msg: None):
     from fpe_jax import io
     from fpe_jax.recipe import load_recipe
 
+    # the flags given override the recipe's values, or the defaults
+    flags = dict(holdout=args.holdout, blend=args.blend, model=args.model, solver=args.solver)
+    flags = {k: v for k, v in flags.items() if v is not None}
     if len(args.logs) == 1 and args.logs[0].endswith(".toml"):
         r = load_recipe(args.logs[0])
-        out = args.out or r.out
         opts = dict(
-            holdout=r.holdout if args.holdout is None else args.holdout,
+            holdout=r.holdout,
             fit=r.fit,
-            blend=args.blend or r.blend,
-            model=args.model or r.model,
-            solver=args.solver or r.solver,
+            blend=r.blend,
+            model=r.model,
+            solver=r.solver,
             settings=r.settings,
             waypoints=r.waypoints,
         )
-        return r.drives, r.test_drives, out, opts
+        return r.drives, r.test_drives, args.out or r.out, opts | flags
     if not args.waypoints:
         raise InputError("--waypoints", "missing", "a waypoint file for the drives")
     wp = io.load_waypoints(args.waypoints).xy_m
@@ -413,16 +400,8 @@ def _fit_inputs(args, say=lambda msg: None):
         return entries
 
     drives, tests = read(args.logs, "drive"), read(args.test or [], "test drive")
-    opts = dict(
-        holdout=0.3 if args.holdout is None else args.holdout,
-        fit=None,
-        blend=args.blend or "auto",
-        model=args.model,
-        solver=args.solver,
-        settings={},
-        waypoints=args.waypoints,
-    )
-    return drives, tests, args.out, opts
+    opts = dict(holdout=0.3, fit=None, blend="auto", model=None, solver=None, settings={})
+    return drives, tests, args.out, opts | {"waypoints": args.waypoints} | flags
 
 
 def _local_drives(entries):

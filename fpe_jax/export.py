@@ -180,7 +180,8 @@ def to_ros2_yaml(
 
 
 def _predictor(params, track):
-    """f(x_m, ..., s_m), each (b,) -> (b, H, 3), with params and track closed over (constants)."""
+    """f(x_m, ..., s_m), each (b,) -> (b, H, 3), with params and track closed over (constants):
+    the `State` fields named by INPUTS (then WINDOW_INPUTS), in their order."""
     import dataclasses
 
     import jax
@@ -189,29 +190,18 @@ def _predictor(params, track):
     from fpe_jax.predict import predict_batch
     from fpe_jax.state import State
 
-    def f(x_m, y_m, yaw_rad, v_mps, yaw_rate_rps, course_rad, s_m, s_fit_m, *rest):
-        frame, window = rest[:3], rest[3:]
-        states = State(
-            x_m=x_m,
-            y_m=y_m,
-            yaw_rad=yaw_rad,
-            v_mps=v_mps,
-            yaw_rate_rps=yaw_rate_rps,
-            course_rad=course_rad,
-            s_m=s_m,
-            s_fit_m=s_fit_m,
-            sdot_mps=frame[0],
-            offset_m=frame[1],
-            sdot_age_s=frame[2],
-            **dict(zip((n for n, _ in WINDOW_INPUTS), window)),
-        )
+    names = [n for n, _ in INPUTS + WINDOW_INPUTS]
+
+    def f(*inputs):
+        states = State(**dict(zip(names, inputs)))
         # only pure pursuit and the Frenet rollouts read the arc length
         if params.settings.model in ("blend", "frenet", "line"):
             # a NaN arc length asks for a global projection; skipped when every car has one
             def global_s(s):
-                p = jnp.stack([x_m, y_m], axis=1)
+                p = jnp.stack([states.x_m, states.y_m], axis=1)
                 return jnp.where(jnp.isfinite(s), s, jax.vmap(track.project)(p))
 
+            s_m = states.s_m
             s = jax.lax.cond(jnp.all(jnp.isfinite(s_m)), lambda s: s, global_s, s_m)
             states = dataclasses.replace(states, s_m=s)
         return predict_batch(params, states, track)
@@ -328,17 +318,11 @@ class ExportedPredictor:
         x = np.atleast_1d(np.asarray(given["x_m"], dtype=np.float64))
         if x.ndim != 1:
             raise ValueError(f"inputs must be scalars or (b,) arrays, got shape {x.shape}")
-        defaults = {
-            "yaw_rate_rps": 0.0,
-            "course_rad": given["yaw_rad"],
-            "s_m": math.nan,
-            "s_fit_m": math.nan,
-            "sdot_mps": math.nan,
-            "offset_m": math.nan,
-            "sdot_age_s": math.nan,
-        }
+        defaults = {"yaw_rate_rps": 0.0, "course_rad": given["yaw_rad"]}  # the others: NaN
         arrays = [
-            np.broadcast_to(np.asarray(given.get(n, defaults.get(n)), dtype=np.float64), x.shape)
+            np.broadcast_to(
+                np.asarray(given.get(n, defaults.get(n, math.nan)), np.float64), x.shape
+            )
             for n in names[: len(INPUTS)]
         ]
         for n, aval in zip(windows, self.exported.in_avals[len(INPUTS) :]):
