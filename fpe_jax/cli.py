@@ -341,14 +341,8 @@ def cmd_export(args) -> int:
         waypoints = provenance_waypoints(args.config)
         if waypoints is not None:
             print(f"waypoints from the config's provenance: {waypoints}", file=sys.stderr)
-    written = export_config(
-        args.config,
-        args.format,
-        args.out,
-        node=args.node,
-        waypoints=waypoints,
-        force=args.force,
-    )
+    opts = dict(node=args.node, waypoints=waypoints, force=args.force)
+    written = export_config(args.config, args.format, args.out, **opts)
     for path in written:
         print(f"wrote {path}", file=sys.stderr)
     return 0
@@ -461,7 +455,7 @@ def cmd_fit(args) -> int:
         from fpe_jax.fit import fit
         from fpe_jax.params import presets
         from fpe_jax.recipe import solver_named
-        from fpe_jax.report import format_fitted, format_table, provenance
+        from fpe_jax.report import format_fitted, format_table, line_section, provenance
         from fpe_jax.track import Track
 
         # the recipe's [settings], then the flags on top
@@ -488,21 +482,14 @@ def cmd_fit(args) -> int:
                 init=init,
                 progress=say,
             )
-    topics = {
-        "pose": drives[0][0].meta.get("pose_topic"),
-        "truth": drives[0][0].meta.get("truth_topic"),
-    }
+    meta = drives[0][0].meta
+    topics = {"pose": meta.get("pose_topic"), "truth": meta.get("truth_topic")}
     sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
     prov = provenance(result, sources, topics)
     wp_file = _waypoint_provenance(opts["waypoints"], drives + tests)
     if wp_file is not None:  # what `fpe export` uses when --waypoints is omitted
         prov["waypoints"] = wp_file
-    line = None
-    if "waypoints_sha256" in result.info:
-        line = {
-            "waypoints_sha256": result.info["waypoints_sha256"],
-            "waypoints": None if wp_file is None else wp_file["file"],
-        }
+    line = line_section(result, None if wp_file is None else wp_file["file"])
     cfg = params_to_config(
         result.params, uncertainty=result.uncertainty, provenance=prov, line=line
     )
@@ -630,14 +617,9 @@ def cmd_predict(args) -> int:
         poses = np.array(poses, dtype=np.float64)  # a writable copy
         poses[..., :2] += origin
         say(f"writing {args.out}")
+        dt_s = params.settings.dt_s
         io.write_predictions(
-            args.out,
-            stamps_s,
-            poses,
-            params.settings.dt_s,
-            drive=drive,
-            cov_m2=cov,
-            force=args.force,
+            args.out, stamps_s, poses, dt_s, drive=drive, cov_m2=cov, force=args.force
         )
     print(
         f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr
@@ -818,13 +800,9 @@ def cmd_batch(args) -> int:
         cars[:, :2] -= origin
         say(f"predicting {len(cars)} cars")
         t0 = time.perf_counter()
+        progress = lambda done, n: say.count("predicting cars", done, n)
         poses = predict_chunked(
-            params,
-            cars,
-            track,
-            dtype=args.dtype,
-            chunk=args.chunk,
-            progress=lambda done, n: say.count("predicting cars", done, n),
+            params, cars, track, dtype=args.dtype, chunk=args.chunk, progress=progress
         )
         wall_s = time.perf_counter() - t0
         # float32 cannot hold coordinates beyond a kilometre to the millimetre: write float64 then

@@ -155,13 +155,9 @@ def to_ros2_yaml(
         "    # version of the fpe-jax config schema these values follow",
         f"    schema_version: {int(cfg['schema_version'])}",
     ]
-    params = dict(cfg["params"])
-    params.setdefault("offset_tau_s", 1.0)  # configs from before the frenet / line models
-    params.setdefault("speed_tau_s", 0.5)
-    params.setdefault("position_smoothing", 0.0)
-    for key, value in FILTER_DEFAULTS.items():  # configs from before the Kalman estimator
-        params.setdefault(key, value)
-    sections = {"params": params, "settings": cfg["settings"]}
+    # the values of configs from before the frenet / line models and the Kalman estimator
+    older = {"offset_tau_s": 1.0, "speed_tau_s": 0.5, "position_smoothing": 0.0} | FILTER_DEFAULTS
+    sections = {"params": older | cfg["params"], "settings": cfg["settings"]}
     rows = list(ROS2_PARAMS)
     if cfg["settings"]["model"] == "line":
         rows += ROS2_LINE_PARAMS
@@ -432,8 +428,7 @@ def export_config(
     text = None
     if fmt in ("ros2", "all"):
         wp_name = None if waypoints is None else str(waypoints)
-        source = Path(config_path).name
-        text = to_ros2_yaml(cfg, node=node, waypoint_file=wp_name, source=source)
+        text = to_ros2_yaml(cfg, node=node, waypoint_file=wp_name, source=Path(config_path).name)
     out = Path(out)
     if fmt == "all":
         if out.exists() and not out.is_dir():
