@@ -181,19 +181,10 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
             predictor(cars, info=info)
             first = time.perf_counter() - t0
             res = timed_runs(lambda p=predictor, c=cars: p(c), n)
-            res.update(
-                path="BatchPredictor (end to end)",
-                dtype=dtype,
-                n_cars=n,
-                chunk=info["chunk"],
-                tail_chunk=info["tail_chunk"],
-                n_chunks=info["n_chunks"],
-                n_off_grid=info["n_off_grid"],
-                first_call_s=first,
-                compile_s=compile_s,
-                grid_build_s=grid_s,
-                load_avg=load_average(),
-            )
+            chunks = {k: info[k] for k in ("chunk", "tail_chunk", "n_chunks", "n_off_grid")}
+            res.update(path="BatchPredictor (end to end)", dtype=dtype, n_cars=n, **chunks)
+            res.update(first_call_s=first, compile_s=compile_s, grid_build_s=grid_s)
+            res.update(load_avg=load_average())
             rows.append(res)
             print_rate("batch", res)
     return rows
@@ -276,16 +267,10 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
             f = jax.jit(jax.vmap(_bare_rollout))
             for n in sizes:
                 rng = np.random.default_rng(0)
-                args = tuple(
-                    jnp.asarray(a.astype(dtype))
-                    for a in (
-                        rng.normal(0, 10, n),
-                        rng.normal(0, 10, n),
-                        rng.uniform(-np.pi, np.pi, n),
-                        rng.uniform(1, 6, n),
-                        rng.normal(0, 0.2, n),
-                    )
-                )
+                x, y = rng.normal(0, 10, n), rng.normal(0, 10, n)
+                yaw, v = rng.uniform(-np.pi, np.pi, n), rng.uniform(1, 6, n)
+                steer = rng.normal(0, 0.2, n)
+                args = tuple(jnp.asarray(a.astype(dtype)) for a in (x, y, yaw, v, steer))
                 res = _time_jitted(f, args, n, "bare kinematic bicycle (ceiling)", dtype)
                 rows.append(res)
                 print_rate("bare ", res)
@@ -749,21 +734,18 @@ def peak_memory_child(n: int, dtype: str) -> None:
     out = predict_chunked(presets[PRESET], cars, track, dtype=dtype)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    print(
-        json.dumps(
-            {
-                "n_cars": n,
-                "dtype": dtype,
-                "peak_rss_mb": peak,
-                "rss_before_prediction_mb": before,
-                "vm_hwm_mb": _vm_hwm_mb(),
-                "vm_hwm_before_prediction_mb": hwm_before,
-                "input_mb": cars.nbytes / 2**20,
-                "output_mb": out.nbytes / 2**20,
-                "wall_s_incl_compile": wall,
-            }
-        )
-    )
+    row = {
+        "n_cars": n,
+        "dtype": dtype,
+        "peak_rss_mb": peak,
+        "rss_before_prediction_mb": before,
+        "vm_hwm_mb": _vm_hwm_mb(),
+        "vm_hwm_before_prediction_mb": hwm_before,
+        "input_mb": cars.nbytes / 2**20,
+        "output_mb": out.nbytes / 2**20,
+        "wall_s_incl_compile": wall,
+    }
+    print(json.dumps(row))
 
 
 def bench_memory(n: int, dtypes) -> list[dict]:
