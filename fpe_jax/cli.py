@@ -668,9 +668,7 @@ def cmd_info(args) -> int:
 
     if args.log is None and args.waypoints is None:
         raise InputError("LOG", "missing", "a drive log, or --waypoints W to describe waypoints")
-    info = {}
-    if args.log is not None:
-        info = io.describe_log(args.log, **_log_options(args))
+    info = {} if args.log is None else io.describe_log(args.log, **_log_options(args))
     if args.waypoints is not None:
         info["waypoints"] = _describe_waypoints(args.waypoints)
     if args.json:

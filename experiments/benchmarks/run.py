@@ -651,16 +651,14 @@ def bench_commands(runs: int, fit_minutes) -> dict:
 
 
 def commands_markdown(cmd: dict, fit: dict) -> list[str]:
+    load = (
+        f" Load average at the end: {cmd['load_avg']:.1f} (2 cores)." if "load_avg" in cmd else ""
+    )
     lines = [
         f"Each command in a fresh process (`fpe ... --quiet`), medians of {cmd['runs']}: cold = "
         "an empty compilation cache, warm = a cache filled by one earlier run. predict, "
         "evaluate and plot: a 60 s simulated drive with a fitted config. CPU: user + system "
-        "time of the command's process (all threads): its own work, whatever the load."
-        + (
-            f" Load average at the end: {cmd['load_avg']:.1f} (2 cores)."
-            if "load_avg" in cmd
-            else ""
-        ),
+        "time of the command's process (all threads): its own work, whatever the load." + load,
         "",
         "| command | cold [s] | warm [s] | warm CPU [s] | warm target [s] |",
         "| --- | ---: | ---: | ---: | ---: |",
@@ -891,6 +889,9 @@ def fullsize_markdown(fs: dict | None) -> list[str]:
     if "skipped" in fs:
         return [f"Skipped: {fs['skipped']}"]
     v = fs["speed_mps"]
+    load = ""
+    if "load_avg_start" in fs:
+        load = f" Load average {fs['load_avg_start']:.1f} -> {fs['load_avg_end']:.1f}."
     lines = [
         f"{fs['track']}: {fs['length_m']:.0f} m, {fs['n_waypoints']} waypoints; wheelbase "
         f"{fs['wheelbase_m']:.3f} m, mu {fs['mu']}, {fs['duration_s']:.0f} s at "
@@ -898,12 +899,7 @@ def fullsize_markdown(fs: dict | None) -> list[str]:
         f"{fs['n_observations']} detections and {fs['n_truth']} truth poses at 25 Hz. Each "
         "command in a fresh process (compilation included); median wall time, largest peak RSS "
         f"(`ru_maxrss`). Target: fit <= {fs['target']['fit_wall_s']:.0f} s and "
-        f"<= {fs['target']['fit_peak_rss_mb']:.0f} MB: **{_met(fs['met'])}**."
-        + (
-            f" Load average {fs['load_avg_start']:.1f} -> {fs['load_avg_end']:.1f}."
-            if "load_avg_start" in fs
-            else ""
-        ),
+        f"<= {fs['target']['fit_peak_rss_mb']:.0f} MB: **{_met(fs['met'])}**.{load}",
         "",
         "| command | wall s | peak RSS MB |",
         "|---|---|---|",
