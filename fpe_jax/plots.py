@@ -133,8 +133,9 @@ def draw_actual(ax, drive, label: str = "actual path") -> None:
     if drive.has_truth:
         ax.plot(*drive.truth_xy_m.T, color="black", lw=1.0, label=f"{label} (truth)")
     else:
-        new = np.r_[True, np.any(drive.xy_m[1:] != drive.xy_m[:-1], axis=1)]
-        xy = drive.xy_m[new]
+        from fpe_jax.history import distinct_mask
+
+        xy = drive.xy_m[distinct_mask(drive.xy_m)]
         ax.plot(*xy.T, ".-", color="black", lw=0.6, ms=2.5, label=f"{label} (observed)")
 
 
