@@ -7,7 +7,6 @@ raises `InputError`; `main` prints it as one line on stderr and exits with statu
 from __future__ import annotations
 
 import argparse
-import contextlib
 import errno
 import math
 import os
@@ -416,22 +415,6 @@ def _waypoint_provenance(path, entries) -> dict | None:
     return {"file": str(Path(path).resolve()), "sha256": sha.pop()}
 
 
-# the arguments of `fit.fit` that `fpe fit` sets from its flags: the library's errors name the
-# argument, the CLI's the flag
-FIT_FLAGS = {"free": "--fit", "model": "--model", "solver": "--solver"}
-
-
-@contextlib.contextmanager
-def _as_flags(flags: dict[str, str]):
-    """Re-raise an InputError that names a library argument of `flags` as naming its flag."""
-    try:
-        yield
-    except InputError as e:
-        if e.source not in flags:
-            raise
-        raise InputError(flags[e.source], e.problem, e.expected) from None
-
-
 def cmd_fit(args) -> int:
     from fpe_jax import io
     from fpe_jax.config import params_to_config, write_config
@@ -468,20 +451,19 @@ def cmd_fit(args) -> int:
         wp_source = args.waypoints or f"{args.logs[0]}: the waypoints"
         for (d, _, desc), tr in zip(drives + tests, tracks + (test_tracks or []), strict=True):
             _check_on_track(args, d, tr, wp_source, desc)
-        with _as_flags(FIT_FLAGS):
-            result = fit(
-                [d for d, _, _ in drives],
-                tracks,
-                free=fit_names or opts["fit"] or None,
-                model=opts["model"] or "line",
-                blend=opts["blend"],
-                holdout=opts["holdout"],
-                test_drives=[d for d, _, _ in tests] or None,
-                test_tracks=test_tracks,
-                solver=solver_named(opts["solver"] or SOLVERS[0], "--solver"),
-                init=init,
-                progress=say,
-            )
+        result = fit(
+            [d for d, _, _ in drives],
+            tracks,
+            free=fit_names or opts["fit"] or None,
+            model=opts["model"] or "line",
+            blend=opts["blend"],
+            holdout=opts["holdout"],
+            test_drives=[d for d, _, _ in tests] or None,
+            test_tracks=test_tracks,
+            solver=solver_named(opts["solver"] or SOLVERS[0], "--solver"),
+            init=init,
+            progress=say,
+        )
     meta = drives[0][0].meta
     topics = {"pose": meta.get("pose_topic"), "truth": meta.get("truth_topic")}
     sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
@@ -910,6 +892,21 @@ def _resend_interrupts(unraisable) -> None:
     sys.__unraisablehook__(unraisable)
 
 
+# the library arguments that commands set from flags: the library's errors name the argument
+LIBRARY_FLAGS = {
+    "free": "--fit",
+    "model": "--model",
+    "solver": "--solver",
+    "holdout": "--holdout",
+    "preset": "--preset",
+    "chunk": "--chunk",
+    "dtype": "--dtype",
+    "fmt": "--format",
+    "node": "--node",
+    "waypoints": "--waypoints",
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     import threading
 
@@ -927,6 +924,8 @@ def main(argv: list[str] | None = None) -> int:
             sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is reported below
         return rc
     except InputError as e:
+        if e.source in LIBRARY_FLAGS:  # the library names its argument, the CLI its flag
+            e = InputError(LIBRARY_FLAGS[e.source], e.problem, e.expected)
         print(f"fpe: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -142,7 +142,7 @@ def to_ros2_yaml(
         source: the config's file name, for the header comment.
     """
     if not re.fullmatch(r"/\*\*|/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*", node):
-        raise InputError("--node", f"{node!r} is not a ROS 2 node name", "letters, digits, _ and /")
+        raise InputError("node", f"{node!r} is not a ROS 2 node name", "letters, digits, _ and /")
     prov = cfg.get("provenance") or {}
     when = prov.get("fitted_at") if isinstance(prov, dict) else None
     fitted = f"; fitted {when}" if when else ""
@@ -409,13 +409,13 @@ def export_config(
         The paths written. Nothing is written when any target exists without force.
     """
     if fmt not in FORMATS:
-        raise InputError("--format", f"unknown format {fmt!r}", f"one of {', '.join(FORMATS)}")
+        raise InputError("fmt", f"unknown format {fmt!r}", f"one of {', '.join(FORMATS)}")
     from fpe_jax.runner import load_waypoints_xy  # JAX-free
 
     cfg = read_config(config_path)  # every value checked (fpe_jax.spec)
     if fmt in ("stablehlo", "all") and waypoints is None:
         raise InputError(
-            "--waypoints",
+            "waypoints",
             "the stablehlo predictor bakes the track in, and the config's provenance names no "
             "waypoint file",
             "--waypoints FILE",
