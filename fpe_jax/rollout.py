@@ -1,7 +1,7 @@
 """Single-car rollouts: linear, constant velocity, CTRV, pure pursuit, their blend, and the seed.
 
-All are pure functions of (params, state, track) returning (H, 3) poses x [m], y [m], yaw [rad]
-at t + h * dt_s for h = 1..H; vmap them at the edge. Every rollout except the seed's is
+All are pure functions of (params, state, track) returning `Poses` (fields (H,)) at
+t + h * dt_s for h = 1..H; vmap them at the edge. Every rollout except the seed's is
 differentiable in every fitted value. The observation delay is a fractional first step: the state
 is advanced by `delay_s` before the H regular steps.
 """
@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from fpe_jax.params import Params
-from fpe_jax.state import State as State  # re-exported: rollouts take a State
+from fpe_jax.state import Poses, State  # State re-exported: rollouts take a State
 from fpe_jax.track import Track, wrap_angle
 
 
@@ -33,12 +33,12 @@ def _speed(params: Params, state: State):
     return w * state.v_mps + (1.0 - w) * params.speed_mps
 
 
-def _emit(xs, ys, yaws):
-    """Drop the delay step's output: (H+1,) arrays -> (H, 3)."""
-    return jnp.stack([xs, ys, yaws], axis=-1)[1:]
+def _emit(xs, ys, yaws) -> Poses:
+    """Drop the delay step's output: (H+1,) arrays -> Poses (H,)."""
+    return Poses(xs[1:], ys[1:], yaws[1:])
 
 
-def rollout_linear(params: Params, state: State, heading_rad=None) -> Float[Array, "H 3"]:
+def rollout_linear(params: Params, state: State, heading_rad=None) -> Poses:
     """Constant speed along a fixed heading (default: the car's yaw): thesis approach 2."""
     yaw = state.yaw_rad if heading_rad is None else heading_rad
     t = jnp.cumsum(_step_times(params))
@@ -47,12 +47,12 @@ def rollout_linear(params: Params, state: State, heading_rad=None) -> Float[Arra
     return _emit(xs, ys, jnp.broadcast_to(yaw, t.shape))
 
 
-def rollout_cv(params: Params, state: State) -> Float[Array, "H 3"]:
+def rollout_cv(params: Params, state: State) -> Poses:
     """Constant velocity vector (speed along the direction of motion): thesis approach 1."""
     return rollout_linear(params, state, heading_rad=state.course_rad)
 
 
-def rollout_ctrv(params: Params, state: State) -> Float[Array, "H 3"]:
+def rollout_ctrv(params: Params, state: State) -> Poses:
     """Constant turn rate and velocity, integrated exactly step by step (midpoint heading)."""
     v, w = _speed(params, state), state.yaw_rate_rps
 
@@ -132,7 +132,7 @@ def pure_pursuit_steer(params: Params, x_m, y_m, yaw_rad, v_mps, s_m, track: Tra
     return jnp.arctan(tan_steer), s
 
 
-def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> Float[Array, "H 3"]:
+def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> Poses:
     """Kinematic bicycle steered by pure pursuit; the yaw change of step k is scaled by
     turn_scale[k] ((H+1,), 1 = pure pursuit, 0 = straight)."""
     v = _speed(params, state)
@@ -163,14 +163,14 @@ def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> 
     return _emit(xs, ys, wrap_angle(yaws))
 
 
-def rollout_pure_pursuit(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout_pure_pursuit(params: Params, state: State, track: Track) -> Poses:
     """Kinematic bicycle following the path by pure pursuit: thesis approach 3, done properly."""
     return _rollout_bicycle(
         params, state, track, jnp.ones(params.settings.horizon + 1, dtype=params.weights.dtype)
     )
 
 
-def rollout_blend(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout_blend(params: Params, state: State, track: Track) -> Poses:
     """Linear and pure-pursuit rollouts blended with per-step weights w (1 = linear).
 
     "position": p_h = w_h * p_lin_h + (1 - w_h) * p_pp_h (the thesis's formula), yaw blended on
@@ -181,14 +181,13 @@ def rollout_blend(params: Params, state: State, track: Track) -> Float[Array, "H
     if params.settings.blend == "heading":
         scale = 1.0 - jnp.concatenate([w[:1], w])
         return _rollout_bicycle(params, state, track, scale)
-    lin = rollout_linear(params, state)
-    pp = rollout_pure_pursuit(params, state, track)
-    xy = w[:, None] * lin[:, :2] + (1.0 - w[:, None]) * pp[:, :2]
-    yaw = wrap_angle(lin[:, 2] + (1.0 - w) * wrap_angle(pp[:, 2] - lin[:, 2]))
-    return jnp.concatenate([xy, yaw[:, None]], axis=1)
+    lin, pp = rollout_linear(params, state), rollout_pure_pursuit(params, state, track)
+    mix = lambda a, b: w * a + (1.0 - w) * b
+    yaw = lin.yaw_rad + (1.0 - w) * wrap_angle(pp.yaw_rad - lin.yaw_rad)  # on the circle
+    return Poses(mix(lin.x_m, pp.x_m), mix(lin.y_m, pp.y_m), wrap_angle(yaw))
 
 
-def rollout_seed(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout_seed(params: Params, state: State, track: Track) -> Poses:
     """The original 2019 node's exact discrete rules (for conformance, not for fitting).
 
     Each step: goal = the waypoint found by scanning the raw list from its last row backwards
@@ -216,7 +215,7 @@ def rollout_seed(params: Params, state: State, track: Track) -> Float[Array, "H 
         return c, c
 
     _, (xs, ys, yaws) = jax.lax.scan(step, (state.x_m, state.y_m, state.yaw_rad), params.weights)
-    return jnp.stack([xs, ys, yaws], axis=-1)
+    return Poses(xs, ys, yaws)
 
 
 def profile_at(values: Float[Array, " P"], s_m, track: Track):
@@ -247,7 +246,7 @@ FALLBACK_TAU_S = 3.0
 SLOPE_DS_M = 0.5  # half the arc-length step of the target offset's slope [m]
 
 
-def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
     """Frenet rollout: along-track speed and a lateral offset that decays toward the line.
 
     s0, d0 = the car's arc length and signed offset from the path (left positive): the Kalman
@@ -346,7 +345,7 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     return _emit(xs, ys, yaws)
 
 
-def rollout(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout(params: Params, state: State, track: Track) -> Poses:
     """Dispatch on the static `params.settings.model`."""
     model = params.settings.model
     if model in ("frenet", "line"):
