@@ -225,11 +225,9 @@ def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
     """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame.
 
     For the line model from cross-fitted predictions (`_cross_fitted`)."""
-    if params.settings.model == "line":
-        preds = [_cross_fitted(params, d) for d in datasets]
-    else:
-        preds = [predict_targets(params, d).xy_m for d in datasets]
-    res = np.concatenate([_track_residuals(p, d, params) for p, d in zip(preds, datasets)])
+    line = params.settings.model == "line"
+    xy = [_cross_fitted(params, d) if line else predict_targets(params, d).xy_m for d in datasets]
+    res = np.concatenate([_track_residuals(p, d, params) for p, d in zip(xy, datasets)])
     mask = np.concatenate([d.targets.mask for d in datasets])
     return {
         "frame": "track",

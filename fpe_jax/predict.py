@@ -58,8 +58,7 @@ def _filter_state(values: tuple, state: State, track: Track) -> State:
         *values,
         length_m=track.length_m if track.closed else None,
     )
-    new = dict(s_fit_m=mean[0], sdot_mps=mean[1], offset_m=mean[2])
-    new["sdot_age_s"] = speed_age
+    new = dict(s_fit_m=mean[0], sdot_mps=mean[1], offset_m=mean[2], sdot_age_s=speed_age)
     if state.s_fit_m is not None:  # an empty window (an export's default): the state's own
         has = jnp.any(state.window_valid > 0.5)
         new = {k: jnp.where(has, v, getattr(state, k)) for k, v in new.items()}
@@ -77,9 +76,8 @@ def predict(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
 
 
 def predict_poses(params: Params, states: State, track: Track) -> Poses:
-    """`Poses` of N cars (states with a leading axis N), fields (N, H); under P stacked
-    parameter sets (`stack_params`; weights of shape (P, H)) (P, N, H): every car under every
-    hypothesis."""
+    """`Poses` of N cars (states with a leading axis N), fields (N, H); (P, N, H) under P stacked
+    parameter sets (`stack_params`; weights of shape (P, H)): every car under every hypothesis."""
     over_cars = jax.vmap(_poses, in_axes=(None, 0, None))
     if params.weights.ndim == 2:
         return jax.vmap(over_cars, in_axes=(0, None, None))(params, states, track)
@@ -171,8 +169,8 @@ def predict_rows(params: Params, states: State, track: Track) -> Poses:
         poses = _predict_rows_block(params, part, track)
         out.append(jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], poses))
     if not out:
-        return Poses(*[np.zeros((0, params.settings.horizon))] * 3)
-    return jax.tree.map(lambda *xs: np.concatenate(xs), *out) if len(out) > 1 else out[0]
+        out = [Poses(*[np.zeros((0, params.settings.horizon))] * 3)]
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
 
 
 @aot.jit
@@ -185,8 +183,7 @@ def _states_from_windows(
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
     )
-    p = jnp.stack([states.x_m, states.y_m], axis=1)
-    s_m = arclength_along(track, p, s_before_m)
+    s_m = arclength_along(track, jnp.stack([states.x_m, states.y_m], axis=1), s_before_m)
     states = dataclasses.replace(states, s_m=s_m)
     if filter_values is None:
         s_fit, sdot, offset, age = jax.vmap(estimate_track_frame, in_axes=(0, 0, 0, 0, None))(

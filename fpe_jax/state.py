@@ -70,8 +70,7 @@ class Poses(eqx.Module):
     @property
     def xy_m(self) -> Float[ArrayLike, "*batch H 2"]:
         """Positions [m], (..., H, 2) as the targets they are scored against."""
-        # cut from the packed array: the fit's gradient then compiles as it does through
-        # `predict` (from x and y alone its fitted values moved in their last digits)
+        # cut from the packed array: the fit's gradient compiles (bitwise) as through `predict`
         return self.packed()[..., :2]
 
     def packed(self) -> Float[ArrayLike, "*batch H 3"]:
