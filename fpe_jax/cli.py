@@ -594,9 +594,9 @@ def cmd_predict(args) -> int:
         states = states_from_drive(params, local, track)
         poses = predict_rows(params, states, track)
         if cov is not None:  # the config's per-step ellipses, turned into the map frame
-            cov = covariance_map(cov, path_heading(track, poses[..., :2], states))
+            cov = covariance_map(cov, path_heading(track, poses.xy_m, states))
         stamps_s = local.t_s + t0_s
-        poses = np.array(poses, dtype=np.float64)  # a writable copy
+        poses = np.array(poses.packed(), dtype=np.float64)  # a writable copy
         poses[..., :2] += origin
         say(f"writing {args.out}")
         dt_s = params.settings.dt_s

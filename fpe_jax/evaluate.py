@@ -24,7 +24,7 @@ from fpe_jax.history import distinct_mask, history_windows
 from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
 from fpe_jax.params import Params, Settings
 from fpe_jax.predict import pad_rows, predict_rows, row_blocks, states_from_drive, uses_filter
-from fpe_jax.state import State
+from fpe_jax.state import Poses, State
 from fpe_jax.track import Track, project_rollout
 
 MIN_HISTORY = 3  # distinct observations needed before a prediction counts
@@ -98,8 +98,8 @@ class Dataset:
         return self._states[key]
 
 
-def predict_targets(params: Params, dataset: Dataset) -> np.ndarray:
-    """(N, H, 3) predictions at a dataset's target rows."""
+def predict_targets(params: Params, dataset: Dataset) -> Poses:
+    """Predictions (NumPy fields (N, H)) at a dataset's target rows."""
     return predict_rows(params, dataset.states(params), dataset.track)
 
 
@@ -130,7 +130,7 @@ def heldout_predictions(drive: Drive, track, params_by_name: dict) -> Heldout:
     """
     settings = next(iter(params_by_name.values())).settings
     data = Dataset(drive, track, make_targets(drive, settings))
-    preds = {n: predict_targets(p, data)[..., :2] for n, p in params_by_name.items()}
+    preds = {n: predict_targets(p, data).xy_m for n, p in params_by_name.items()}
     return Heldout(
         rows=data.targets.rows,
         origin_xy_m=drive.xy_m[data.targets.rows],
@@ -144,10 +144,10 @@ def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
     """Metrics (see `metrics.summarize`) of params over datasets, plus coverage when cov given."""
     errs, res, masks = [], [], []
     for d in datasets:
-        pred = predict_targets(params, d)
-        errs.append(errors_m(pred[..., :2], d.targets.xy_m, d.targets.mask))
+        xy = predict_targets(params, d).xy_m
+        errs.append(errors_m(xy, d.targets.xy_m, d.targets.mask))
         if cov_m2 is not None:
-            res.append(_track_residuals(pred, d, params))
+            res.append(_track_residuals(xy, d, params))
             masks.append(d.targets.mask)
     out = summarize(np.concatenate(errs))
     if cov_m2 is not None:
@@ -184,9 +184,9 @@ def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
     return rot @ np.asarray(cov_track_m2)[None] @ np.swapaxes(rot, -1, -2)
 
 
-def _track_residuals(pred: np.ndarray, d: Dataset, params: Params) -> np.ndarray:
-    heading = path_heading(d.track, pred[..., :2], d.states(params))
-    return track_frame_residuals(pred[..., :2], d.targets.xy_m, heading)
+def _track_residuals(xy_m: np.ndarray, d: Dataset, params: Params) -> np.ndarray:
+    heading = path_heading(d.track, xy_m, d.states(params))
+    return track_frame_residuals(xy_m, d.targets.xy_m, heading)
 
 
 # Folds of the cross-fitted residuals (contiguous in time). Two halves made the residuals'
@@ -197,7 +197,7 @@ MIN_FOLD_S = 12.0
 
 
 def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
-    """(N, H, 3) predictions of the line model at d's targets, each from a line learned on the
+    """(N, H, 2) positions [m] of the line model at d's targets, each from a line learned on the
     rest of d's drive (CROSS_FOLDS contiguous folds in time): the line fits its own drive's
     truth, so in-sample residuals would understate the error on drives the line was not
     learned on."""
@@ -209,7 +209,7 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
     edges = np.linspace(d.drive.t_s[0], d.drive.t_s[-1], folds + 1)
     edges[-1] = np.inf
     t_rows = d.drive.t_s[d.targets.rows]
-    out = np.zeros((len(t_rows), params.settings.horizon, 3))
+    out = np.zeros((len(t_rows), params.settings.horizon, 2))
     for lo, hi in zip(edges[:-1], edges[1:]):
         rest = [d.drive.slice_time(-np.inf, lo), d.drive.slice_time(hi, np.inf)]
         line = learn_line([r for r in rest if len(r.t_s)], d.track)
@@ -217,7 +217,7 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
             dataclasses.replace(params, **{k: aot.device_array(v) for k, v in line.items()}), d
         )
         fold = (t_rows >= lo) & (t_rows < hi)
-        out[fold] = pred[fold]
+        out[fold] = pred.xy_m[fold]
     return out
 
 
@@ -225,11 +225,9 @@ def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
     """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame.
 
     For the line model from cross-fitted predictions (`_cross_fitted`)."""
-    if params.settings.model == "line":
-        preds = [_cross_fitted(params, d) for d in datasets]
-    else:
-        preds = [predict_targets(params, d) for d in datasets]
-    res = np.concatenate([_track_residuals(p, d, params) for p, d in zip(preds, datasets)])
+    line = params.settings.model == "line"
+    xy = [_cross_fitted(params, d) if line else predict_targets(params, d).xy_m for d in datasets]
+    res = np.concatenate([_track_residuals(p, d, params) for p, d in zip(xy, datasets)])
     mask = np.concatenate([d.targets.mask for d in datasets])
     return {
         "frame": "track",

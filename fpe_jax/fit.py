@@ -42,7 +42,7 @@ from fpe_jax.params import (
     unconstrain,
     with_settings,
 )
-from fpe_jax.predict import WINDOW_FIELDS, bucket, pad_rows, predict, uses_filter
+from fpe_jax.predict import WINDOW_FIELDS, bucket, pad_rows, predict_poses, uses_filter
 from fpe_jax.spec import BLEND_MODES, DEFAULT_ESTIMATOR
 from fpe_jax.spec import DEFAULT_FIT as DEFAULT_FIT
 from fpe_jax.spec import DEFAULT_SOLVER as DEFAULT_SOLVER
@@ -147,8 +147,7 @@ def _residuals(raw_free, args):
     """Residual vector of the raw free values: `robust_residuals` of the JAX rollout."""
     raw_fixed, groups, huber_m = args
     params = constrain(eqx.combine(raw_free, raw_fixed))
-    rollout = jax.vmap(predict, in_axes=(None, 0, None))
-    preds = (rollout(params, states, track)[..., :2] for states, track, _, _ in groups)
+    preds = (predict_poses(params, states, track).xy_m for states, track, _, _ in groups)
     targets, masks = [g[2] for g in groups], [g[3] for g in groups]
     return robust_residuals(
         params.weights, preds, targets, masks, jax.tree.leaves(raw_free), huber_m
@@ -557,8 +556,7 @@ def _expected_ade(params: Params, datasets, covered, cover: float) -> float:
     back to the overall ADE when it has no rows. Every candidate is scored this way.
     """
     errs = [
-        errors_m(predict_targets(params, d)[..., :2], d.targets.xy_m, d.targets.mask)
-        for d in datasets
+        errors_m(predict_targets(params, d).xy_m, d.targets.xy_m, d.targets.mask) for d in datasets
     ]
     err, cov = np.concatenate(errs), np.concatenate(covered)
     overall = float(np.nanmean(err))

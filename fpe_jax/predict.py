@@ -21,7 +21,8 @@ from fpe_jax.estimate import (
 from fpe_jax.history import history_windows
 from fpe_jax.kalman import kalman_params, kalman_window
 from fpe_jax.params import Params, Settings
-from fpe_jax.rollout import State, rollout
+from fpe_jax.rollout import rollout
+from fpe_jax.state import Poses, State
 from fpe_jax.track import Track, arclength_along
 
 # Rows per compiled prediction call: a drive of any length runs in blocks of this size (a
@@ -57,22 +58,27 @@ def _filter_state(values: tuple, state: State, track: Track) -> State:
         *values,
         length_m=track.length_m if track.closed else None,
     )
-    new = dict(s_fit_m=mean[0], sdot_mps=mean[1], offset_m=mean[2])
-    new["sdot_age_s"] = speed_age
+    new = dict(s_fit_m=mean[0], sdot_mps=mean[1], offset_m=mean[2], sdot_age_s=speed_age)
     if state.s_fit_m is not None:  # an empty window (an export's default): the state's own
         has = jnp.any(state.window_valid > 0.5)
         new = {k: jnp.where(has, v, getattr(state, k)) for k, v in new.items()}
     return dataclasses.replace(state, **new)
 
 
-def predict(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
-    """Poses (H, 3) x [m], y [m], yaw [rad] at t + h * dt_s, h = 1..H, for one car (its
-    window filtered first, `filtered`)."""
+def _poses(params: Params, state: State, track: Track) -> Poses:
     return rollout(params, filtered(params, state, track), track)
 
 
-def _predict_cars(params: Params, states: State, track: Track) -> Float[Array, "... N H 3"]:
-    over_cars = jax.vmap(predict, in_axes=(None, 0, None))
+def predict(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+    """Poses (H, 3) x [m], y [m], yaw [rad] at t + h * dt_s, h = 1..H, for one car (its
+    window filtered first, `filtered`)."""
+    return _poses(params, state, track).packed()
+
+
+def predict_poses(params: Params, states: State, track: Track) -> Poses:
+    """`Poses` of N cars (states with a leading axis N), fields (N, H); (P, N, H) under P stacked
+    parameter sets (`stack_params`; weights of shape (P, H)): every car under every hypothesis."""
+    over_cars = jax.vmap(_poses, in_axes=(None, 0, None))
     if params.weights.ndim == 2:
         return jax.vmap(over_cars, in_axes=(0, None, None))(params, states, track)
     return over_cars(params, states, track)
@@ -80,17 +86,13 @@ def _predict_cars(params: Params, states: State, track: Track) -> Float[Array, "
 
 @eqx.filter_jit
 def predict_batch(params: Params, states: State, track: Track) -> Float[Array, "... N H 3"]:
-    """Predict N cars (states with a leading axis N) -> (N, H, 3).
-
-    With P stacked parameter sets (`stack_params`; weights of shape (P, H)) -> (P, N, H, 3): every
-    car under every hypothesis, in one compiled call.
-    """
-    return _predict_cars(params, states, track)
+    """`predict_poses` in one compiled call, packed: (N, H, 3), or (P, N, H, 3)."""
+    return predict_poses(params, states, track).packed()
 
 
 # the commands' path: executables kept on disk (`aot`), so a warm run traces nothing; the public
 # predict_batch stays a plain jit (it also runs on sharded arrays and inside other traces)
-_predict_rows_block = aot.jit(_predict_cars)
+_predict_rows_block = aot.jit(predict_poses)
 
 
 def stack_params(params_list: list[Params]) -> Params:
@@ -157,17 +159,18 @@ def no_arclength() -> np.ndarray:
     return np.full((), np.nan, jax.dtypes.canonicalize_dtype(np.float64))
 
 
-def predict_rows(params: Params, states: State, track: Track) -> np.ndarray:
-    """(N, H, 3) NumPy predictions of N states (leading axis N): `predict_batch` over the padded
-    blocks of `row_blocks`, so intermediates stay O(chunk x H) for any N and every drive reuses
-    the same compiled shapes."""
+def predict_rows(params: Params, states: State, track: Track) -> Poses:
+    """`Poses` (NumPy fields (N, H)) of N states (leading axis N): `predict_poses` over the
+    padded blocks of `row_blocks`, so intermediates stay O(chunk x H) for any N and every drive
+    reuses the same compiled shapes."""
     out = []
     for rows, size in row_blocks(len(states.x_m)):
         part = pad_rows(jax.tree.map(lambda x, r=rows: x[r], states), size)
-        out.append(np.asarray(_predict_rows_block(params, part, track))[: rows.stop - rows.start])
+        poses = _predict_rows_block(params, part, track)
+        out.append(jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], poses))
     if not out:
-        return np.zeros((0, params.settings.horizon, 3))
-    return np.concatenate(out) if len(out) > 1 else out[0]
+        out = [Poses(*[np.zeros((0, params.settings.horizon))] * 3)]
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
 
 
 @aot.jit
@@ -180,8 +183,7 @@ def _states_from_windows(
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
     )
-    p = jnp.stack([states.x_m, states.y_m], axis=1)
-    s_m = arclength_along(track, p, s_before_m)
+    s_m = arclength_along(track, jnp.stack([states.x_m, states.y_m], axis=1), s_before_m)
     states = dataclasses.replace(states, s_m=s_m)
     if filter_values is None:
         s_fit, sdot, offset, age = jax.vmap(estimate_track_frame, in_axes=(0, 0, 0, 0, None))(
@@ -250,4 +252,4 @@ def predict_drive(params: Params, drive: Drive, track: Track) -> tuple[np.ndarra
         poses: (N, H, 3) x [m], y [m], yaw [rad] at stamp + h * dt_s.
     """
     states = states_from_drive(params, drive, track)
-    return drive.t_s.copy(), predict_rows(params, states, track)
+    return drive.t_s.copy(), predict_rows(params, states, track).packed()

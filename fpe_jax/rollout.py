@@ -1,7 +1,7 @@
 """Single-car rollouts: linear, constant velocity, CTRV, pure pursuit, their blend, and the seed.
 
-All are pure functions of (params, state, track) returning (H, 3) poses x [m], y [m], yaw [rad]
-at t + h * dt_s for h = 1..H; vmap them at the edge. Every rollout except the seed's is
+All are pure functions of (params, state, track) returning `Poses` (fields (H,)) at
+t + h * dt_s for h = 1..H; vmap them at the edge. Every rollout except the seed's is
 differentiable in every fitted value. The observation delay is a fractional first step: the state
 is advanced by `delay_s` before the H regular steps.
 """
@@ -15,7 +15,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from fpe_jax.params import Params
-from fpe_jax.state import State as State  # re-exported: rollouts take a State
+from fpe_jax.state import Poses, State  # State re-exported: rollouts take a State
 from fpe_jax.track import Track, wrap_angle
 
 
@@ -33,26 +33,25 @@ def _speed(params: Params, state: State):
     return w * state.v_mps + (1.0 - w) * params.speed_mps
 
 
-def _emit(xs, ys, yaws):
-    """Drop the delay step's output: (H+1,) arrays -> (H, 3)."""
-    return jnp.stack([xs, ys, yaws], axis=-1)[1:]
+def _emit(xs, ys, yaws) -> Poses:
+    """Drop the delay step's output: (H+1,) arrays -> Poses (H,)."""
+    return Poses(xs[1:], ys[1:], yaws[1:])
 
 
-def rollout_linear(params: Params, state: State, heading_rad=None) -> Float[Array, "H 3"]:
+def rollout_linear(params: Params, state: State, heading_rad=None) -> Poses:
     """Constant speed along a fixed heading (default: the car's yaw): thesis approach 2."""
     yaw = state.yaw_rad if heading_rad is None else heading_rad
-    t = jnp.cumsum(_step_times(params))
-    v = _speed(params, state)
+    t, v = jnp.cumsum(_step_times(params)), _speed(params, state)
     xs, ys = state.x_m + v * t * jnp.cos(yaw), state.y_m + v * t * jnp.sin(yaw)
     return _emit(xs, ys, jnp.broadcast_to(yaw, t.shape))
 
 
-def rollout_cv(params: Params, state: State) -> Float[Array, "H 3"]:
+def rollout_cv(params: Params, state: State) -> Poses:
     """Constant velocity vector (speed along the direction of motion): thesis approach 1."""
     return rollout_linear(params, state, heading_rad=state.course_rad)
 
 
-def rollout_ctrv(params: Params, state: State) -> Float[Array, "H 3"]:
+def rollout_ctrv(params: Params, state: State) -> Poses:
     """Constant turn rate and velocity, integrated exactly step by step (midpoint heading)."""
     v, w = _speed(params, state), state.yaw_rate_rps
 
@@ -64,9 +63,8 @@ def rollout_ctrv(params: Params, state: State) -> Float[Array, "H 3"]:
         c = (x + chord * jnp.cos(mid), y + chord * jnp.sin(mid), yaw + w * dt)
         return c, c
 
-    _, (xs, ys, yaws) = jax.lax.scan(
-        step, (state.x_m, state.y_m, state.yaw_rad), _step_times(params)
-    )
+    init = (state.x_m, state.y_m, state.yaw_rad)
+    _, (xs, ys, yaws) = jax.lax.scan(step, init, _step_times(params))
     return _emit(xs, ys, wrap_angle(yaws))
 
 
@@ -132,11 +130,10 @@ def pure_pursuit_steer(params: Params, x_m, y_m, yaw_rad, v_mps, s_m, track: Tra
     return jnp.arctan(tan_steer), s
 
 
-def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> Float[Array, "H 3"]:
+def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> Poses:
     """Kinematic bicycle steered by pure pursuit; the yaw change of step k is scaled by
     turn_scale[k] ((H+1,), 1 = pure pursuit, 0 = straight)."""
-    v = _speed(params, state)
-    wb = params.settings.wheelbase_m
+    v, wb = _speed(params, state), params.settings.wheelbase_m
     p0 = jnp.stack([state.x_m, state.y_m])
     s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
 
@@ -152,8 +149,7 @@ def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> 
         c = (x + v * dt * cm, y + v * dt * sm, yaw + dyaw, cm * ch - sm * sh, sm * ch + cm * sh, s)
         return c, c[:3]
 
-    yaw0 = state.yaw_rad
-    init = (state.x_m, state.y_m, yaw0, jnp.cos(yaw0), jnp.sin(yaw0), s0)
+    init = (state.x_m, state.y_m, state.yaw_rad, jnp.cos(state.yaw_rad), jnp.sin(state.yaw_rad), s0)
     # a rolled loop: scan(unroll=True) measured 2-4x slower here on CPU (larger fusions).
     # checkpoint: under reverse-mode (the fit) each step is recomputed from its carry rather
     # than ~60 intermediates per step being stored; a 10-minute fit traced, compiled and ran
@@ -163,14 +159,13 @@ def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> 
     return _emit(xs, ys, wrap_angle(yaws))
 
 
-def rollout_pure_pursuit(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout_pure_pursuit(params: Params, state: State, track: Track) -> Poses:
     """Kinematic bicycle following the path by pure pursuit: thesis approach 3, done properly."""
-    return _rollout_bicycle(
-        params, state, track, jnp.ones(params.settings.horizon + 1, dtype=params.weights.dtype)
-    )
+    ones = jnp.ones(params.settings.horizon + 1, dtype=params.weights.dtype)
+    return _rollout_bicycle(params, state, track, ones)
 
 
-def rollout_blend(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout_blend(params: Params, state: State, track: Track) -> Poses:
     """Linear and pure-pursuit rollouts blended with per-step weights w (1 = linear).
 
     "position": p_h = w_h * p_lin_h + (1 - w_h) * p_pp_h (the thesis's formula), yaw blended on
@@ -179,16 +174,14 @@ def rollout_blend(params: Params, state: State, track: Track) -> Float[Array, "H
     """
     w = params.weights
     if params.settings.blend == "heading":
-        scale = 1.0 - jnp.concatenate([w[:1], w])
-        return _rollout_bicycle(params, state, track, scale)
-    lin = rollout_linear(params, state)
-    pp = rollout_pure_pursuit(params, state, track)
-    xy = w[:, None] * lin[:, :2] + (1.0 - w[:, None]) * pp[:, :2]
-    yaw = wrap_angle(lin[:, 2] + (1.0 - w) * wrap_angle(pp[:, 2] - lin[:, 2]))
-    return jnp.concatenate([xy, yaw[:, None]], axis=1)
+        return _rollout_bicycle(params, state, track, 1.0 - jnp.concatenate([w[:1], w]))
+    lin, pp = rollout_linear(params, state), rollout_pure_pursuit(params, state, track)
+    mix = lambda a, b: w * a + (1.0 - w) * b
+    yaw = lin.yaw_rad + (1.0 - w) * wrap_angle(pp.yaw_rad - lin.yaw_rad)  # on the circle
+    return Poses(mix(lin.x_m, pp.x_m), mix(lin.y_m, pp.y_m), wrap_angle(yaw))
 
 
-def rollout_seed(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout_seed(params: Params, state: State, track: Track) -> Poses:
     """The original 2019 node's exact discrete rules (for conformance, not for fitting).
 
     Each step: goal = the waypoint found by scanning the raw list from its last row backwards
@@ -196,9 +189,7 @@ def rollout_seed(params: Params, state: State, track: Track) -> Float[Array, "H 
     curvature used as an angle), clipped; yaw_pp = yaw + dt v / wheelbase tan(steer);
     yaw' = w_i yaw + (1 - w_i) yaw_pp; x += v dt cos(yaw'), y += v dt sin(yaw'). No delay step.
     """
-    st = params.settings
-    v = _speed(params, state)
-    wps = track.raw_xy_m
+    st, v, wps = params.settings, _speed(params, state), track.raw_xy_m
 
     def step(c, w):
         x, y, yaw = c
@@ -215,8 +206,7 @@ def rollout_seed(params: Params, state: State, track: Track) -> Float[Array, "H 
         c = (x + v * st.dt_s * jnp.cos(yaw), y + v * st.dt_s * jnp.sin(yaw), yaw)
         return c, c
 
-    _, (xs, ys, yaws) = jax.lax.scan(step, (state.x_m, state.y_m, state.yaw_rad), params.weights)
-    return jnp.stack([xs, ys, yaws], axis=-1)
+    return Poses(*jax.lax.scan(step, (state.x_m, state.y_m, state.yaw_rad), params.weights)[1])
 
 
 def profile_at(values: Float[Array, " P"], s_m, track: Track):
@@ -247,7 +237,7 @@ FALLBACK_TAU_S = 3.0
 SLOPE_DS_M = 0.5  # half the arc-length step of the target offset's slope [m]
 
 
-def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
     """Frenet rollout: along-track speed and a lateral offset that decays toward the line.
 
     s0, d0 = the car's arc length and signed offset from the path (left positive): the Kalman
@@ -292,11 +282,8 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     tau = params.offset_tau_s
 
     def line(s):  # the line's offset [m], its coverage and the speed profile [m/s] at s
-        return (
-            profile_at(params.line_offset_m, s, track),
-            profile_at(params.line_coverage, s, track),
-            profile_at(params.line_speed_mps, s, track),
-        )
+        profiles = (params.line_offset_m, params.line_coverage, params.line_speed_mps)
+        return tuple(profile_at(values, s, track) for values in profiles)
 
     if has_line:
         own = d0 - line(s0)[0]  # the car's offset from the profile, kept where uncovered
@@ -336,25 +323,16 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Float[Array, "
     else:
         s, l0, l_s = s0 + v0 * t_end, 0.0, 0.0
         d = l_s + (d0 - l0) * jnp.exp(-t_end / tau)
-    heading = jax.vmap(track.heading_at)(s)
-    xy = jax.vmap(track.point_at)(s)
-    xs = xy[:, 0] - d * jnp.sin(heading)
-    ys = xy[:, 1] + d * jnp.cos(heading)
-    ds = jnp.diff(s, prepend=s0)
-    dd = jnp.diff(d, prepend=d0)
-    yaws = wrap_angle(heading + jnp.arctan(dd / jnp.maximum(ds, 1e-3)))
-    return _emit(xs, ys, yaws)
+    heading, xy = jax.vmap(track.heading_at)(s), jax.vmap(track.point_at)(s)
+    xs, ys = xy[:, 0] - d * jnp.sin(heading), xy[:, 1] + d * jnp.cos(heading)
+    dd_ds = jnp.diff(d, prepend=d0) / jnp.maximum(jnp.diff(s, prepend=s0), 1e-3)
+    return _emit(xs, ys, wrap_angle(heading + jnp.arctan(dd_ds)))
 
 
-def rollout(params: Params, state: State, track: Track) -> Float[Array, "H 3"]:
+def rollout(params: Params, state: State, track: Track) -> Poses:
     """Dispatch on the static `params.settings.model`."""
     model = params.settings.model
-    if model in ("frenet", "line"):
-        return rollout_frenet(params, state, track)
-    if model == "seed":
-        return rollout_seed(params, state, track)
-    if model == "cv":
-        return rollout_cv(params, state)
-    if model == "ctrv":
-        return rollout_ctrv(params, state)
-    return rollout_blend(params, state, track)
+    if model in ("cv", "ctrv"):
+        return (rollout_cv if model == "cv" else rollout_ctrv)(params, state)
+    by_model = {"frenet": rollout_frenet, "line": rollout_frenet, "seed": rollout_seed}
+    return by_model.get(model, rollout_blend)(params, state, track)

@@ -1,10 +1,12 @@
 """`State`: the leading car's state at prediction time, the named data the estimator produces
-and every rollout consumes (below both, so the estimator does not import the rollout)."""
+and every rollout consumes (below both, so the estimator does not import the rollout); `Poses`:
+what the rollouts predict from it."""
 
 from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import ArrayLike, Float
 
 
@@ -55,3 +57,23 @@ class State(eqx.Module):
             self.yaw_rate_rps = jnp.zeros_like(self.x_m)
         if self.course_rad is None:
             self.course_rad = self.yaw_rad
+
+
+class Poses(eqx.Module):
+    """Predicted poses at t + h * dt_s, h = 1..H: fields (H,) for one car, leading axes for cars
+    and parameter sets. x_m, y_m: position [m]; yaw_rad: heading of the car body [rad]."""
+
+    x_m: Float[ArrayLike, "*batch H"]
+    y_m: Float[ArrayLike, "*batch H"]
+    yaw_rad: Float[ArrayLike, "*batch H"]
+
+    @property
+    def xy_m(self) -> Float[ArrayLike, "*batch H 2"]:
+        """Positions [m], (..., H, 2) as the targets they are scored against."""
+        # cut from the packed array: the fit's gradient compiles (bitwise) as through `predict`
+        return self.packed()[..., :2]
+
+    def packed(self) -> Float[ArrayLike, "*batch H 3"]:
+        """(..., H, 3) x, y, yaw: the array of predict, predict_batch, the CLI and the exports."""
+        xp = np if isinstance(self.x_m, np.ndarray) else jnp  # finished predictions stay NumPy
+        return xp.stack([self.x_m, self.y_m, self.yaw_rad], axis=-1)

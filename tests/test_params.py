@@ -232,7 +232,7 @@ def test_frenet_preset_holds_the_track_speed_and_decays_the_offset():
     # 0.4 m left of a straight line, 3 m/s along it: x advances 0.3 m a step, y decays
     st = State(x_m=jnp.array(5.0), y_m=jnp.array(0.4), yaw_rad=jnp.array(0.2), v_mps=jnp.array(3.0))
     st = dataclasses.replace(st, course_rad=jnp.array(0.0))
-    out = np.asarray(rollout(p, st, straight))
+    out = np.asarray(rollout(p, st, straight).packed())
     t = np.arange(1, 11) * 0.1
     np.testing.assert_allclose(out[:, 0], 5.0 + 3.0 * t, atol=1e-9)
     np.testing.assert_allclose(out[:, 1], 0.4 * np.exp(-t / 1.0), atol=1e-9)

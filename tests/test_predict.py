@@ -21,6 +21,7 @@ from fpe_jax import (
     presets,
     stack_params,
 )
+from fpe_jax.predict import predict_poses
 
 H = 10
 R = 5.0  # circle radius [m]
@@ -110,6 +111,21 @@ def test_predict_batch_over_parameter_sets(circle):
     # stack of one is the same as the single set, with a leading axis
     one = np.asarray(predict_batch(stack_params(sets[:1]), STATES, circle))
     np.testing.assert_allclose(one[0], out[0], rtol=0, atol=1e-12)
+
+
+def test_poses_are_the_columns_of_the_packed_predictions(circle):
+    """predict_poses' fields are predict_batch's columns x, y, yaw (under P parameter sets too);
+    NumPy poses (the commands' finished predictions) pack to a writable NumPy array."""
+    p = presets["default"]
+    for q in (p, stack_params([p, dataclasses.replace(p, delay_s=jnp.asarray(0.1))])):
+        poses = eqx.filter_jit(predict_poses)(q, STATES, circle)
+        packed = np.asarray(predict_batch(q, STATES, circle))
+        assert poses.x_m.shape == packed.shape[:-1]
+        for k, field in enumerate(("x_m", "y_m", "yaw_rad")):
+            np.testing.assert_allclose(getattr(poses, field), packed[..., k], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(poses.xy_m, packed[..., :2], rtol=0, atol=1e-12)
+    out = jax.tree.map(np.asarray, poses).packed()
+    assert isinstance(out, np.ndarray) and out.flags.writeable and out.shape == packed.shape
 
 
 def test_predict_drive_around_a_circle(circle):

@@ -54,11 +54,16 @@ def params(blend="position", model="blend", **kw):
     return Params.create(Settings(blend=blend, model=model), **kw)
 
 
+def packed(rollout_fn):
+    """rollout_fn giving its Poses as the (H, 3) array x, y, yaw that the checks index."""
+    return lambda *args: rollout_fn(*args).packed()
+
+
 # jitted once per (settings, track shape): the scan-based rollouts would recompile their loop
 # body on every eager call; jit-vs-eager equality is tested separately below
-PP = eqx.filter_jit(rollout_pure_pursuit)
-BLEND = eqx.filter_jit(rollout_blend)
-CTRV = eqx.filter_jit(rollout_ctrv)
+PP = eqx.filter_jit(packed(rollout_pure_pursuit))
+BLEND = eqx.filter_jit(packed(rollout_blend))
+CTRV = eqx.filter_jit(packed(rollout_ctrv))
 
 
 @pytest.fixture(scope="module")
@@ -90,21 +95,21 @@ def levine(shared_data):
 
 def test_linear_positions_are_exact():
     st = state(1.5, -2.0, 0.7, 3.2)
-    out = np.asarray(rollout_linear(params(delay_s=0.0), st))
+    out = np.asarray(rollout_linear(params(delay_s=0.0), st).packed())
     assert out.shape == (H, 3)
     np.testing.assert_allclose(out[:, 0], 1.5 + 3.2 * STEPS * np.cos(0.7), rtol=0, atol=1e-12)
     np.testing.assert_allclose(out[:, 1], -2.0 + 3.2 * STEPS * np.sin(0.7), rtol=0, atol=1e-12)
     np.testing.assert_array_equal(out[:, 2], 0.7)
     # the delay lengthens the first step
-    out = np.asarray(rollout_linear(params(delay_s=0.08), st))
+    out = np.asarray(rollout_linear(params(delay_s=0.08), st).packed())
     np.testing.assert_allclose(out[:, 0], 1.5 + 3.2 * (STEPS + 0.08) * np.cos(0.7), atol=1e-12)
     # speed_weight 0 ignores the measured speed (the original's hard-coded one); in between the
     # measured speed is shrunk toward speed_mps
     fixed = Params.create(Settings(), speed_weight=0.0, speed_mps=0.5, delay_s=0.0)
-    out = np.asarray(rollout_linear(fixed, st))
+    out = np.asarray(rollout_linear(fixed, st).packed())
     np.testing.assert_allclose(out[:, 1], -2.0 + 0.5 * STEPS * np.sin(0.7), atol=1e-12)
     shrunk = Params.create(Settings(), speed_weight=0.25, speed_mps=0.5, delay_s=0.0)
-    out = np.asarray(rollout_linear(shrunk, st))
+    out = np.asarray(rollout_linear(shrunk, st).packed())
     v = 0.25 * 3.2 + 0.75 * 0.5
     np.testing.assert_allclose(out[:, 1], -2.0 + v * STEPS * np.sin(0.7), atol=1e-12)
 
@@ -113,17 +118,19 @@ def test_linear_positions_are_exact():
 def test_delay_equals_starting_further_along(delay_s):
     """A rollout with delay d equals one without delay started d * v further along."""
     x, y, yaw, v = 3.0, 1.0, -2.1, 4.5
-    delayed = rollout_linear(params(delay_s=delay_s), state(x, y, yaw, v))
+    delayed = rollout_linear(params(delay_s=delay_s), state(x, y, yaw, v)).packed()
     d = delay_s * v
     moved = state(x + d * np.cos(yaw), y + d * np.sin(yaw), yaw, v)
     np.testing.assert_allclose(
-        np.asarray(delayed), np.asarray(rollout_linear(params(delay_s=0.0), moved)), atol=1e-12
+        np.asarray(delayed),
+        np.asarray(rollout_linear(params(delay_s=0.0), moved).packed()),
+        atol=1e-12,
     )
 
 
 def test_constant_velocity_follows_the_course():
     st = state(0.0, 0.0, 0.3, 2.0, course_rad=-0.4)
-    out = np.asarray(rollout_cv(params(model="cv", delay_s=0.0), st))
+    out = np.asarray(rollout_cv(params(model="cv", delay_s=0.0), st).packed())
     np.testing.assert_allclose(out[:, 0], 2.0 * STEPS * np.cos(-0.4), atol=1e-12)
     np.testing.assert_allclose(out[:, 1], 2.0 * STEPS * np.sin(-0.4), atol=1e-12)
 
@@ -132,7 +139,7 @@ def test_ctrv_with_zero_yaw_rate_is_linear():
     st = state(1.0, 2.0, 2.9, 3.0, yaw_rate_rps=0.0)
     p = params(model="ctrv", delay_s=0.05)
     np.testing.assert_allclose(
-        np.asarray(CTRV(p, st)), np.asarray(rollout_linear(p, st)), rtol=0, atol=1e-12
+        np.asarray(CTRV(p, st)), np.asarray(rollout_linear(p, st).packed()), rtol=0, atol=1e-12
     )
 
 
@@ -193,14 +200,14 @@ def test_pure_pursuit_on_a_straight_equals_linear(diagonal):
     p = params(lookahead_m=1.2, lookahead_gain_s=0.1, delay_s=0.06)
     np.testing.assert_allclose(
         np.asarray(PP(p, st, diagonal)),
-        np.asarray(rollout_linear(p, st)),
+        np.asarray(rollout_linear(p, st).packed()),
         rtol=0,
         atol=1e-12,
     )
     st_hint = dataclasses.replace(st, s_m=jnp.asarray(3.9))  # with a hint: the same
     np.testing.assert_allclose(
         np.asarray(PP(p, st_hint, diagonal)),
-        np.asarray(rollout_linear(p, st)),
+        np.asarray(rollout_linear(p, st).packed()),
         rtol=0,
         atol=1e-12,
     )
@@ -242,7 +249,7 @@ def test_pure_pursuit_heading_west_has_no_wrap_jump(westward):
 def test_position_blend_limits(circle):
     st = state(4.0, 0.0, 0.5 * np.pi + 0.1, 2.5)
     kw = dict(lookahead_m=1.0, lookahead_gain_s=0.1, delay_s=0.05)
-    lin = np.asarray(rollout_linear(params(**kw), st))
+    lin = np.asarray(rollout_linear(params(**kw), st).packed())
     pp = np.asarray(PP(params(**kw), st, circle))
     assert np.abs(pp[:, :2] - lin[:, :2]).max() > 0.3  # the two differ: the test can fail
     one = np.asarray(BLEND(params(weights=1.0, **kw), st, circle))
@@ -257,7 +264,7 @@ def test_position_blend_limits(circle):
 def test_heading_blend_limits(circle):
     st = state(4.0, 0.0, 0.5 * np.pi + 0.1, 2.5)
     kw = dict(lookahead_m=1.0, delay_s=0.05)
-    lin = np.asarray(rollout_linear(params(**kw), st))
+    lin = np.asarray(rollout_linear(params(**kw), st).packed())
     pp = np.asarray(PP(params(**kw), st, circle))
     one = np.asarray(BLEND(params("heading", weights=1.0, **kw), st, circle))
     zero = np.asarray(BLEND(params("heading", weights=0.0, **kw), st, circle))
@@ -273,7 +280,7 @@ def test_position_blend_of_headings_across_pi(westward):
     0.01: their blend must stay near pi, not average to 0."""
     st = state(20.0, 0.05, np.pi - 0.01, 2.0)
     kw = dict(lookahead_m=0.8, delay_s=0.0)
-    lin = np.asarray(rollout_linear(params(**kw), st))
+    lin = np.asarray(rollout_linear(params(**kw), st).packed())
     pp = np.asarray(PP(params(**kw), st, westward))
     assert np.all(lin[:, 2] > 3.13) and np.any(pp[:, 2] < -3.13)  # on both sides of the cut
     out = np.asarray(BLEND(params(weights=0.5, **kw), st, westward))
@@ -300,10 +307,10 @@ def test_seed_rollout_first_step_is_linear_and_it_turns_to_the_goal(circle):
         speed_mps=1.0,
     )
     st = state(4.0, 0.0, 0.5 * np.pi, 5.0)  # on the circle, tangent: the goal is to the left
-    out = np.asarray(rollout_seed(p, st, circle))
+    out = np.asarray(rollout_seed(p, st, circle).packed())
     np.testing.assert_allclose(out[0, :2], [4.0, 0.1], atol=1e-12)  # speed 1 m/s, not 5
     assert np.all(np.diff(out[:, 2]) > 0)
-    np.testing.assert_array_equal(out, np.asarray(rollout(p, st, circle)))
+    np.testing.assert_array_equal(out, np.asarray(rollout(p, st, circle).packed()))
 
 
 # ---- jit / vmap / grad -------------------------------------------------------------------------
@@ -316,14 +323,14 @@ def _steer(p, s, t):
 
 
 ROLLOUTS = {
-    "linear": (lambda p, s, t: rollout_linear(p, s), "position"),
-    "cv": (lambda p, s, t: rollout_cv(p, s), "position"),
-    "ctrv": (lambda p, s, t: rollout_ctrv(p, s), "position"),
+    "linear": (lambda p, s, t: rollout_linear(p, s).packed(), "position"),
+    "cv": (lambda p, s, t: rollout_cv(p, s).packed(), "position"),
+    "ctrv": (lambda p, s, t: rollout_ctrv(p, s).packed(), "position"),
     "pure_pursuit_steer": (_steer, "position"),
-    "pure_pursuit": (rollout_pure_pursuit, "position"),
-    "blend_position": (rollout_blend, "position"),
-    "blend_heading": (rollout_blend, "heading"),
-    "dispatch_seed": (rollout, "seed"),
+    "pure_pursuit": (packed(rollout_pure_pursuit), "position"),
+    "blend_position": (packed(rollout_blend), "position"),
+    "blend_heading": (packed(rollout_blend), "heading"),
+    "dispatch_seed": (packed(rollout), "seed"),
 }
 
 
@@ -405,7 +412,7 @@ def test_gradients_match_central_differences(levine, blend):
     assert np.all(turn > 0.05 * max_turn) and np.all(turn < 0.9 * max_turn)
 
     def loss(p):
-        return jnp.sum((rollout_blend(p, st, levine)[:, :2] - target) ** 2)
+        return jnp.sum((rollout_blend(p, st, levine).xy_m - target) ** 2)
 
     grad = eqx.filter_jit(jax.grad(loss))(p0)
     loss_jit = eqx.filter_jit(loss)
@@ -438,7 +445,7 @@ def line_model(coverage: float, offset_m: float = 0.0, **kw) -> Params:
 
 def lateral_offsets(p: Params, st: State, track: Track) -> np.ndarray:
     """(H,) the rollout's left offset [m] from the straight along +x."""
-    return np.asarray(eqx.filter_jit(rollout_frenet)(p, st, track))[:, 1]
+    return np.asarray(eqx.filter_jit(rollout_frenet)(p, st, track).y_m)
 
 
 def test_uncovered_line_holds_the_cars_offset_decaying_slowly():
@@ -482,5 +489,5 @@ def test_uncovered_line_follows_the_priors_change_from_the_cars_own_offset():
     np.testing.assert_allclose(lateral_offsets(p, st, track), expected, atol=1e-9)
     # a prior that speeds up ahead carries the car further than its current speed would
     faster = dataclasses.replace(p, line_speed_mps=jnp.asarray(2.0 + 0.2 * s_pts))
-    x_end = float(eqx.filter_jit(rollout_frenet)(faster, st, track)[-1, 0])
+    x_end = float(eqx.filter_jit(rollout_frenet)(faster, st, track).x_m[-1])
     assert x_end > s[-1] + 0.05, x_end
