@@ -151,7 +151,7 @@ def _series(source, spec: dict, what: str, fields: tuple[str, ...]) -> tuple[np.
     return (ns, *out)
 
 
-def _pose_msg(ns: int, frame_id: str, x: float, y: float, yaw: float) -> dict:
+def _pose_msg(ns: int | np.integer, frame_id: str, x: float, y: float, yaw: float) -> dict:
     return {
         "header": {"stamp": rm.stamp_dict(ns), "frame_id": frame_id},
         "pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": rm.yaw_to_quaternion(yaw)},
