@@ -233,7 +233,7 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
     return _write_ros2_mcap(path, events, force)
 
 
-def _marker(ns: int, ident: int, kind: int, points: list, rgba: tuple) -> dict:
+def _marker(ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple) -> dict:
     r, g, b, a = rgba
     return {
         "header": {"stamp": rm.stamp_dict(ns), "frame_id": "map"},
