@@ -181,7 +181,7 @@ def stamp_dict(ns: int | np.integer) -> dict[str, int]:
     return {"sec": sec, "nanosec": nanosec}
 
 
-def transform_stamped(parent: str, child: str, ns: int, t, q) -> dict:
+def transform_stamped(parent: str, child: str, ns: int | np.integer, t, q) -> dict:
     """geometry_msgs/TransformStamped fields of T_parent_child at stamp ns [ns]: translation t
     (x, y, z) [m] and rotation q (x, y, z, w)."""
     return {
