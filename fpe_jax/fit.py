@@ -67,24 +67,6 @@ FIT_MODELS = ("auto", *MODEL_FIT)  # spec.FIT_MODELS, which the CLI offers witho
 # step, while "auto"'s inner split chose the blend on Catalunya and Monza, and (with the blend's
 # memorised speed) on a slow oval fit drive that missed the fast test laps (FDE 1.61 m)
 DEFAULT_MODEL = "line"
-PARAM_FIELDS = (
-    "lookahead_m",
-    "lookahead_gain_s",
-    "weights",
-    "delay_s",
-    "speed_weight",
-    "speed_mps",
-    "offset_tau_s",
-    "speed_tau_s",
-    "position_smoothing",
-    "filter_accel_mps2",
-    "filter_lat_accel_mps2",
-    "filter_obs_m",
-    "filter_gate_sigma",
-    "line_offset_m",
-    "line_speed_mps",
-    "line_coverage",
-)
 BLEND_CHOICES = BLEND_MODES
 BASELINES = ("seed", "seed-measured-speed", "linear", "pure-pursuit", "constant-velocity", "ctrv")
 BASELINES += ("frenet",)
@@ -155,9 +137,10 @@ def _residuals(raw_free, args):
 
 
 def _free_mask(params: Params, free: Sequence[str]) -> Params:
-    """A Params-shaped filter: True for the fields of the groups `free`."""
+    """A Params-shaped filter: True for the fields of the groups `free` (mapped over the leaves:
+    a Params of bools is no valid Params to construct)."""
     names = {f for group in free for f in FIT_GROUPS[group]}
-    return dataclasses.replace(params, **{f: f in names for f in PARAM_FIELDS})
+    return jax.tree_util.tree_map_with_path(lambda path, _: path[0].name in names, params)
 
 
 def _loss(raw_free, args):

@@ -12,6 +12,7 @@ drives first, `fpe_jax.line`) and pass through both maps unchanged.
 from __future__ import annotations
 
 import dataclasses
+import typing
 from collections.abc import Iterator, Mapping
 
 import equinox as eqx
@@ -36,6 +37,9 @@ from fpe_jax.spec import MODELS as MODELS
 from fpe_jax.spec import USER_SETTINGS as USER_SETTINGS
 
 
+# the spec's rules check the values (accepting any real number for a float field, NumPy scalars
+# included) and name the field: a runtime type checker must not pre-empt them with its own
+@typing.no_type_check
 @dataclasses.dataclass(frozen=True)
 class Settings:
     """Static settings: never traced, changing one recompiles.

@@ -58,7 +58,7 @@ def solver_named(name: str, source="solver"):
     return optx.LevenbergMarquardt(rtol=1e-3, atol=1e-5, norm=optx.rms_norm)
 
 
-def _check(ok: bool, source, field: str, value, expected: str) -> None:
+def _check(ok: object, source, field: str, value, expected: str) -> None:
     if not ok:
         raise InputError(source, f"{field} is {S.short(value)}", expected)
 

@@ -58,9 +58,10 @@ GATE_SHARPNESS = 4.0
 
 _PI = math.pi
 _TWO_PI = 2 * math.pi
+FloatN = float | np.ndarray  # one car's value, or the (N,) values of N cars (`_Arrays`)
 
 
-def _wrap(a: float, floor=math.floor) -> float:
+def _wrap(a: FloatN, floor=math.floor) -> FloatN:
     """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.track.wrap_angle
     (`floor=np.floor` for arrays)."""
     return a - _TWO_PI * floor((a + _PI) * (0.5 / _PI))
@@ -151,7 +152,7 @@ class RunnerPath:
             self._arrays = _ArrayPath(self)
         return self._arrays
 
-    def point_at(self, s_m: float) -> tuple[float, float]:
+    def point_at(self, s_m: FloatN) -> tuple[FloatN, FloatN]:
         """Position x [m], y [m] at arc length s [m]."""
         i, f = self.locate(s_m)
         ax, ay, abx, aby = self._rows[i][:4]
@@ -165,8 +166,8 @@ class RunnerPath:
         return _wrap(h0 + f * _wrap(self._heading[j] - h0))
 
     def project_local(
-        self, x_m: float, y_m: float, s_hint_m: float, iters: int = LOCAL_PROJECTION_ITERS
-    ) -> float:
+        self, x_m: FloatN, y_m: FloatN, s_hint_m: FloatN, iters: int = LOCAL_PROJECTION_ITERS
+    ) -> FloatN:
         """Arc length [m] near s_hint by Newton steps along the interpolated path tangent
         (Track.project_local)."""
         s = s_hint_m
@@ -570,7 +571,7 @@ class Runner:
                 rows.append([cx - d * math.sin(h), cy + d * math.cos(h), yaw])
         return np.array(rows)
 
-    def _speed(self, v_mps: float) -> float:
+    def _speed(self, v_mps: FloatN) -> FloatN:
         """Rollout speed [m/s]: the measured one shrunk toward the typical one."""
         w = self._speed_weight
         return w * v_mps + (1.0 - w) * self._typical_speed_mps
@@ -579,7 +580,7 @@ class Runner:
         """Durations [s] of the fractional delay step and the H regular steps."""
         return [self._delay_s] + [self.dt_s] * self.horizon
 
-    def _linear_rows(self, est, heading_rad: float) -> list[list[float]]:
+    def _linear_rows(self, est, heading_rad: FloatN) -> list[list[FloatN]]:
         x0, y0, v = est[0], est[1], self._speed(est[3])
         o = _ops(heading_rad)
         c, s = o.cos(heading_rad), o.sin(heading_rad)
@@ -607,7 +608,7 @@ class Runner:
                 rows.append([x, y, _wrap(yaw)])
         return np.array(rows)
 
-    def _bicycle_rows(self, est, s_m: float, turn_scale: list[float]) -> list[list[float]]:
+    def _bicycle_rows(self, est, s_m: FloatN, turn_scale: list[float]) -> list[list[FloatN]]:
         """Kinematic bicycle steered by pure pursuit; yaw change of step k times turn_scale[k].
         The state's values are floats, or (N,) arrays for N cars."""
         x, y, yaw = est[0], est[1], est[2]
@@ -635,10 +636,10 @@ class Runner:
                 rows.append([x, y, _wrap(yaw, o.floor)])
         return rows
 
-    def _bicycle(self, est, s_m: float, turn_scale: list[float]) -> np.ndarray:
+    def _bicycle(self, est, s_m: FloatN, turn_scale: list[float]) -> np.ndarray:
         return np.array(self._bicycle_rows(est, s_m, turn_scale))
 
-    def _position_blend(self, est, s_m: float) -> np.ndarray:
+    def _position_blend(self, est, s_m: FloatN) -> np.ndarray:
         lin = self._linear_rows(est, est[2])
         pp = self._bicycle_rows(est, s_m, [1.0] * (self.horizon + 1))
         floor, out = _ops(est[0]).floor, []

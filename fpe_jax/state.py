@@ -5,9 +5,13 @@ what the rollouts predict from it."""
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
+
+# a field holds values, or only their shape and dtype (a State to compile for, `fpe_jax.aot`)
+Value = ArrayLike | jax.ShapeDtypeStruct
 
 
 class State(eqx.Module):
@@ -34,22 +38,22 @@ class State(eqx.Module):
             above is used as it is.
     """
 
-    x_m: Float[ArrayLike, "*batch"]
-    y_m: Float[ArrayLike, "*batch"]
-    yaw_rad: Float[ArrayLike, "*batch"]
-    v_mps: Float[ArrayLike, "*batch"]
-    yaw_rate_rps: Float[ArrayLike, "*batch"] | None = None
-    course_rad: Float[ArrayLike, "*batch"] | None = None
-    s_m: Float[ArrayLike, "*batch"] | None = None
-    s_fit_m: Float[ArrayLike, "*batch"] | None = None
-    sdot_mps: Float[ArrayLike, "*batch"] | None = None
-    offset_m: Float[ArrayLike, "*batch"] | None = None
-    sdot_age_s: Float[ArrayLike, "*batch"] | None = None
-    window_age_s: Float[ArrayLike, "*batch W"] | None = None
-    window_s_m: Float[ArrayLike, "*batch W"] | None = None
-    window_d_m: Float[ArrayLike, "*batch W"] | None = None
-    window_valid: Float[ArrayLike, "*batch W"] | None = None
-    window_prior: Float[ArrayLike, "*batch 5"] | None = None
+    x_m: Float[Value, "*batch"]
+    y_m: Float[Value, "*batch"]
+    yaw_rad: Float[Value, "*batch"]
+    v_mps: Float[Value, "*batch"]
+    yaw_rate_rps: Float[Value, "*batch"] | None = None
+    course_rad: Float[Value, "*batch"] | None = None
+    s_m: Float[Value, "*batch"] | None = None
+    s_fit_m: Float[Value, "*batch"] | None = None
+    sdot_mps: Float[Value, "*batch"] | None = None
+    offset_m: Float[Value, "*batch"] | None = None
+    sdot_age_s: Float[Value, "*batch"] | None = None
+    window_age_s: Float[Value, "*batch W"] | None = None
+    window_s_m: Float[Value, "*batch W"] | None = None
+    window_d_m: Float[Value, "*batch W"] | None = None
+    window_valid: Float[Value, "*batch W"] | None = None
+    window_prior: Float[Value, "*batch 5"] | None = None
 
     def __post_init__(self):
         # omitted fields: no turn, moving along the body heading

@@ -10,7 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from fpe_jax.aot import device_array
 from fpe_jax.path import build_path
@@ -85,12 +85,12 @@ class Track(eqx.Module):
         i, _, f = self._locate(s_m)
         return self.seg_m[i], f
 
-    def point_at(self, s_m: Float[Array, ""]) -> Float[Array, "2"]:
+    def point_at(self, s_m: Float[ArrayLike, ""]) -> Float[Array, "2"]:
         """Position (2,) [m] at arc length s [m]; wraps on loops, clamps on open paths."""
         row, f = self._segment(s_m)
         return row[:2] + f * row[2:4]
 
-    def heading_at(self, s_m: Float[Array, ""]) -> Float[Array, ""]:
+    def heading_at(self, s_m: Float[ArrayLike, ""]) -> Float[Array, ""]:
         """Path heading [rad] at arc length s [m], interpolated without a wrap jump."""
         i, j, f = self._locate(s_m)
         h0 = self.heading_rad[i]

@@ -175,13 +175,13 @@ def ns_to_seconds(ns) -> np.ndarray:
     return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
-def stamp_dict(ns: int) -> dict[str, int]:
+def stamp_dict(ns: int | np.integer) -> dict[str, int]:
     """builtin_interfaces/Time fields of an int stamp [ns] (nanosec always in [0, 1e9))."""
     sec, nanosec = divmod(int(ns), 1_000_000_000)
     return {"sec": sec, "nanosec": nanosec}
 
 
-def transform_stamped(parent: str, child: str, ns: int, t, q) -> dict:
+def transform_stamped(parent: str, child: str, ns: int | np.integer, t, q) -> dict:
     """geometry_msgs/TransformStamped fields of T_parent_child at stamp ns [ns]: translation t
     (x, y, z) [m] and rotation q (x, y, z, w)."""
     return {

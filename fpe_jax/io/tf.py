@@ -148,7 +148,7 @@ class Rigid:
 # --- the buffer ---------------------------------------------------------------------------------
 
 
-def format_stamp(ns: int) -> str:
+def format_stamp(ns: int | np.integer) -> str:
     """A stamp [ns] as error messages show it: seconds to the millisecond."""
     return f"{float(rm.ns_to_seconds([ns])[0]):.3f} s"
 

@@ -151,7 +151,7 @@ def _series(source, spec: dict, what: str, fields: tuple[str, ...]) -> tuple[np.
     return (ns, *out)
 
 
-def _pose_msg(ns: int, frame_id: str, x: float, y: float, yaw: float) -> dict:
+def _pose_msg(ns: int | np.integer, frame_id: str, x: float, y: float, yaw: float) -> dict:
     return {
         "header": {"stamp": rm.stamp_dict(ns), "frame_id": frame_id},
         "pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": rm.yaw_to_quaternion(yaw)},
@@ -233,7 +233,7 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
     return _write_ros2_mcap(path, events, force)
 
 
-def _marker(ns: int, ident: int, kind: int, points: list, rgba: tuple) -> dict:
+def _marker(ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple) -> dict:
     r, g, b, a = rgba
     return {
         "header": {"stamp": rm.stamp_dict(ns), "frame_id": "map"},
