@@ -67,7 +67,7 @@ _SLOW_BATCH = 256  # cars per exhaustive projection in the off-grid fallback: bo
 def _dtype(dtype) -> type:
     name = np.dtype(dtype).name
     if name not in DTYPES:
-        raise InputError("--dtype", f"unsupported dtype {name!r}", "float32 or float64")
+        raise InputError("dtype", f"unsupported dtype {name!r}", "float32 or float64")
     return DTYPES[name]
 
 

@@ -198,10 +198,9 @@ def fde_ratio(report: dict, baseline: str = "seed-measured-speed") -> float:
 def presets_beating_fitted(report: dict) -> list[str]:
     """'name@step' for every preset whose mean error beats the fitted one at some step."""
     fitted = np.asarray(report["fitted"]["per_step_m"])
-    out = []
-    for name, m in report.items():
-        if name == "fitted":
-            continue
-        better = np.flatnonzero(np.asarray(m["per_step_m"]) < fitted)
-        out += [f"{name}@{k + 1}" for k in better]
-    return out
+    return [
+        f"{name}@{k + 1}"
+        for name, m in report.items()
+        if name != "fitted"
+        for k in np.flatnonzero(np.asarray(m["per_step_m"]) < fitted)
+    ]

@@ -7,7 +7,6 @@ raises `InputError`; `main` prints it as one line on stderr and exits with statu
 from __future__ import annotations
 
 import argparse
-import contextlib
 import errno
 import math
 import os
@@ -78,14 +77,6 @@ def _settings_from_args(args) -> dict:
     return {f: (k, getattr(args, f[2:].replace("-", "_"))) for f, k in SETTINGS_FLAGS.items()}
 
 
-def _add_off_track_flag(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--allow-off-track",
-        action="store_true",
-        help="use waypoints that the drive does not follow (off them, or run the other way)",
-    )
-
-
 def _check_on_track(args, drive, track, source: str, name: str) -> None:
     """Exit 2 (InputError) unless the drive's observations follow the track's waypoints (see
     `fpe_jax.path.check_on_track`); `track` is a Track or `path.build_path`'s dict, in the
@@ -107,14 +98,21 @@ def _check_on_track(args, drive, track, source: str, name: str) -> None:
     )
 
 
-def _add_run_flags(p: argparse.ArgumentParser) -> None:
-    """Flags of every command that compiles with JAX."""
+def _add_run_flags(p: argparse.ArgumentParser, off_track: bool = False) -> None:
+    """Flags of every command that compiles with JAX; with off_track, --allow-off-track of those
+    that check a drive against its waypoints."""
     p.add_argument(
         "--no-cache",
         action="store_true",
         help="do not read or write the compilation cache (also FPE_NO_CACHE=1; see `fpe cache`)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    if off_track:
+        p.add_argument(
+            "--allow-off-track",
+            action="store_true",
+            help="use waypoints that the drive does not follow (off them, or run the other way)",
+        )
 
 
 def _start_jax(args, say, x64: bool = True, executables: bool = True):
@@ -184,18 +182,22 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("predict", help="predict every observation of a drive log")
+    def command(name: str, help: str) -> argparse.ArgumentParser:
+        """The subparser of `fpe NAME`, which runs `cmd_NAME`."""
+        p = sub.add_parser(name, help=help)
+        p.set_defaults(func=globals()[f"cmd_{name}"])
+        return p
+
+    p = command("predict", "predict every observation of a drive log")
     p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
     _add_predictor_flags(p, required=False)
     p.add_argument("--out", required=True, help="PRED.csv or PRED.mcap")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
-    _add_run_flags(p)
-    _add_off_track_flag(p)
-    p.set_defaults(func=cmd_predict)
+    _add_run_flags(p, off_track=True)
 
-    p = sub.add_parser(
-        "fit", help="learn the car's line and fit the predictor to drives; report held-out metrics"
+    p = command(
+        "fit", "learn the car's line and fit the predictor to drives; report held-out metrics"
     )
     p.add_argument("logs", nargs="+", metavar="LOG", help="drive logs, or one recipe .toml")
     p.add_argument("--waypoints", help="waypoint / centerline / raceline file")
@@ -223,30 +225,23 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
-    _add_run_flags(p)
-    _add_off_track_flag(p)
-    p.set_defaults(func=cmd_fit)
+    _add_run_flags(p, off_track=True)
 
-    p = sub.add_parser("evaluate", help="metrics of a config or preset on a drive log")
+    p = command("evaluate", "metrics of a config or preset on a drive log")
     p.add_argument("log", help="drive log (any supported format)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _add_log_flags(p)
-    _add_run_flags(p)
-    _add_off_track_flag(p)
-    p.set_defaults(func=cmd_evaluate)
+    _add_run_flags(p, off_track=True)
 
-    p = sub.add_parser("cache", help="the compilation cache: its path, size and entries; clear it")
+    p = command("cache", "the compilation cache: its path, size and entries; clear it")
     p.add_argument("action", choices=("info", "clear"), help="info: path, size; clear: empty it")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
-    p.set_defaults(func=cmd_cache)
 
-    p = sub.add_parser("presets", help="list the built-in presets")
-    p.set_defaults(func=cmd_presets)
+    command("presets", "list the built-in presets")
 
-    p = sub.add_parser(
-        "info",
-        help="topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path",
+    p = command(
+        "info", "topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path"
     )
     p.add_argument(
         "log", nargs="?", help="drive log: .mcap, rosbag2 folder, .bag or CSV (or --waypoints)"
@@ -257,9 +252,8 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_log_flags(p)
-    p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("simulate", help="simulate a leading car's drive and its detections")
+    p = command("simulate", "simulate a leading car's drive and its detections")
     p.add_argument(
         "--track",
         default="oval",
@@ -280,16 +274,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="folder for drive.mcap, waypoints.csv, scenario")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty folder")
-    p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("convert", help="write a drive log's observed poses as CSV t,x,y,yaw")
+    p = command("convert", "write a drive log's observed poses as CSV t,x,y,yaw")
     p.add_argument("log", help="drive log: .mcap, rosbag2 folder, .bag or CSV")
     p.add_argument("--out", required=True, help="DRIVE.csv (what `fpe run` reads on stdin)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
-    p.set_defaults(func=cmd_convert)
 
-    p = sub.add_parser("batch", help="predict many cars at once (chunked, compiled once)")
+    p = command("batch", "predict many cars at once (chunked, compiled once)")
     p.add_argument("states", help="cars: CSV with header x,y,yaw,v[,yaw_rate], or .npy (N, 4|5)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="OUT.npy (N, H, 3) or OUT.csv")
@@ -297,9 +289,8 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--chunk", type=int, default=1 << 14, metavar="N", help="cars per call")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_run_flags(p)
-    p.set_defaults(func=cmd_batch)
 
-    p = sub.add_parser("export", help="export a tuned config for the car: JSON, ROS 2, StableHLO")
+    p = command("export", "export a tuned config for the car: JSON, ROS 2, StableHLO")
     p.add_argument("config", help="a tuned config JSON written by `fpe fit`")
     p.add_argument(
         "--format",
@@ -315,9 +306,8 @@ def _build_parser() -> argparse.ArgumentParser:
         "provenance, the file it was fitted on, checked by its hash)",
     )
     p.add_argument("--force", action="store_true", help="overwrite existing files")
-    p.set_defaults(func=cmd_export)
 
-    p = sub.add_parser("run", help="stream predictions: observations on stdin, JSON lines out")
+    p = command("run", "stream predictions: observations on stdin, JSON lines out")
     p.add_argument("--config", required=True, help="a tuned config JSON")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     p.add_argument(
@@ -326,25 +316,19 @@ def _build_parser() -> argparse.ArgumentParser:
         metavar="HZ",
         help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
     )
-    p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser(
-        "demo", help="simulate, fit, compare with every preset, plot and export (~1 min)"
-    )
+    p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
     _add_run_flags(p)
     p.add_argument("--force", action="store_true", help="replace the demo's files in --out")
-    p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("plot", help="draw a drive with its 1 s predictions (trajectory overlay)")
+    p = command("plot", "draw a drive with its 1 s predictions (trajectory overlay)")
     p.add_argument("log", help="drive log (any supported format)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="FIG.png (or .pdf, .svg)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
-    _add_run_flags(p)
-    _add_off_track_flag(p)
-    p.set_defaults(func=cmd_plot)
+    _add_run_flags(p, off_track=True)
     return parser
 
 
@@ -356,14 +340,8 @@ def cmd_export(args) -> int:
         waypoints = provenance_waypoints(args.config)
         if waypoints is not None:
             print(f"waypoints from the config's provenance: {waypoints}", file=sys.stderr)
-    written = export_config(
-        args.config,
-        args.format,
-        args.out,
-        node=args.node,
-        waypoints=waypoints,
-        force=args.force,
-    )
+    opts = dict(node=args.node, waypoints=waypoints, force=args.force)
+    written = export_config(args.config, args.format, args.out, **opts)
     for path in written:
         print(f"wrote {path}", file=sys.stderr)
     return 0
@@ -387,19 +365,21 @@ def _fit_inputs(args, say=lambda msg: None):
     from fpe_jax import io
     from fpe_jax.recipe import load_recipe
 
+    # the flags given override the recipe's values, or the defaults
+    flags = dict(holdout=args.holdout, blend=args.blend, model=args.model, solver=args.solver)
+    flags = {k: v for k, v in flags.items() if v is not None}
     if len(args.logs) == 1 and args.logs[0].endswith(".toml"):
         r = load_recipe(args.logs[0])
-        out = args.out or r.out
         opts = dict(
-            holdout=r.holdout if args.holdout is None else args.holdout,
+            holdout=r.holdout,
             fit=r.fit,
-            blend=args.blend or r.blend,
-            model=args.model or r.model,
-            solver=args.solver or r.solver,
+            blend=r.blend,
+            model=r.model,
+            solver=r.solver,
             settings=r.settings,
             waypoints=r.waypoints,
         )
-        return r.drives, r.test_drives, out, opts
+        return r.drives, r.test_drives, args.out or r.out, opts | flags
     if not args.waypoints:
         raise InputError("--waypoints", "missing", "a waypoint file for the drives")
     wp = io.load_waypoints(args.waypoints).xy_m
@@ -413,16 +393,8 @@ def _fit_inputs(args, say=lambda msg: None):
         return entries
 
     drives, tests = read(args.logs, "drive"), read(args.test or [], "test drive")
-    opts = dict(
-        holdout=0.3 if args.holdout is None else args.holdout,
-        fit=None,
-        blend=args.blend or "auto",
-        model=args.model,
-        solver=args.solver,
-        settings={},
-        waypoints=args.waypoints,
-    )
-    return drives, tests, args.out, opts
+    opts = dict(holdout=0.3, fit=None, blend="auto", model=None, solver=None, settings={})
+    return drives, tests, args.out, opts | {"waypoints": args.waypoints} | flags
 
 
 def _local_drives(entries):
@@ -441,22 +413,6 @@ def _waypoint_provenance(path, entries) -> dict | None:
     if path is None or len(sha) != 1:
         return None
     return {"file": str(Path(path).resolve()), "sha256": sha.pop()}
-
-
-# the arguments of `fit.fit` that `fpe fit` sets from its flags: the library's errors name the
-# argument, the CLI's the flag
-FIT_FLAGS = {"free": "--fit", "model": "--model", "solver": "--solver"}
-
-
-@contextlib.contextmanager
-def _as_flags(flags: dict[str, str]):
-    """Re-raise an InputError that names a library argument of `flags` as naming its flag."""
-    try:
-        yield
-    except InputError as e:
-        if e.source not in flags:
-            raise
-        raise InputError(flags[e.source], e.problem, e.expected) from None
 
 
 def cmd_fit(args) -> int:
@@ -482,7 +438,7 @@ def cmd_fit(args) -> int:
         from fpe_jax.fit import fit
         from fpe_jax.params import presets
         from fpe_jax.recipe import solver_named
-        from fpe_jax.report import format_fitted, format_table, provenance
+        from fpe_jax.report import format_fitted, format_table, line_section, provenance
         from fpe_jax.track import Track
 
         # the recipe's [settings], then the flags on top
@@ -495,35 +451,27 @@ def cmd_fit(args) -> int:
         wp_source = args.waypoints or f"{args.logs[0]}: the waypoints"
         for (d, _, desc), tr in zip(drives + tests, tracks + (test_tracks or []), strict=True):
             _check_on_track(args, d, tr, wp_source, desc)
-        with _as_flags(FIT_FLAGS):
-            result = fit(
-                [d for d, _, _ in drives],
-                tracks,
-                free=fit_names or opts["fit"] or None,
-                model=opts["model"] or "line",
-                blend=opts["blend"],
-                holdout=opts["holdout"],
-                test_drives=[d for d, _, _ in tests] or None,
-                test_tracks=test_tracks,
-                solver=solver_named(opts["solver"] or SOLVERS[0], "--solver"),
-                init=init,
-                progress=say,
-            )
-    topics = {
-        "pose": drives[0][0].meta.get("pose_topic"),
-        "truth": drives[0][0].meta.get("truth_topic"),
-    }
+        result = fit(
+            [d for d, _, _ in drives],
+            tracks,
+            free=fit_names or opts["fit"] or None,
+            model=opts["model"] or "line",
+            blend=opts["blend"],
+            holdout=opts["holdout"],
+            test_drives=[d for d, _, _ in tests] or None,
+            test_tracks=test_tracks,
+            solver=solver_named(opts["solver"] or SOLVERS[0], "--solver"),
+            init=init,
+            progress=say,
+        )
+    meta = drives[0][0].meta
+    topics = {"pose": meta.get("pose_topic"), "truth": meta.get("truth_topic")}
     sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
     prov = provenance(result, sources, topics)
     wp_file = _waypoint_provenance(opts["waypoints"], drives + tests)
     if wp_file is not None:  # what `fpe export` uses when --waypoints is omitted
         prov["waypoints"] = wp_file
-    line = None
-    if "waypoints_sha256" in result.info:
-        line = {
-            "waypoints_sha256": result.info["waypoints_sha256"],
-            "waypoints": None if wp_file is None else wp_file["file"],
-        }
+    line = line_section(result, None if wp_file is None else wp_file["file"])
     cfg = params_to_config(
         result.params, uncertainty=result.uncertainty, provenance=prov, line=line
     )
@@ -651,14 +599,9 @@ def cmd_predict(args) -> int:
         poses = np.array(poses, dtype=np.float64)  # a writable copy
         poses[..., :2] += origin
         say(f"writing {args.out}")
+        dt_s = params.settings.dt_s
         io.write_predictions(
-            args.out,
-            stamps_s,
-            poses,
-            params.settings.dt_s,
-            drive=drive,
-            cov_m2=cov,
-            force=args.force,
+            args.out, stamps_s, poses, dt_s, drive=drive, cov_m2=cov, force=args.force
         )
     print(
         f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr
@@ -707,9 +650,7 @@ def cmd_info(args) -> int:
 
     if args.log is None and args.waypoints is None:
         raise InputError("LOG", "missing", "a drive log, or --waypoints W to describe waypoints")
-    info = {}
-    if args.log is not None:
-        info = io.describe_log(args.log, **_log_options(args))
+    info = {} if args.log is None else io.describe_log(args.log, **_log_options(args))
     if args.waypoints is not None:
         info["waypoints"] = _describe_waypoints(args.waypoints)
     if args.json:
@@ -839,13 +780,9 @@ def cmd_batch(args) -> int:
         cars[:, :2] -= origin
         say(f"predicting {len(cars)} cars")
         t0 = time.perf_counter()
+        progress = lambda done, n: say.count("predicting cars", done, n)
         poses = predict_chunked(
-            params,
-            cars,
-            track,
-            dtype=args.dtype,
-            chunk=args.chunk,
-            progress=lambda done, n: say.count("predicting cars", done, n),
+            params, cars, track, dtype=args.dtype, chunk=args.chunk, progress=progress
         )
         wall_s = time.perf_counter() - t0
         # float32 cannot hold coordinates beyond a kilometre to the millimetre: write float64 then
@@ -955,6 +892,21 @@ def _resend_interrupts(unraisable) -> None:
     sys.__unraisablehook__(unraisable)
 
 
+# the library arguments that commands set from flags: the library's errors name the argument
+LIBRARY_FLAGS = {
+    "free": "--fit",
+    "model": "--model",
+    "solver": "--solver",
+    "holdout": "--holdout",
+    "preset": "--preset",
+    "chunk": "--chunk",
+    "dtype": "--dtype",
+    "fmt": "--format",
+    "node": "--node",
+    "waypoints": "--waypoints",
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     import threading
 
@@ -972,6 +924,8 @@ def main(argv: list[str] | None = None) -> int:
             sys.stdout.flush()  # here, not at exit: a closed pipe or a full disk is reported below
         return rc
     except InputError as e:
+        if e.source in LIBRARY_FLAGS:  # the library names its argument, the CLI its flag
+            e = InputError(LIBRARY_FLAGS[e.source], e.problem, e.expected)
         print(f"fpe: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

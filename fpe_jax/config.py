@@ -134,7 +134,7 @@ def load_params(
         return config_to_params(cfg)
     name = preset or "default"
     if name not in presets:
-        raise InputError("--preset", f"unknown preset {name!r}", f"one of {', '.join(presets)}")
+        raise InputError("preset", f"unknown preset {name!r}", f"one of {', '.join(presets)}")
     return apply_settings(presets[name], settings)
 
 

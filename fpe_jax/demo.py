@@ -100,14 +100,8 @@ def run_demo(
         out.mkdir(parents=True)
     check_output_paths([out / name for name in DEMO_FILES], force)
     progress(f"simulating a {fit_s:g} s fit drive and a {test_s:g} s test drive on '{track}'")
-    case = simulated_case(
-        track,
-        fit_s=fit_s,
-        test_s=test_s,
-        latency_s=latency_s,
-        fit_seed=fit_seed,
-        test_seed=test_seed,
-    )
+    seeds = dict(fit_seed=fit_seed, test_seed=test_seed)
+    case = simulated_case(track, fit_s=fit_s, test_s=test_s, latency_s=latency_s, **seeds)
     result = fit_case(case, blend=blend, progress=progress)
     checks = demo_checks(result, latency_s)
     files = write_demo_outputs(out, case, result, checks, progress, force)
@@ -135,7 +129,7 @@ def write_demo_outputs(
     from fpe_jax.export import export_config
     from fpe_jax.io.writers import write_text, write_xy_csv
     from fpe_jax.params import presets
-    from fpe_jax.report import provenance
+    from fpe_jax.report import line_section, provenance
 
     progress("writing the tuned config and the ROS 2 parameters")
     # every digit: a line-model config is tied to the exact waypoint values (sha256)
@@ -146,7 +140,7 @@ def write_demo_outputs(
         result.params,
         uncertainty=result.uncertainty,
         provenance=provenance(result, sources, {"pose": None, "truth": None}),
-        line=_line_section(result, waypoints),
+        line=line_section(result, str(waypoints)),
     )
     write_config(cfg_path, cfg, force=force)
     files = [waypoints, cfg_path]
@@ -195,12 +189,6 @@ def write_demo_outputs(
     write_text(report, demo_report(case, result, checks), force=force)
     files.append(report)
     return files
-
-
-def _line_section(result, waypoints: Path) -> dict | None:
-    """The config's `line` section for a line-model fit (None for other models)."""
-    sha = result.info.get("waypoints_sha256")
-    return None if sha is None else {"waypoints_sha256": sha, "waypoints": str(waypoints)}
 
 
 def demo_report(case: Case, result, checks) -> str:

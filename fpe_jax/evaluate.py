@@ -241,7 +241,7 @@ def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
 def split_drive(drive: Drive, holdout: float) -> tuple[Drive, Drive]:
     """Temporal split: the first (1 - holdout) of the drive's duration, and the rest."""
     if not 0.0 < holdout < 1.0:
-        raise InputError("--holdout", f"{holdout} is outside (0, 1)", "a fraction such as 0.3")
+        raise InputError("holdout", f"{holdout} is outside (0, 1)", "a fraction such as 0.3")
     t_split = drive.t_s[0] + (1.0 - holdout) * drive.duration_s
     return drive.slice_time(-np.inf, t_split), drive.slice_time(t_split, np.inf)
 

@@ -142,7 +142,7 @@ def to_ros2_yaml(
         source: the config's file name, for the header comment.
     """
     if not re.fullmatch(r"/\*\*|/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*", node):
-        raise InputError("--node", f"{node!r} is not a ROS 2 node name", "letters, digits, _ and /")
+        raise InputError("node", f"{node!r} is not a ROS 2 node name", "letters, digits, _ and /")
     prov = cfg.get("provenance") or {}
     when = prov.get("fitted_at") if isinstance(prov, dict) else None
     fitted = f"; fitted {when}" if when else ""
@@ -155,13 +155,9 @@ def to_ros2_yaml(
         "    # version of the fpe-jax config schema these values follow",
         f"    schema_version: {int(cfg['schema_version'])}",
     ]
-    params = dict(cfg["params"])
-    params.setdefault("offset_tau_s", 1.0)  # configs from before the frenet / line models
-    params.setdefault("speed_tau_s", 0.5)
-    params.setdefault("position_smoothing", 0.0)
-    for key, value in FILTER_DEFAULTS.items():  # configs from before the Kalman estimator
-        params.setdefault(key, value)
-    sections = {"params": params, "settings": cfg["settings"]}
+    # the values of configs from before the frenet / line models and the Kalman estimator
+    older = {"offset_tau_s": 1.0, "speed_tau_s": 0.5, "position_smoothing": 0.0} | FILTER_DEFAULTS
+    sections = {"params": older | cfg["params"], "settings": cfg["settings"]}
     rows = list(ROS2_PARAMS)
     if cfg["settings"]["model"] == "line":
         rows += ROS2_LINE_PARAMS
@@ -180,7 +176,8 @@ def to_ros2_yaml(
 
 
 def _predictor(params, track):
-    """f(x_m, ..., s_m), each (b,) -> (b, H, 3), with params and track closed over (constants)."""
+    """f(x_m, ..., s_m), each (b,) -> (b, H, 3), with params and track closed over (constants):
+    the `State` fields named by INPUTS (then WINDOW_INPUTS), in their order."""
     import dataclasses
 
     import jax
@@ -189,29 +186,18 @@ def _predictor(params, track):
     from fpe_jax.predict import predict_batch
     from fpe_jax.state import State
 
-    def f(x_m, y_m, yaw_rad, v_mps, yaw_rate_rps, course_rad, s_m, s_fit_m, *rest):
-        frame, window = rest[:3], rest[3:]
-        states = State(
-            x_m=x_m,
-            y_m=y_m,
-            yaw_rad=yaw_rad,
-            v_mps=v_mps,
-            yaw_rate_rps=yaw_rate_rps,
-            course_rad=course_rad,
-            s_m=s_m,
-            s_fit_m=s_fit_m,
-            sdot_mps=frame[0],
-            offset_m=frame[1],
-            sdot_age_s=frame[2],
-            **dict(zip((n for n, _ in WINDOW_INPUTS), window)),
-        )
+    names = [n for n, _ in INPUTS + WINDOW_INPUTS]
+
+    def f(*inputs):
+        states = State(**dict(zip(names, inputs)))
         # only pure pursuit and the Frenet rollouts read the arc length
         if params.settings.model in ("blend", "frenet", "line"):
             # a NaN arc length asks for a global projection; skipped when every car has one
             def global_s(s):
-                p = jnp.stack([x_m, y_m], axis=1)
+                p = jnp.stack([states.x_m, states.y_m], axis=1)
                 return jnp.where(jnp.isfinite(s), s, jax.vmap(track.project)(p))
 
+            s_m = states.s_m
             s = jax.lax.cond(jnp.all(jnp.isfinite(s_m)), lambda s: s, global_s, s_m)
             states = dataclasses.replace(states, s_m=s)
         return predict_batch(params, states, track)
@@ -328,17 +314,11 @@ class ExportedPredictor:
         x = np.atleast_1d(np.asarray(given["x_m"], dtype=np.float64))
         if x.ndim != 1:
             raise ValueError(f"inputs must be scalars or (b,) arrays, got shape {x.shape}")
-        defaults = {
-            "yaw_rate_rps": 0.0,
-            "course_rad": given["yaw_rad"],
-            "s_m": math.nan,
-            "s_fit_m": math.nan,
-            "sdot_mps": math.nan,
-            "offset_m": math.nan,
-            "sdot_age_s": math.nan,
-        }
+        defaults = {"yaw_rate_rps": 0.0, "course_rad": given["yaw_rad"]}  # the others: NaN
         arrays = [
-            np.broadcast_to(np.asarray(given.get(n, defaults.get(n)), dtype=np.float64), x.shape)
+            np.broadcast_to(
+                np.asarray(given.get(n, defaults.get(n, math.nan)), np.float64), x.shape
+            )
             for n in names[: len(INPUTS)]
         ]
         for n, aval in zip(windows, self.exported.in_avals[len(INPUTS) :]):
@@ -429,13 +409,13 @@ def export_config(
         The paths written. Nothing is written when any target exists without force.
     """
     if fmt not in FORMATS:
-        raise InputError("--format", f"unknown format {fmt!r}", f"one of {', '.join(FORMATS)}")
+        raise InputError("fmt", f"unknown format {fmt!r}", f"one of {', '.join(FORMATS)}")
     from fpe_jax.runner import load_waypoints_xy  # JAX-free
 
     cfg = read_config(config_path)  # every value checked (fpe_jax.spec)
     if fmt in ("stablehlo", "all") and waypoints is None:
         raise InputError(
-            "--waypoints",
+            "waypoints",
             "the stablehlo predictor bakes the track in, and the config's provenance names no "
             "waypoint file",
             "--waypoints FILE",
@@ -448,8 +428,7 @@ def export_config(
     text = None
     if fmt in ("ros2", "all"):
         wp_name = None if waypoints is None else str(waypoints)
-        source = Path(config_path).name
-        text = to_ros2_yaml(cfg, node=node, waypoint_file=wp_name, source=source)
+        text = to_ros2_yaml(cfg, node=node, waypoint_file=wp_name, source=Path(config_path).name)
     out = Path(out)
     if fmt == "all":
         if out.exists() and not out.is_dir():

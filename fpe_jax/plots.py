@@ -133,8 +133,9 @@ def draw_actual(ax, drive, label: str = "actual path") -> None:
     if drive.has_truth:
         ax.plot(*drive.truth_xy_m.T, color="black", lw=1.0, label=f"{label} (truth)")
     else:
-        new = np.r_[True, np.any(drive.xy_m[1:] != drive.xy_m[:-1], axis=1)]
-        xy = drive.xy_m[new]
+        from fpe_jax.history import distinct_mask
+
+        xy = drive.xy_m[distinct_mask(drive.xy_m)]
         ax.plot(*xy.T, ".-", color="black", lw=0.6, ms=2.5, label=f"{label} (observed)")
 
 
@@ -164,8 +165,7 @@ def every_index(n: int, step: int, start: int = 0) -> np.ndarray:
 
 def finish_map(ax, title: str, legend: bool = True, loc: str = "best", fontsize: int = 7) -> None:
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
+    ax.set(xlabel="x [m]", ylabel="y [m]")
     ax.set_title(title, fontsize=10)
     if legend:
         ax.legend(loc=loc, fontsize=fontsize)
@@ -327,17 +327,9 @@ def error_vs_horizon_figure(
         for name in names or list(rep):
             per = np.asarray(rep[name]["per_step_m"])
             h = dt_s * np.arange(1, len(per) + 1)
-            ax.plot(
-                h,
-                per,
-                "o-" if name == "fitted" else ".-",
-                color=color(name),
-                lw=2.2 if name == "fitted" else 1.2,
-                ms=4,
-                label=APPROACH.get(name, name),
-            )
-        ax.set_xlabel("horizon [s]")
-        ax.set_ylabel("mean position error [m]")
+            style, lw = ("o-", 2.2) if name == "fitted" else (".-", 1.2)
+            ax.plot(h, per, style, color=color(name), lw=lw, ms=4, label=APPROACH.get(name, name))
+        ax.set(xlabel="horizon [s]", ylabel="mean position error [m]")
         ax.set_title(case, fontsize=10)
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
@@ -373,8 +365,7 @@ def weights_figure(params_by_label: Mapping[str, object], *, title: str, latency
         if latency_s is not None and len(params_by_label) == 1:
             text += f" (true {latency_s:.2f} s)"
         ax.plot(t, v["weights"], markers[j % len(markers)] + "-", label=text)
-    ax.set_ylim(-0.03, 1.03)
-    ax.set_xlabel("horizon [s]")
+    ax.set(ylim=(-0.03, 1.03), xlabel="horizon [s]")
     ax.set_ylabel("weight on the linear rollout [-] (1 - weight on pure pursuit)")
     ax.set_title(title, fontsize=11)
     ax.grid(alpha=0.3)
@@ -396,7 +387,7 @@ def plot_drive(
     out,
     *,
     source: str,
-    progress=lambda msg: None,
+    progress=lambda m: None,
 ) -> dict:
     """`fpe plot`: a user's drive with one predictor's 1 s predictions, whole and zoomed on the
     stretch where it misses most; writes `out` and returns the metrics of those predictions.
@@ -444,15 +435,8 @@ def line_figure(params, length_m: float, closed: bool, *, title: str):
     fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
     for ax, y, label in ((axes[0], off, "line offset m (left +)"), (axes[1], speed, "speed m/s")):
         ax.plot(s, y, color=color("fitted"))
-        ax.fill_between(
-            s,
-            0,
-            1,
-            where=cov <= 0,
-            color="0.85",
-            transform=ax.get_xaxis_transform(),
-            label="not covered by the fit drives",
-        )
+        uncovered = dict(where=cov <= 0, color="0.85", transform=ax.get_xaxis_transform())
+        ax.fill_between(s, 0, 1, **uncovered, label="not covered by the fit drives")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper right", fontsize=8)

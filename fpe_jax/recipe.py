@@ -31,18 +31,8 @@ from fpe_jax import spec as S
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 
-DRIVE_KEYS = {
-    "path",
-    "rate_hz",
-    "pose_topic",
-    "truth_topic",
-    "waypoints",
-    "log_time",
-    "simulate",
-    "tag_id",
-    "tag_to_base",
-    "drop_outside_tf",
-}
+DRIVE_KEYS = {"path", "rate_hz", "pose_topic", "truth_topic", "waypoints", "log_time", "simulate"}
+DRIVE_KEYS |= {"tag_id", "tag_to_base", "drop_outside_tf"}
 TOP_KEYS = {"out", "waypoints", "holdout", "fit", "model", "blend", "solver", "drives"}
 TOP_KEYS |= {"test_drives", "settings"}
 SETTINGS_KEYS = S.USER_SETTINGS
@@ -85,13 +75,8 @@ def _check_entry(entry, source, field: str) -> None:
     _check_keys(entry, DRIVE_KEYS, source, "drive keys")
     for key in ("path", "pose_topic", "truth_topic", "waypoints"):
         if key in entry:
-            _check(
-                isinstance(entry[key], str) and entry[key],
-                source,
-                f"{field}.{key}",
-                entry[key],
-                _STR,
-            )
+            v = entry[key]
+            _check(isinstance(v, str) and v, source, f"{field}.{key}", v, _STR)
     for key in ("log_time", "drop_outside_tf"):
         if key in entry:
             _check(isinstance(entry[key], bool), source, f"{field}.{key}", entry[key], _BOOL)
@@ -102,13 +87,8 @@ def _check_entry(entry, source, field: str) -> None:
         _check(S.is_int(v) and v >= 0, source, f"{field}.tag_id", v, "an integer >= 0")
     if "simulate" in entry:
         sim = entry["simulate"]
-        _check(
-            isinstance(sim, dict),
-            source,
-            f"{field}.simulate",
-            sim,
-            'a table such as { track = "oval", duration_s = 60 }',
-        )
+        expected = 'a table such as { track = "oval", duration_s = 60 }'
+        _check(isinstance(sim, dict), source, f"{field}.simulate", sim, expected)
         _check_keys(sim, SIMULATE_KEYS, source, f"{field}.simulate keys")
         for key in ("track", "raceline"):
             if key in sim:

@@ -31,6 +31,14 @@ def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
     }
 
 
+def line_section(result: FitResult, waypoints: str | None) -> dict | None:
+    """The config's `line` section of a line-model fit: the sha256 of the waypoints the line was
+    learned on and the file they came from (`waypoints`, None when unknown); None for other
+    models."""
+    sha = result.info.get("waypoints_sha256")
+    return None if sha is None else {"waypoints_sha256": sha, "waypoints": waypoints}
+
+
 def format_fitted(result: FitResult) -> str:
     """Two lines: the fitted values, and the per-step weights (or the line); after `--model
     auto` a first line with the validation scores it chose by."""

@@ -451,13 +451,10 @@ def _drive(ref, start, offset_m, stop_times_s, stop_waits_s, veh: Vehicle, drv: 
         k3 = f(*_add(steer, v, yaw, r, beta, k2, 0.5 * h), steer_cmd, a)
         k4 = f(*_add(steer, v, yaw, r, beta, k3, h), steer_cmd, a)
         w6 = h / 6.0
-        x += w6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-        y += w6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-        steer += w6 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
-        v += w6 * (k1[3] + 2 * k2[3] + 2 * k3[3] + k4[3])
-        yaw += w6 * (k1[4] + 2 * k2[4] + 2 * k3[4] + k4[4])
-        r += w6 * (k1[5] + 2 * k2[5] + 2 * k3[5] + k4[5])
-        beta += w6 * (k1[6] + 2 * k2[6] + 2 * k3[6] + k4[6])
+        x, y, steer, v, yaw, r, beta = (
+            q + w6 * (a + 2 * b + 2 * c + d)
+            for q, a, b, c, d in zip((x, y, steer, v, yaw, r, beta), k1, k2, k3, k4)
+        )
         steer = min(max(steer, -d_max), d_max)
         v = max(v, 0.0)  # the driver never reverses
     return np.array(out)
@@ -474,14 +471,8 @@ def _make_dynamics(veh: Vehicle):
     f(steer, v, yaw, yaw_rate, beta, steer_cmd, a) -> (x', y', steer', v', yaw', yaw_rate', beta').
     Positions do not enter the dynamics, so they are not arguments.
     """
-    mu, lf, lr, h, m, inertia = (
-        veh.mu,
-        veh.lf_m,
-        veh.lr_m,
-        veh.h_cg_m,
-        veh.mass_kg,
-        veh.inertia_kgm2,
-    )
+    mu, lf, lr, h = veh.mu, veh.lf_m, veh.lr_m, veh.h_cg_m
+    m, inertia = veh.mass_kg, veh.inertia_kgm2
     c_sf, c_sr, g = veh.c_sf, veh.c_sr, G_MPS2
     lwb = lf + lr
     tau, rate_max, d_max = veh.servo_tau_s, veh.steer_rate_max_rps, veh.steer_max_rad
@@ -519,15 +510,10 @@ def _make_dynamics(veh: Vehicle):
             dx += w * v * math.cos(yaw + beta)
             dy += w * v * math.sin(yaw + beta)
             d_yaw += w * r
-            d_r += (
-                w
-                * yaw_gain
-                * (
-                    lf * ff * steer
-                    + (lr * fr - lf * ff) * beta
-                    - (lf * lf * ff + lr * lr * fr) * r / v
-                )
+            moment = (
+                lf * ff * steer + (lr * fr - lf * ff) * beta - (lf * lf * ff + lr * lr * fr) * r / v
             )
+            d_r += w * yaw_gain * moment
             d_beta += w * (
                 mu / (v * lwb) * (ff * steer - (fr + ff) * beta + (lr * fr - lf * ff) * r / v) - r
             )

@@ -384,7 +384,7 @@ def check_chunk(chunk) -> int:
     """Cars per compiled call (`fpe batch --chunk`): an integer in [1, MAX_CARS_PER_CALL]."""
     if not (is_int(chunk) and 1 <= chunk <= MAX_CARS_PER_CALL):
         raise InputError(
-            "--chunk", f"{short(chunk)} cars per call", f"an integer from 1 to {MAX_CARS_PER_CALL}"
+            "chunk", f"{short(chunk)} cars per call", f"an integer from 1 to {MAX_CARS_PER_CALL}"
         )
     return int(chunk)
 

@@ -255,3 +255,46 @@ def test_bad_path_topic_in_waypoint_log(tmp_path):
         io.load_waypoints(log, topic="/plan")
     with pytest.raises(InputError, match="not a ROS log"):
         io.load_waypoints(_good_waypoints(tmp_path), topic="/plan")
+
+
+def test_library_errors_name_the_argument_and_the_cli_its_flag(tmp_path, capsys):
+    """The library names its own argument (a Python caller has no flags); the CLI maps it to the
+    flag that sets it (argparse itself refuses a --format or --dtype outside its choices)."""
+    from fpe_jax import spec
+    from fpe_jax.batch import BatchPredictor
+    from fpe_jax.config import load_params, params_to_config, write_config
+    from fpe_jax.evaluate import split_drive
+    from fpe_jax.export import export_config
+    from fpe_jax.params import presets
+    from fpe_jax.sim import simulate
+    from fpe_jax.track import Track
+
+    drive = simulate("oval", duration_s=5.0).drive
+    cfg = tmp_path / "c.json"
+    write_config(cfg, params_to_config(presets["default"]))
+    wp = _good_waypoints(tmp_path)
+    track = Track.from_waypoints(np.loadtxt(wp, delimiter=",")[:, :2])
+    library = [
+        ("holdout", lambda: split_drive(drive, 1.5)),
+        ("preset", lambda: load_params(preset="nope")),
+        ("chunk", lambda: spec.check_chunk(0)),
+        ("dtype", lambda: BatchPredictor(presets["default"], track, dtype="int8")),
+        ("fmt", lambda: export_config(cfg, "xml", tmp_path / "o")),
+        ("node", lambda: export_config(cfg, "ros2", tmp_path / "o.yaml", node="a b")),
+        ("waypoints", lambda: export_config(cfg, "stablehlo", tmp_path / "o.shlo")),
+    ]
+    for name, call in library:
+        with pytest.raises(InputError) as e:
+            call()
+        assert e.value.source == name, (name, str(e.value))
+    drive_csv = _good_drive(tmp_path)
+    through_cli = [
+        ("--holdout", f"fit {drive_csv} --waypoints {wp} --out {tmp_path}/f.json --holdout 1.5"),
+        ("--preset", f"evaluate {drive_csv} --waypoints {wp} --preset nope"),
+        ("--node", f"export {cfg} --format ros2 --out {tmp_path}/o.yaml --node a.b"),
+        ("--waypoints", f"export {cfg} --format stablehlo --out {tmp_path}/o.shlo"),
+    ]
+    for flag, argv in through_cli:
+        assert cli.main(argv.split()) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith(f"fpe: error: {flag}: "), (argv, err)

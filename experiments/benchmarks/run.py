@@ -181,19 +181,10 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
             predictor(cars, info=info)
             first = time.perf_counter() - t0
             res = timed_runs(lambda p=predictor, c=cars: p(c), n)
-            res.update(
-                path="BatchPredictor (end to end)",
-                dtype=dtype,
-                n_cars=n,
-                chunk=info["chunk"],
-                tail_chunk=info["tail_chunk"],
-                n_chunks=info["n_chunks"],
-                n_off_grid=info["n_off_grid"],
-                first_call_s=first,
-                compile_s=compile_s,
-                grid_build_s=grid_s,
-                load_avg=load_average(),
-            )
+            chunks = {k: info[k] for k in ("chunk", "tail_chunk", "n_chunks", "n_off_grid")}
+            res.update(path="BatchPredictor (end to end)", dtype=dtype, n_cars=n, **chunks)
+            res.update(first_call_s=first, compile_s=compile_s, grid_build_s=grid_s)
+            res.update(load_avg=load_average())
             rows.append(res)
             print_rate("batch", res)
     return rows
@@ -276,16 +267,10 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
             f = jax.jit(jax.vmap(_bare_rollout))
             for n in sizes:
                 rng = np.random.default_rng(0)
-                args = tuple(
-                    jnp.asarray(a.astype(dtype))
-                    for a in (
-                        rng.normal(0, 10, n),
-                        rng.normal(0, 10, n),
-                        rng.uniform(-np.pi, np.pi, n),
-                        rng.uniform(1, 6, n),
-                        rng.normal(0, 0.2, n),
-                    )
-                )
+                x, y = rng.normal(0, 10, n), rng.normal(0, 10, n)
+                yaw, v = rng.uniform(-np.pi, np.pi, n), rng.uniform(1, 6, n)
+                steer = rng.normal(0, 0.2, n)
+                args = tuple(jnp.asarray(a.astype(dtype)) for a in (x, y, yaw, v, steer))
                 res = _time_jitted(f, args, n, "bare kinematic bicycle (ceiling)", dtype)
                 rows.append(res)
                 print_rate("bare ", res)
@@ -296,19 +281,9 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
 
 
 def seed_predict_python(
-    waypoints,
-    x,
-    y,
-    yaw,
-    *,
-    v=1.0,
-    lookahead=2.0,
-    dt=0.1,
-    wheelbase=0.325,
-    max_steer=0.5236,
-    alpha=0.7,
-    horizon=10,
-):
+    waypoints, x, y, yaw, *, v=1.0, lookahead=2.0, dt=0.1, wheelbase=0.325, max_steer=0.5236,
+    alpha=0.7, horizon=10
+):  # fmt: skip
     """The 2019 node's prediction for one car, rule by rule (`fpe_jax.runner.seed_rollout`), with
     the original's goal search: the waypoints (a list of (x, y) tuples in file order) scanned from
     the last row backwards for the first one within the lookahead (row 0 when none is), every
@@ -588,11 +563,6 @@ COMMAND_TARGETS_S = {"predict": 2.5, "evaluate": 4.0, "plot": 4.0, "fit 10 min":
 FAST_TARGET_S = 0.5  # fpe presets, fpe info of the 60 s drive, fpe --help
 
 
-def _fpe_wall_s(argv: list[str], cache_dir: Path) -> float:
-    """Wall time [s] of one `fpe` command in a fresh process with the given cache folder."""
-    return _fpe_times_s(argv, cache_dir)[0]
-
-
 def _fpe_times_s(argv: list[str], cache_dir: Path) -> tuple[float, float]:
     """Wall time and CPU time (user + system, all threads) [s] of one `fpe` command in a fresh
     process with the given cache folder: on a shared machine the CPU time shows the command's own
@@ -601,12 +571,11 @@ def _fpe_times_s(argv: list[str], cache_dir: Path) -> tuple[float, float]:
 
     env = {**os.environ, "FPE_CACHE_DIR": str(cache_dir)}
     env.pop("FPE_NO_CACHE", None)
+    quiet = [] if argv[0] in ("presets", "info", "--help") else ["--quiet"]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(
-        [str(Path(sys.executable).parent / "fpe"), *argv, "--quiet"]
-        if argv[0] not in ("presets", "info", "--help")
-        else [str(Path(sys.executable).parent / "fpe"), *argv],
+        [str(Path(sys.executable).parent / "fpe"), *argv, *quiet],
         capture_output=True,
         text=True,
         env=env,
@@ -627,40 +596,32 @@ def bench_commands(runs: int, fit_minutes) -> dict:
     fpe = str(Path(sys.executable).parent / "fpe")
 
     def sim(minutes):
+        """A simulated drive of `minutes`: its log and --waypoints arguments."""
         out = tmp / f"drive-{minutes:g}min"
         subprocess.run(
             [fpe, "simulate", "--duration", str(60 * minutes), "--out", str(out)],
             check=True,
             capture_output=True,
         )
-        return out
+        return [str(out / "drive.mcap"), "--waypoints", str(out / "waypoints.csv")]
 
-    d1 = sim(1)
-    mcap, wp = str(d1 / "drive.mcap"), str(d1 / "waypoints.csv")
+    log1 = sim(1)
     cfg = tmp / "config.json"
-    _fpe_wall_s(["fit", mcap, "--waypoints", wp, "--out", str(cfg)], tmp / "prep")
-    common = [mcap, "--waypoints", wp, "--config", str(cfg)]
+    _fpe_times_s(["fit", *log1, "--out", str(cfg)], tmp / "prep")
+    common = [*log1, "--config", str(cfg)]
     commands = {
         "predict": ["predict", *common, "--out", str(tmp / "p.csv"), "--force"],
         "evaluate": ["evaluate", *common],
         "plot": ["plot", *common, "--out", str(tmp / "p.png"), "--force"],
     }
     for m in fit_minutes:
-        d = d1 if m == 1 else sim(m)
-        commands[f"fit {m:g} min"] = [
-            "fit",
-            str(d / "drive.mcap"),
-            "--waypoints",
-            str(d / "waypoints.csv"),
-            "--out",
-            str(tmp / f"c{m:g}.json"),
-            "--force",
-        ]
+        log = log1 if m == 1 else sim(m)
+        commands[f"fit {m:g} min"] = ["fit", *log, "--out", str(tmp / f"c{m:g}.json"), "--force"]
     rows = {}
     for name, argv in commands.items():
         cold = [_fpe_times_s(argv, tmp / f"cold-{name}-{k}") for k in range(runs)]
         warm_dir = tmp / f"warm-{name}"
-        _fpe_wall_s(argv, warm_dir)  # fills the cache
+        _fpe_times_s(argv, warm_dir)  # fills the cache
         warm = [_fpe_times_s(argv, warm_dir) for _ in range(runs)]
         rows[name] = {
             "cold_s": float(np.median([w for w, _ in cold])),
@@ -676,11 +637,8 @@ def bench_commands(runs: int, fit_minutes) -> dict:
             f"{runs})",
             flush=True,
         )
-    for name, argv in {
-        "presets": ["presets"],
-        "info": ["info", mcap],
-        "--help": ["--help"],
-    }.items():
+    fast = {"presets": ["presets"], "info": ["info", log1[0]], "--help": ["--help"]}
+    for name, argv in fast.items():
         times = [_fpe_times_s(argv, tmp / "fast") for _ in range(runs)]
         walls = [w for w, _ in times]
         rows[name] = {
@@ -693,16 +651,14 @@ def bench_commands(runs: int, fit_minutes) -> dict:
 
 
 def commands_markdown(cmd: dict, fit: dict) -> list[str]:
+    load = (
+        f" Load average at the end: {cmd['load_avg']:.1f} (2 cores)." if "load_avg" in cmd else ""
+    )
     lines = [
         f"Each command in a fresh process (`fpe ... --quiet`), medians of {cmd['runs']}: cold = "
         "an empty compilation cache, warm = a cache filled by one earlier run. predict, "
         "evaluate and plot: a 60 s simulated drive with a fitted config. CPU: user + system "
-        "time of the command's process (all threads): its own work, whatever the load."
-        + (
-            f" Load average at the end: {cmd['load_avg']:.1f} (2 cores)."
-            if "load_avg" in cmd
-            else ""
-        ),
+        "time of the command's process (all threads): its own work, whatever the load." + load,
         "",
         "| command | cold [s] | warm [s] | warm CPU [s] | warm target [s] |",
         "| --- | ---: | ---: | ---: | ---: |",
@@ -776,21 +732,18 @@ def peak_memory_child(n: int, dtype: str) -> None:
     out = predict_chunked(presets[PRESET], cars, track, dtype=dtype)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    print(
-        json.dumps(
-            {
-                "n_cars": n,
-                "dtype": dtype,
-                "peak_rss_mb": peak,
-                "rss_before_prediction_mb": before,
-                "vm_hwm_mb": _vm_hwm_mb(),
-                "vm_hwm_before_prediction_mb": hwm_before,
-                "input_mb": cars.nbytes / 2**20,
-                "output_mb": out.nbytes / 2**20,
-                "wall_s_incl_compile": wall,
-            }
-        )
-    )
+    row = {
+        "n_cars": n,
+        "dtype": dtype,
+        "peak_rss_mb": peak,
+        "rss_before_prediction_mb": before,
+        "vm_hwm_mb": _vm_hwm_mb(),
+        "vm_hwm_before_prediction_mb": hwm_before,
+        "input_mb": cars.nbytes / 2**20,
+        "output_mb": out.nbytes / 2**20,
+        "wall_s_incl_compile": wall,
+    }
+    print(json.dumps(row))
 
 
 def bench_memory(n: int, dtypes) -> list[dict]:
@@ -845,13 +798,8 @@ def fullsize_drive(out_dir: Path) -> dict:
     )
     d = res.drive
     thin = slice(None, None, 2)  # 50 Hz -> 25 Hz
-    drive = dataclasses.replace(
-        d,
-        truth_t_s=d.truth_t_s[thin],
-        truth_xy_m=d.truth_xy_m[thin],
-        truth_yaw_rad=d.truth_yaw_rad[thin],
-        truth_v_mps=d.truth_v_mps[thin],
-    )
+    truth = ("truth_t_s", "truth_xy_m", "truth_yaw_rad", "truth_v_mps")
+    drive = dataclasses.replace(d, **{k: getattr(d, k)[thin] for k in truth})
     res = dataclasses.replace(res, drive=drive, truth_yaw_rate_rps=res.truth_yaw_rate_rps[thin])
     sim.write_simulation(res, out_dir, force=True)
     v = drive.truth_v_mps
@@ -941,6 +889,9 @@ def fullsize_markdown(fs: dict | None) -> list[str]:
     if "skipped" in fs:
         return [f"Skipped: {fs['skipped']}"]
     v = fs["speed_mps"]
+    load = ""
+    if "load_avg_start" in fs:
+        load = f" Load average {fs['load_avg_start']:.1f} -> {fs['load_avg_end']:.1f}."
     lines = [
         f"{fs['track']}: {fs['length_m']:.0f} m, {fs['n_waypoints']} waypoints; wheelbase "
         f"{fs['wheelbase_m']:.3f} m, mu {fs['mu']}, {fs['duration_s']:.0f} s at "
@@ -948,12 +899,7 @@ def fullsize_markdown(fs: dict | None) -> list[str]:
         f"{fs['n_observations']} detections and {fs['n_truth']} truth poses at 25 Hz. Each "
         "command in a fresh process (compilation included); median wall time, largest peak RSS "
         f"(`ru_maxrss`). Target: fit <= {fs['target']['fit_wall_s']:.0f} s and "
-        f"<= {fs['target']['fit_peak_rss_mb']:.0f} MB: **{_met(fs['met'])}**."
-        + (
-            f" Load average {fs['load_avg_start']:.1f} -> {fs['load_avg_end']:.1f}."
-            if "load_avg_start" in fs
-            else ""
-        ),
+        f"<= {fs['target']['fit_peak_rss_mb']:.0f} MB: **{_met(fs['met'])}**.{load}",
         "",
         "| command | wall s | peak RSS MB |",
         "|---|---|---|",
@@ -972,10 +918,7 @@ def summarize(results: dict) -> dict:
     """The headline numbers against the issue's targets."""
 
     def rate(rows, dtype, n, key="rate_per_s"):
-        for r in rows:
-            if r["dtype"] == dtype and r["n_cars"] == n:
-                return r[key]
-        return None
+        return next((r[key] for r in rows if r["dtype"] == dtype and r["n_cars"] == n), None)
 
     big = max(r["n_cars"] for r in results["batch"])
     ref_n = 100_000 if any(r["n_cars"] == 100_000 for r in results["batch"]) else big
@@ -1153,21 +1096,14 @@ def plot(results: dict, path: Path) -> None:
             (r for r in results[section] if r["dtype"] == dtype), key=lambda r: r["n_cars"]
         )
         if rows:
-            ax.plot(
-                [r["n_cars"] for r in rows],
-                [r["rate_per_s"] for r in rows],
-                fmt,
-                color=color,
-                label=label,
-            )
+            n, rate = [r["n_cars"] for r in rows], [r["rate_per_s"] for r in rows]
+            ax.plot(n, rate, fmt, color=color, label=label)
     seed = results["seed_loop"]["rate_per_s"]
     ax.axhline(
         seed, color="C3", ls=":", label=f"original algorithm, pure-Python loop ({seed:.3g}/s)"
     )
     ax.axhline(2e6, color="0.5", ls="-.", lw=1, label="target: 2e6 predictions/s")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("cars per batch N [cars]")
+    ax.set(xscale="log", yscale="log", xlabel="cars per batch N [cars]")
     ax.set_ylabel("throughput [ten-step predictions / s]")
     ax.set_title(
         f"Batch prediction throughput, Levine track, {results['machine']['cpu']} "

@@ -39,7 +39,7 @@ import numpy as np
 
 from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
-from fpe_jax.io.tf import Rigid, TfBuffer, quat_from_matrix
+from fpe_jax.io.tf import Rigid, TfBuffer, format_stamp, quat_from_matrix
 
 DETECTION_TYPES = (
     "apriltag_ros/AprilTagDetectionArray",
@@ -49,13 +49,7 @@ DETECTION_TYPES = (
 DETECTION_TOPIC = "/tag_detections"
 FAMILY = "tag36h11"  # the detector library's name for the 36h11 family
 TAG_SIZE_M = 0.1085  # the thesis' tag
-FRAMES = {
-    "map": "map",
-    "base": "base_link",
-    "laser": "laser",
-    "camera": "camera",
-    "car": "other_base_link",
-}
+FRAMES = dict(map="map", base="base_link", laser="laser", camera="camera", car="other_base_link")
 _REMEDY = "--drop-outside-tf to drop those detections"
 # Camera optical frame (x right, y down, z forward) in a body frame (x forward, y left, z up).
 OPTICAL_IN_BODY = Rigid.make([0.0, 0.0, 0.0], [-0.5, 0.5, -0.5, 0.5])
@@ -157,8 +151,9 @@ def _read_detections(log, topic: str, tag_id: int) -> _Detections:
             if _stamp_ns(det.pose.header.stamp) != 0:
                 stamp = _stamp_ns(det.pose.header.stamp)
             frame = det.pose.header.frame_id or frame
-            p = _detection_pose(det)
-            poses.append((p.position.x, p.position.y, p.position.z) + _quat(p.orientation))
+            pose = _detection_pose(det)
+            p, q = pose.position, pose.orientation
+            poses.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
         else:
             tag_frames.add(f"{det.family}:{tag_id}")
         stamps.append(stamp)
@@ -189,7 +184,7 @@ def _read_detections(log, topic: str, tag_id: int) -> _Detections:
             k = int(np.argmax(~np.isfinite(a).all(axis=1) | ~(norm > 1e-9)))
             raise InputError(
                 log.source,
-                f"detection topic {topic!r}: the tag's pose at {_fmt_ns(stamps[k])} is "
+                f"detection topic {topic!r}: the tag's pose at {format_stamp(stamps[k])} is "
                 "non-finite or has a zero quaternion",
                 "finite tag poses",
             )
@@ -202,14 +197,6 @@ def _read_detections(log, topic: str, tag_id: int) -> _Detections:
         None if with_pose else tag_frames.pop(),
         counts,
     )
-
-
-def _quat(q) -> tuple[float, float, float, float]:
-    return (q.x, q.y, q.z, q.w)
-
-
-def _fmt_ns(ns: int) -> str:
-    return f"{float(rm.ns_to_seconds([ns])[0]):.3f} s"
 
 
 def _raise_no_detections(log, topic, tag_id, counts, ids_seen) -> None:
@@ -332,7 +319,7 @@ def _compose(log, topic, dets: _Detections, buf: TfBuffer, plan: _Plan, map_fram
             raise InputError(
                 log.source,
                 f"{int((~exact).sum())} of {n} {what} have no TF {edge.name} at their stamp "
-                f"(the first at {_fmt_ns(dets.stamp_ns[k])})",
+                f"(the first at {format_stamp(dets.stamp_ns[k])})",
                 "the detector's transform at each detection's stamp (or --drop-outside-tf)",
             )
         keep &= exact
@@ -446,29 +433,13 @@ def describe_detections(
         dets = _read_detections(log, topic, tag_id)
         buf = TfBuffer.from_log(log)
         plan = _plan(buf, dets, tag_id, parse_tag_to_base(tag_to_base), map_frame, car_frame)
-        return {
-            "tag_id": int(tag_id),
-            **_plan_summary(buf, plan, map_frame, car_frame),
-            **dets.counts,
-        }
+        summary = _plan_summary(buf, plan, map_frame, car_frame)
+        return {"tag_id": int(tag_id), **summary, **dets.counts}
     except InputError as e:
         return {"tag_id": int(tag_id), "error": e.problem}
 
 
 # --- writing --------------------------------------------------------------------------------------
-
-
-def _transform_dict(parent: str, child: str, ns: int, t, q) -> dict:
-    x, y, z = t
-    qx, qy, qz, qw = q
-    return {
-        "header": {"stamp": rm.stamp_dict(ns), "frame_id": parent},
-        "child_frame_id": child,
-        "transform": {
-            "translation": {"x": x, "y": y, "z": z},
-            "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
-        },
-    }
 
 
 def _detection_dict(style, ns, frame, tag_id, size_m, family, t, q) -> dict:
@@ -484,12 +455,7 @@ def _detection_dict(style, ns, frame, tag_id, size_m, family, t, q) -> dict:
             "corners": [{"x": 0.0, "y": 0.0}] * 4,
             "homography": [0.0] * 9,
         }
-    x, y, z = t
-    qx, qy, qz, qw = q
-    pose = {
-        "position": {"x": x, "y": y, "z": z},
-        "orientation": {"x": qx, "y": qy, "z": qz, "w": qw},
-    }
+    pose = {"position": dict(zip("xyz", t)), "orientation": dict(zip("xyzw", q))}
     return {
         "id": [tag_id],
         "size": [size_m],
@@ -555,28 +521,19 @@ def apriltag_events(
     cam_tag = map_cam.inv() @ map_car @ tag_in_car
     msgtype = f"{'apriltag_msgs' if style == 'apriltag_msgs' else style}/AprilTagDetectionArray"
     t0 = int(min(ego_ns.min(), det_ns.min()))
-    events = [
-        (
-            t0,
-            "/tf_static",
-            "tf2_msgs/TFMessage",
-            {
-                "transforms": [
-                    _transform_dict(p, c, 0, r.t_m[0].tolist(), r.q[0].tolist())
-                    for p, c, r in statics
-                ]
-            },
-        )
+    mounts = [
+        rm.transform_stamped(p, c, 0, r.t_m[0].tolist(), r.q[0].tolist()) for p, c, r in statics
     ]
+    events = [(t0, "/tf_static", "tf2_msgs/TFMessage", {"transforms": mounts})]
     for n, t, q in zip(ego_ns.tolist(), ego_tf.t_m.tolist(), ego_tf.q.tolist()):
-        tf = _transform_dict(f["map"], f["base"], n, t, q)
+        tf = rm.transform_stamped(f["map"], f["base"], n, t, q)
         events.append((n, "/tf", "tf2_msgs/TFMessage", {"transforms": [tf]}))
     for n, t, q in zip(det_ns.tolist(), cam_tag.t_m.tolist(), cam_tag.q.tolist()):
         det = _detection_dict(style, n, f["camera"], tag_id, tag_size_m, family, t, q)
         header = {"stamp": rm.stamp_dict(n), "frame_id": f["camera"]}
         events.append((n, topic, msgtype, {"header": header, "detections": [det]}))
         if style == "apriltag_msgs":
-            tf = _transform_dict(f["camera"], tag_frame, n, t, q)
+            tf = rm.transform_stamped(f["camera"], tag_frame, n, t, q)
             events.append((n, "/tf", "tf2_msgs/TFMessage", {"transforms": [tf]}))
     if empty_t_s is not None and len(empty_t_s):
         for n in _stamps_ns(source, empty_t_s, "empty detections").tolist():

@@ -235,12 +235,7 @@ def _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair, tags: dict
     truth = {}
     if truth_topic is not None:
         tt, tc, tcounts = _log_series(log, truth_topic, tf_pair, log_time, tags)
-        truth = dict(
-            truth_t_s=tt,
-            truth_xy_m=tc["xy_m"],
-            truth_yaw_rad=tc["yaw_rad"],
-            truth_v_mps=tc["v_mps"],
-        )
+        truth = dict(truth_t_s=tt, **{f"truth_{k}": tc[k] for k in ("xy_m", "yaw_rad", "v_mps")})
         meta["truth_type"] = rm.full_type(log.topics[truth_topic].msgtype)
         meta.update({f"truth_{k}": v for k, v in tcounts.items()})
     return Drive(t_s=t_s, xy_m=cols["xy_m"], yaw_rad=cols["yaw_rad"], **truth, meta=meta)
@@ -274,10 +269,7 @@ def _drive_from_table(path, rate_hz) -> Drive:
     elif rate_hz is not None:
         raise InputError(path, "--rate given but the CSV has a time column", "no --rate")
     cols = {"t": t, "xy_m": np.column_stack([x, y])}
-    if yaw is not None:
-        cols["yaw_rad"] = yaw
-    if v is not None:
-        cols["v_mps"] = v
+    cols |= {k: c for k, c in (("yaw_rad", yaw), ("v_mps", v)) if c is not None}
     finite = [k for k in cols if k != "v_mps"]
     # Rows with a non-finite stamp are dropped before the stamps become integers.
     t_ns = np.zeros(len(t), dtype=np.int64)

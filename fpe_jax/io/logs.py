@@ -338,8 +338,6 @@ class Log:
                 for _, msgtype, log_ns, msg in self.messages([topic])
                 for row in pose_rows(msgtype, msg, log_ns, tf_pair)
             ]
-        from mcap_ros2.decoder import DecoderFactory
-
         channels = {i: c for i, c in self._summary.channels.items() if c.topic == topic}
         decoders: dict = {}
         with _library_errors(self.source, self.format, self._mcap_files):
@@ -351,54 +349,45 @@ class Log:
                 name = self._schema_name(c)
                 row = cdr_pose_row(name, data, log_ns) if c.message_encoding == "cdr" else None
                 if row is None:  # another encoding or unexpected bytes: the full decoder says
-                    if channel not in decoders:
-                        schema = self._summary.schemas.get(c.schema_id)
-                        decoders[channel] = DecoderFactory().decoder_for(
-                            c.message_encoding, _with_definition(schema)
-                        )
-                    if decoders[channel] is None:
-                        raise InputError(
-                            self.source,
-                            f"topic {topic!r} is encoded as {c.message_encoding!r} with "
-                            f"schema {name or 'none'}",
-                            "ROS 2 CDR messages with a ros2msg schema",
-                        )
-                    rows.extend(pose_rows(name, decoders[channel](data), log_ns, tf_pair))
+                    schema = self._summary.schemas.get(c.schema_id)
+                    msg = self._decoder(decoders, schema, c)(data)
+                    rows.extend(pose_rows(name, msg, log_ns, tf_pair))
                 else:
                     rows.append(row)
         return rows
 
+    def _decoder(self, decoders: dict, schema, channel):
+        """The decoder of an MCAP channel's messages, made once per channel id (in `decoders`);
+        InputError when there is none (e.g. protobuf, JSON or ROS 1 MCAP)."""
+        from mcap_ros2.decoder import DecoderFactory
+
+        if channel.id not in decoders:
+            decoders[channel.id] = DecoderFactory().decoder_for(
+                channel.message_encoding, _with_definition(schema)
+            )
+        if decoders[channel.id] is None:
+            name = rm.short_type(schema.name) if schema is not None else ""
+            raise InputError(
+                self.source,
+                f"topic {channel.topic!r} is encoded as {channel.message_encoding!r} with "
+                f"schema {name or 'none'}",
+                "ROS 2 CDR messages with a ros2msg schema",
+            )
+        return decoders[channel.id]
+
     def _mcap_messages(self, topics):
         """(schema, channel, message, decode) of an MCAP file's messages; decode() -> message."""
         from mcap.reader import make_reader
-        from mcap_ros2.decoder import DecoderFactory
 
-        factory, decoders = DecoderFactory(), {}
-
-        def decoder(schema, channel):
-            if channel.id not in decoders:
-                decoders[channel.id] = factory.decoder_for(
-                    channel.message_encoding, _with_definition(schema)
-                )
-            if decoders[channel.id] is None:  # e.g. protobuf, JSON or ROS 1 MCAP
-                name = rm.short_type(schema.name) if schema is not None else ""
-                raise InputError(
-                    self.source,
-                    f"topic {channel.topic!r} is encoded as "
-                    f"{channel.message_encoding!r} with schema {name or 'none'}",
-                    "ROS 2 CDR messages with a ros2msg schema",
-                )
-            return decoders[channel.id]
-
+        decoders: dict = {}
         with open(self._target, "rb") as f:
             reader = make_reader(f, validate_crcs=True)
             for schema, channel, message in reader.iter_messages(topics):
-                yield (
-                    schema,
-                    channel,
-                    message,
-                    lambda s=schema, c=channel, m=message: decoder(s, c)(m.data),
-                )
+
+                def decode(s=schema, c=channel, m=message):
+                    return self._decoder(decoders, s, c)(m.data)
+
+                yield schema, channel, message, decode
 
     def _raw(self, topics, decode: bool) -> Iterator[tuple[str, str, int, Any]]:
         if self.format == "mcap":
@@ -481,15 +470,12 @@ def pose_rows(msgtype: str, msg: Any, log_ns: int, tf_pair: tuple[str, str]) -> 
     A TFMessage gives one row per transform from tf_pair[0] to tf_pair[1] (often none).
     """
     if msgtype in TF_TYPES:
-        out = []
-        for tr in msg.transforms:
-            if _same_frame(tr.header.frame_id, tf_pair[0]) and _same_frame(
-                tr.child_frame_id, tf_pair[1]
-            ):
-                out.append(
-                    _row(tr.header.stamp, log_ns, tr.transform.translation, tr.transform.rotation)
-                )
-        return out
+        parent, child = tf_pair
+        return [
+            _row(tr.header.stamp, log_ns, tr.transform.translation, tr.transform.rotation)
+            for tr in msg.transforms
+            if _same_frame(tr.header.frame_id, parent) and _same_frame(tr.child_frame_id, child)
+        ]
     if msgtype == "geometry_msgs/PoseStamped":
         pose, v = msg.pose, np.nan
     elif msgtype == "geometry_msgs/PoseWithCovarianceStamped":

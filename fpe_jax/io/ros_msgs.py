@@ -181,6 +181,16 @@ def stamp_dict(ns: int) -> dict[str, int]:
     return {"sec": sec, "nanosec": nanosec}
 
 
+def transform_stamped(parent: str, child: str, ns: int, t, q) -> dict:
+    """geometry_msgs/TransformStamped fields of T_parent_child at stamp ns [ns]: translation t
+    (x, y, z) [m] and rotation q (x, y, z, w)."""
+    return {
+        "header": {"stamp": stamp_dict(ns), "frame_id": parent},
+        "child_frame_id": child,
+        "transform": {"translation": dict(zip("xyz", t)), "rotation": dict(zip("xyzw", q))},
+    }
+
+
 def yaw_to_quaternion(yaw_rad: float) -> dict[str, float]:
     """Planar rotation about z. A NaN yaw (unknown heading) becomes the all-zero quaternion,
     which `quaternion_to_yaw` maps back to NaN, so "no orientation" survives a round trip."""

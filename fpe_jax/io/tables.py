@@ -42,10 +42,9 @@ class Table:
 
     def column(self, names: tuple[str, ...], what: str, required: bool = True) -> np.ndarray | None:
         """The (rows,) column whose header is one of `names`; None (or InputError) if absent."""
-        if self.header is not None:
-            for name in names:
-                if name in self.header:
-                    return self.data[:, self.header.index(name)]
+        found = [n for n in names if n in (self.header or ())]
+        if found:
+            return self.data[:, self.header.index(found[0])]
         if required:
             raise InputError(
                 self.source,
@@ -64,10 +63,9 @@ def _is_number(cell: str) -> bool:
 
 
 def _splitter(line: str):
-    if ";" in line:
-        return lambda s: [c.strip() for c in s.split(";")]
-    if "," in line:
-        return lambda s: [c.strip() for c in s.split(",")]
+    for sep in (";", ","):
+        if sep in line:
+            return lambda s, sep=sep: [c.strip() for c in s.split(sep)]
     return str.split
 
 

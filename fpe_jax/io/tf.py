@@ -24,9 +24,8 @@ from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io.logs import TF_TYPES
 
-STATIC_SUFFIX = (
-    "tf_static"  # /tf_static, /robot/tf_static: static transforms; other TF topics: dynamic
-)
+# /tf_static, /robot/tf_static: static transforms; other TF topics: dynamic
+STATIC_SUFFIX = "tf_static"
 
 
 # --- quaternions and rigid transforms -------------------------------------------------------------
@@ -149,7 +148,8 @@ class Rigid:
 # --- the buffer ---------------------------------------------------------------------------------
 
 
-def _fmt_s(ns: int) -> str:
+def format_stamp(ns: int) -> str:
+    """A stamp [ns] as error messages show it: seconds to the millisecond."""
     return f"{float(rm.ns_to_seconds([ns])[0]):.3f} s"
 
 
@@ -242,7 +242,7 @@ class TfBuffer:
             k = int(np.argmax(bad))
             raise InputError(
                 self.source,
-                f"TF {parent} -> {child}: transform at {_fmt_s(stamps[k])} has a zero or "
+                f"TF {parent} -> {child}: transform at {format_stamp(stamps[k])} has a zero or "
                 "non-finite rotation or translation",
                 "finite translations and non-zero quaternions",
             )
@@ -266,15 +266,8 @@ class TfBuffer:
                 for tr in msg.transforms:
                     p, r = tr.transform.translation, tr.transform.rotation
                     stamp = int(tr.header.stamp.sec) * 1_000_000_000 + int(tr.header.stamp.nanosec)
-                    yield (
-                        tr.header.frame_id,
-                        tr.child_frame_id,
-                        stamp,
-                        (p.x, p.y, p.z),
-                        (r.x, r.y, r.z, r.w),
-                        static,
-                        topic,
-                    )
+                    frames = (tr.header.frame_id, tr.child_frame_id)
+                    yield (*frames, stamp, (p.x, p.y, p.z), (r.x, r.y, r.z, r.w), static, topic)
 
         return cls(rows(), source=log.source)
 
@@ -409,12 +402,12 @@ class TfBuffer:
         else:
             k = int(bad.max())
             where = f"{(k - int(e.stamps_ns[-1])) * 1e-9:.3f} s after its last transform"
-        span = f"{len(e.stamps_ns)} transforms in [{_fmt_s(e.stamps_ns[0])}, "
-        span += f"{_fmt_s(e.stamps_ns[-1])}]"
+        span = f"{len(e.stamps_ns)} transforms in [{format_stamp(e.stamps_ns[0])}, "
+        span += f"{format_stamp(e.stamps_ns[-1])}]"
         raise InputError(
             self.source,
             f"{len(bad)} of {len(stamps_ns)} {what} lie outside the TF buffer of {e.name} "
-            f"({span} on {', '.join(e.topics)}): the one at {_fmt_s(k)} is {where}",
+            f"({span} on {', '.join(e.topics)}): the one at {format_stamp(k)} is {where}",
             "stamps within the transforms' time span (no extrapolation)"
             + (f"; or {remedy}" if remedy else ""),
         )

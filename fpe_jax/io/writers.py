@@ -197,14 +197,8 @@ def _tf_events(source, spec: dict) -> list:
     parent, child = spec.get("parent", "map"), spec.get("child", "other_base_link")
     events = []
     for n, (x, y), a in zip(ns, xy.tolist(), yaw.tolist()):
-        tr = {
-            "header": {"stamp": rm.stamp_dict(n), "frame_id": parent},
-            "child_frame_id": child,
-            "transform": {
-                "translation": {"x": x, "y": y, "z": 0.0},
-                "rotation": rm.yaw_to_quaternion(a),
-            },
-        }
+        q = rm.yaw_to_quaternion(a).values()
+        tr = rm.transform_stamped(parent, child, n, (x, y, 0.0), q)
         events.append((int(n), topic, "tf2_msgs/TFMessage", {"transforms": [tr]}))
     return events
 
