@@ -548,8 +548,9 @@ def fit_markdown(fit: dict, summary: dict) -> list[str]:
             f"| SciPy L-BFGS-B (FD) | {sp['wall_s']:.2f} | {sp['loss']:.5g} | "
             f"{sp['loss_evaluations']} |",
             "",
-            f"Speed-up {summary['fit_speedup_vs_scipy']:.1f}x (target >= 20x at an equal or "
-            f"lower loss: {_met(summary['target_20x_met'])}). "
+            f"Speed-up {summary['fit_speedup_vs_scipy']:.1f}x with compilation, "
+            f"{summary.get('fit_warm_speedup_vs_scipy', float('nan')):.1f}x warm (target >= 20x "
+            f"warm at an equal or lower loss: {_met(summary['target_20x_met'])}). "
             f"The NumPy port evaluates to {sp['numpy_loss_at_jax_solution']:.6g} at the JAX "
             f"solution (JAX: {r['loss']:.6g}); SciPy stopped with: {sp['message']}.",
         ]
@@ -826,7 +827,8 @@ def rss_child(argv: list[str]) -> None:
     t0 = time.perf_counter()
     rc = fpe_main(argv)
     wall = time.perf_counter() - t0
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+    # VmHWM: ru_maxrss carries over the parent's peak (4.8 GB after the batch benchmarks)
+    peak_mb = _vm_hwm_mb() or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(json.dumps({"rc": rc, "wall_s": wall, "peak_rss_mb": peak_mb}))
     sys.exit(rc)
 
@@ -898,7 +900,7 @@ def fullsize_markdown(fs: dict | None) -> list[str]:
         f"{v['min']:.1f}-{v['max']:.1f} m/s (median {v['median']:.1f}), "
         f"{fs['n_observations']} detections and {fs['n_truth']} truth poses at 25 Hz. Each "
         "command in a fresh process (compilation included); median wall time, largest peak RSS "
-        f"(`ru_maxrss`). Target: fit <= {fs['target']['fit_wall_s']:.0f} s and "
+        f"(VmHWM). Target: fit <= {fs['target']['fit_wall_s']:.0f} s and "
         f"<= {fs['target']['fit_peak_rss_mb']:.0f} MB: **{_met(fs['met'])}**.{load}",
         "",
         "| command | wall s | peak RSS MB |",
@@ -1032,9 +1034,10 @@ def write_markdown(results: dict, path: Path) -> None:
         lines += [
             f"| fit of a {h['fit_minutes']:g}-minute drive, incl. compile (median) | "
             f"{h['fit_wall_s']:.2f} s | <= 10 s ({_met(h['target_fit_10s_met'])}) |",
-            f"| fit speed-up vs SciPy L-BFGS-B (loss {h['fit_loss_vs_scipy']:+.1e} relative) | "
-            f"{h['fit_speedup_vs_scipy']:.1f} x | >= 20 x at an equal or lower loss "
-            f"({_met(h['target_20x_met'])}) |",
+            f"| fit speed-up vs SciPy L-BFGS-B, with compilation / warm (loss "
+            f"{h['fit_loss_vs_scipy']:+.1e} relative) | {h['fit_speedup_vs_scipy']:.1f} x / "
+            f"{h.get('fit_warm_speedup_vs_scipy', float('nan')):.1f} x | >= 20 x warm at an "
+            f"equal or lower loss ({_met(h['target_20x_met'])}) |",
         ]
     lines.append(
         f"| runner update, median | {h['runner_median_ms']:.3f} ms | <= 0.2 ms "
