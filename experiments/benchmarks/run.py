@@ -1136,7 +1136,7 @@ def main() -> None:
     ap.add_argument(
         "--commands-only",
         action="store_true",
-        help="only the cold/warm command timings (into commands.json / commands.md)",
+        help="only the cold/warm command timings (= --only commands)",
     )
     ap.add_argument("--runs", type=int, default=5, help="runs per command timing (5)")
     ap.add_argument(
@@ -1147,7 +1147,9 @@ def main() -> None:
     ap.add_argument("--fit-child", type=float, metavar="MINUTES", help=argparse.SUPPRESS)
     ap.add_argument("--with-scipy", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument(
-        "--only", choices=("fullsize",), help="run one section and merge it into results.json"
+        "--only",
+        choices=("fullsize", "commands"),
+        help="run one section and merge it into results.json",
     )
     args = ap.parse_args()
     if args.peak_memory_child:
@@ -1158,15 +1160,13 @@ def main() -> None:
         return
     out_dir = Path(args.out_dir)
     fit_minutes = [float(m) for m in args.command_fit_minutes.split(",") if m]
-    if args.commands_only:
-        cmd = bench_commands(args.runs, fit_minutes)
-        cmd["machine"], cmd["load_avg"] = machine(), load_average()
-        (out_dir / "commands.json").write_text(json.dumps(cmd, indent=2) + "\n")
-        (out_dir / "commands.md").write_text("\n".join(commands_markdown(cmd, {})) + "\n")
-        return
-    if args.only == "fullsize":  # one section, merged into the committed results
+    if args.only or args.commands_only:  # one section, merged into the committed results
         results = json.loads((out_dir / "results.json").read_text())
-        results["fullsize"] = bench_fullsize(args.quick)
+        if args.only == "fullsize":
+            results["fullsize"] = bench_fullsize(args.quick)
+        else:
+            results["commands"] = bench_commands(args.runs, fit_minutes)
+            results["commands"]["load_avg"] = load_average()
         (out_dir / "results.json").write_text(json.dumps(results, indent=2) + "\n")
         write_markdown(results, out_dir / "results.md")
         return
