@@ -6,9 +6,12 @@ ds/dt. These samples are spread onto P points evenly spaced in arc length (linea
 smoothed with a Gaussian kernel in arc length (circular on loops): a smooth periodic function
 whose smoothness is the kernel width. A point's coverage is the kernel-weighted sample count,
 capped at 1. Where the fit drives never went (coverage 0) the profile is a prior from the
-track's shape: ridge regressions of the offset on the centerline's curvature, and of the log
-speed on its magnitude, each smoothed at a few widths and read a few metres behind and ahead
-(braking comes before a corner, the apex on its inside), fitted on the covered points. There the
+track's shape, fitted on the covered points: on loops the offset is a ridge regression on the
+smoothest (least-curvature) line within the room the car used (`min_curvature_offset`: a racing
+car's line on a stretch it has not been seen on); on open paths, and for the log speed, ridge
+regressions on the centerline's curvature (its magnitude for the speed), smoothed at a few
+widths and read a few metres behind and ahead (braking comes before a corner, the apex on its
+inside). There the
 rollout keeps the car's own offset, following only the prior's change, and the prior's speed
 ratio (`fpe_jax.rollout.rollout_frenet`). With less than PRIOR_MIN_COVERED_M covered the prior
 is the covered mean (no change: the car's offset and speed held).
@@ -42,6 +45,12 @@ PRIOR_RIDGE = 0.1
 PRIOR_MIN_COVERED_M = 20.0
 PRIOR_FOLDS = 5  # held-out runs that set how far the prior's variation is trusted
 PRIOR_LAG_M = 4.0  # ... judged on changes over this distance [m] (about 1 s of driving)
+# the smoothest line within the car's room (loops): ridge on the offset [1/m^4] (fixes the mean
+# offset, which curvature alone leaves free), ADMM penalty [1/m^4] (the curvature weight of a
+# ~20 m wavelength: converges within 1000 steps to ~2 cm of the exact QP) and steps
+MIN_CURV_RIDGE = 1e-4
+MIN_CURV_RHO = 0.01
+MIN_CURV_ITERS = 1000
 
 
 @aot.jit
@@ -136,22 +145,26 @@ def learn_line(
     return {"line_offset_m": offset, "line_speed_mps": speed, "line_coverage": coverage}
 
 
-def _curvature_features(track: Track, n: int, spacing: float, magnitude: bool) -> np.ndarray:
-    """(n, F) standardised features of the centerline's curvature at the profile's n points: a
-    constant, then the (signed or absolute) curvature smoothed at each PRIOR_SMOOTH_M and read
-    at each PRIOR_SHIFTS_M."""
+def _curvature(track: Track, n: int, spacing: float) -> np.ndarray:
+    """The centerline's curvature (n,) [1/m] at the profile's n points."""
     heading = np.asarray(track.heading_rad)
     turn = np.angle(
         np.exp(1j * np.diff(heading, append=heading[:1] if track.closed else heading[-1:]))
     )
     ds = float(track.ds_m)
-    at = np.arange(n) * spacing
-    kappa = np.interp(
-        at,
+    return np.interp(
+        np.arange(n) * spacing,
         (np.arange(len(heading)) + 0.5) * ds,
         turn / ds,
         period=float(track.length_m) if track.closed else None,
     )
+
+
+def _curvature_features(track: Track, n: int, spacing: float, magnitude: bool) -> np.ndarray:
+    """(n, F) standardised features of the centerline's curvature at the profile's n points: a
+    constant, then the (signed or absolute) curvature smoothed at each PRIOR_SMOOTH_M and read
+    at each PRIOR_SHIFTS_M."""
+    kappa = _curvature(track, n, spacing)
     cols = [np.ones(n)]
     for width in PRIOR_SMOOTH_M:
         k = _smooth(kappa, track.closed, width / spacing)
@@ -159,10 +172,39 @@ def _curvature_features(track: Track, n: int, spacing: float, magnitude: bool) -
         for shift in PRIOR_SHIFTS_M:
             i = np.arange(n) + int(round(shift / spacing))
             cols.append(k[i % n] if track.closed else k[np.clip(i, 0, n - 1)])
-    feats = np.stack(cols, axis=1)
+    return _standardised(np.stack(cols, axis=1))
+
+
+def _standardised(feats: np.ndarray) -> np.ndarray:
+    """feats (n, F) with every column but the constant (column 0) scaled to unit deviation."""
     scale = feats.std(axis=0)
     scale[0] = 1.0
     return feats / np.where(scale > 1e-12, scale, 1.0)
+
+
+def min_curvature_offset(kappa_pm: np.ndarray, spacing_m: float, limit_m: float) -> np.ndarray:
+    """Offset d (P,) [m] from a closed centerline of the smoothest line within |d| <= limit_m.
+
+    The line's curvature is, to first order in d, kappa + d'' (second difference over spacing_m);
+    d minimises sum (kappa + d'')^2 + MIN_CURV_RIDGE sum d^2 within the bound, by ADMM. The
+    second difference on a loop is circulant, so each ADMM step solves its linear system with one
+    FFT pair: O(P log P) per step on any track length.
+
+    Args:
+        kappa_pm: (P,) centerline curvature [1/m] at P points spacing_m [m] apart on a loop.
+        limit_m: bound on |d| [m] (the room the car uses).
+    """
+    n = len(kappa_pm)
+    # eigenvalues of the circulant second difference (symmetric: its own transpose)
+    lam = (2.0 * np.cos(2.0 * np.pi * np.arange(n) / n) - 2.0) / spacing_m**2
+    diag = lam**2 + MIN_CURV_RIDGE
+    rhs = -np.fft.ifft(np.fft.fft(kappa_pm) * lam).real
+    z, u = np.zeros(n), np.zeros(n)
+    for _ in range(MIN_CURV_ITERS):
+        d = np.fft.ifft(np.fft.fft(rhs + MIN_CURV_RHO * (z - u)) / (diag + MIN_CURV_RHO)).real
+        z = np.clip(d + u, -limit_m, limit_m)
+        u += d - z
+    return z
 
 
 def _ridge(feats: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -207,8 +249,15 @@ def _prior(track: Track, offset, speed, coverage, spacing: float) -> tuple[np.nd
     n = len(offset)
     lim = np.abs(offset[seen]).max()
     lag = max(int(round(PRIOR_LAG_M / spacing)), 1)
-    feats = _curvature_features(track, n, spacing, False)
-    prior_offset = _shrunk_fit(feats, offset, coverage, lag)
+    if track.closed:
+        # the smoothest line within the car's room: its weight (a plain ridge fit, whose scale
+        # the data set; no further shrinking) carries the car's line onto unseen stretches
+        smooth = min_curvature_offset(_curvature(track, n, spacing), spacing, lim)
+        feats = _standardised(np.stack([np.ones(n), smooth], axis=1))
+        prior_offset = feats @ _ridge(feats, offset, coverage)
+    else:
+        feats = _curvature_features(track, n, spacing, False)
+        prior_offset = _shrunk_fit(feats, offset, coverage, lag)
     feats = _curvature_features(track, n, spacing, True)
     log_v = _shrunk_fit(feats, np.log(np.maximum(speed, 1e-3)), has_v, lag)
     v_seen = speed[seen & (speed > 0)]
