@@ -65,7 +65,7 @@ def test_min_curvature_offset_solves_its_problem():
 
 def test_prior_carries_a_racing_line_onto_unseen_stretches(shared_data):
     """Silverstone's raceline offsets seen on the first 40 % of the lap: the prior predicts the
-    other 60 % within 0.2 m RMS (the centerline-curvature regression: 0.55 m; zero: 0.60 m)."""
+    other 60 % within 0.2 m RMS (the centerline-curvature regression: 0.48 m)."""
     from fpe_jax.io import load_waypoints
     from fpe_jax.line import _prior
 
