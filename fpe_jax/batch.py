@@ -117,10 +117,11 @@ class ProjectionGrid(eqx.Module):
             (2^31 - 1) no cell has.
         candidates: (R + 1, K) int32 candidate segments of each complete cell (lists padded by
             repeating their first candidate; the sentinel's row is zeros).
-        geometry: (8, S) rows a_x, a_y, ab_x, ab_y, ab_x / |ab|^2, ab_y / |ab|^2, s_a, ds for
-            each segment a -> b, with s_a the arc length [m] at a and ds the track's nominal
-            spacing [m]. One row per quantity: a query gathers K scalars from each (XLA on CPU
-            fuses scalar gathers into the arithmetic; gathering K rows of 8 took 1.3x as long).
+        geometry: (7, S) rows a_x, a_y, ab_x, ab_y, ab_x / |ab|^2, ab_y / |ab|^2, s_a for each
+            segment a -> b, with s_a the arc length [m] at a. One row per quantity: a query
+            gathers K scalars from each (XLA on CPU fuses scalar gathers into the arithmetic;
+            gathering K rows of all quantities took 1.3x as long).
+        ds_m: () the track's nominal spacing [m], the arc length of every segment.
         shape: static (nx, ny).
         n_complete: static R.
     """
@@ -129,7 +130,8 @@ class ProjectionGrid(eqx.Module):
     cell_m: Float[Array, ""]
     keys: Int[Array, " R1"]
     candidates: Int[Array, "R1 K"]
-    geometry: Float[Array, "8 S"]
+    geometry: Float[Array, "7 S"]
+    ds_m: Float[Array, ""]
     shape: tuple[int, int] = eqx.field(static=True)
     n_complete: int = eqx.field(static=True)
 
@@ -217,15 +219,14 @@ class ProjectionGrid(eqx.Module):
         table = np.vstack([seg[pick], np.zeros((1, k), np.int64)]).astype(np.int32)
         ab = b - a
         inv = ab / np.maximum(np.sum(ab * ab, axis=1, keepdims=True), 1e-12)
-        geo = np.concatenate(
-            [a.T, ab.T, inv.T, (np.arange(n_seg) * ds)[None], np.full((1, n_seg), ds)], axis=0
-        )
+        geo = np.concatenate([a.T, ab.T, inv.T, (np.arange(n_seg) * ds)[None]], axis=0)
         return cls(
             origin_m=jnp.asarray(origin),
             cell_m=jnp.asarray(float(cell_m)),
             keys=jnp.asarray(np.append(key[rows], 2**31 - 1).astype(np.int32)),
             candidates=jnp.asarray(table),
             geometry=jnp.asarray(geo),
+            ds_m=jnp.asarray(ds),
             shape=(int(nx), int(ny)),
             n_complete=int(len(rows)),
         )
@@ -248,12 +249,12 @@ class ProjectionGrid(eqx.Module):
         """
         row, ok = self.locate(p_m)
         cand = self.candidates[row]  # (K,)
-        ax, ay, abx, aby, ix, iy, s_a, ds = (self.geometry[q][cand] for q in range(8))
+        ax, ay, abx, aby, ix, iy, s_a = (self.geometry[q][cand] for q in range(7))
         dx, dy = p_m[0] - ax, p_m[1] - ay
         t = jnp.clip(dx * ix + dy * iy, 0.0, 1.0)
         ex, ey = dx - t * abx, dy - t * aby
         d2 = ex * ex + ey * ey
-        s = s_a + t * ds
+        s = s_a + t * self.ds_m
         # The nearest distance, then the least s at it: among equal distances the smallest s is
         # the lowest index, as argmin picks in Track.project. Not argmin (XLA CPU runs it as a
         # slow variadic reduce, 2.4x slower here), and the minima as chains of K elementwise
