@@ -176,6 +176,24 @@ def test_state_input_keeps_given_hints(loop, loop_grid):
     np.testing.assert_allclose(out, ref, atol=1e-9)
 
 
+def test_chunks_with_every_hint_given_equal_predict_batch(loop, loop_grid):
+    """Chunks whose cars all carry hints skip the grid; cars off the grid then need no
+    exhaustive search, and a chunk with one unknown hint still projects it."""
+    cars = _cars(loop, N_CARS, seed=7)
+    cars[:3, :2] = [[100.0, 100.0], [0.0, 0.0], [-50.0, 3.0]]  # off the grid
+    exact = _exact_states(loop, cars)
+    hint = np.asarray(exact.s_m).copy()
+    hint[-1] = np.nan  # the last chunk has one car to project
+    st = dataclasses.replace(states_from_array(cars), s_m=hint)
+    info = {}
+    out = predict_chunked(
+        presets["default"], st, loop, dtype="float64", grid=loop_grid, chunk=CHUNK, info=info
+    )
+    assert info["n_off_grid"] == 0
+    ref = np.asarray(predict_batch(presets["default"], exact, loop))
+    np.testing.assert_allclose(out, ref, atol=1e-9)  # other shapes: XLA may round differently
+
+
 def test_single_car_and_empty_batch(loop, loop_grid):
     info = {}
     one = predict_chunked(presets["default"], _cars(loop, 1), loop, grid=loop_grid, info=info)
