@@ -12,7 +12,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
-from helpers import assert_trees_close
 from test_export import FRESH  # the fresh-process loader script of the export tests
 
 from fpe_jax import aot, io, spec
@@ -340,27 +339,6 @@ def test_residual_gradient_matches_finite_differences(oval_drives):
     fd = (loss(x0 + h) - loss(x0 - h)) / (2 * h)
     assert float(g) == pytest.approx(float(fd), rel=1e-5)
     assert abs(float(g)) > 1e-3
-
-
-def test_bfgs_objective_derivative_equals_autodiff_of_the_loss(oval_drives):
-    """`_objective`'s hand-written JVP (what BFGS linearizes) and the gradient taken through it
-    equal plain autodiff of `_loss`."""
-    fit_d, _, track = oval_drives
-    init = presets["default"]
-    data = E.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
-    raw = F.unconstrain(init)
-    free, fixed = eqx.partition(raw, F._free_mask(raw, F.DEFAULT_FIT))
-    xy, mask = jnp.asarray(data.targets.xy_m), jnp.asarray(data.targets.mask)
-    args = (fixed, [(data.states(init), track, xy, mask)], F.HUBER_M)
-    tangent = jax.tree.map(lambda x: jnp.linspace(-1.0, 1.0, x.size).reshape(x.shape), free)
-    f_auto, d_auto = jax.jvp(lambda y: F._loss(y, args), (free,), (tangent,))
-    f_hand, lin = jax.linearize(lambda y: F._objective(y, args), free)
-    assert float(f_hand) == pytest.approx(float(f_auto), rel=1e-14)
-    assert float(lin(tangent)) == pytest.approx(float(d_auto), rel=1e-10)
-    assert abs(float(d_auto)) > 1e-3
-    g_auto = jax.grad(lambda y: F._loss(y, args))(free)
-    g_hand = jax.jit(jax.grad(lambda y: F._objective(y, args)))(free)
-    assert_trees_close(g_hand, g_auto, rtol=1e-10, atol=1e-12)
 
 
 def test_summarize_and_coverage_exact():
