@@ -133,7 +133,7 @@ def markdown(results, dt_s: float, wall_cpu_s: tuple[float, float], png: str) ->
         + (
             "the line model (the car's own line and speed profile learned from the fit drive, a "
             "Frenet rollout on it; where the fit drive never went it keeps the car's own "
-            "offset from a prior profile fitted to the track's curvature, and its speed ratio)"
+            "offset from a prior profile fitted to the track's shape, and its speed ratio)"
             if MODEL == "line"
             else f"the {MODEL} model"
         )

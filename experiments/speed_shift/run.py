@@ -95,7 +95,7 @@ def main() -> None:
         f"Per track: line-model configs (`fpe fit`'s default) fitted on a {FIT_S:g} s drive at "
         f"speed factor {FAST} (fast fit), on a {FIT_S:g} s drive at {SLOW} (slow fit, {FIT_S:g} "
         f"s: it covers less of the track; there the line model keeps the car's own offset from "
-        f"a prior profile fitted to the track's curvature and follows its speed ratio) and on a "
+        f"a prior profile fitted to the track's shape and follows its speed ratio) and on a "
         f"drive at {SLOW} over the fast one's distance ({FIT_S * FAST / SLOW:.0f} s), all scored "
         f"on a separate {TEST_S:g} s test drive at {FAST} (seed 2); latency 0.3 s. Ratio = "
         "FDE(slow fit) / FDE(fast fit); the acceptance asks <= 1.15 on at least three tracks, "
