@@ -259,9 +259,12 @@ class ProjectionGrid(eqx.Module):
         # the lowest index, as argmin picks in Track.project. Not argmin (XLA CPU runs it as a
         # slow variadic reduce, 2.4x slower here), and the minima as chains of K elementwise
         # minimums rather than reductions over a trailing axis of K (1.2x faster vmapped).
-        d2_min = functools.reduce(jnp.minimum, [d2[k] for k in range(d2.shape[0])])
-        at_min = jnp.where(d2 <= d2_min, s, jnp.inf)
-        return functools.reduce(jnp.minimum, [at_min[k] for k in range(d2.shape[0])]), ok
+        return _chained_min(jnp.where(d2 <= _chained_min(d2), s, jnp.inf)), ok
+
+
+def _chained_min(x: Float[Array, " K"]) -> Float[Array, ""]:
+    """min(x) as a chain of K elementwise minimums (K is static and small)."""
+    return functools.reduce(jnp.minimum, [x[k] for k in range(x.shape[0])])
 
 
 def _min_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
