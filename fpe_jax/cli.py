@@ -16,7 +16,7 @@ from pathlib import Path
 
 from fpe_jax import spec  # JAX-free, so `fpe --help` stays fast
 from fpe_jax.errors import InputError
-from fpe_jax.spec import FIT_MODELS, FIT_NAMES, SOLVERS
+from fpe_jax.spec import ESTIMATORS, FIT_MODELS, FIT_NAMES, SOLVERS
 
 
 def _add_log_flags(p: argparse.ArgumentParser) -> None:
@@ -214,7 +214,13 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--fit",
         help=f"comma list of {','.join(FIT_NAMES)} (default: the model's own: line "
-        "delay,tau,smoothing; naming filter runs the line model's Kalman estimator)",
+        "delay,tau,smoothing,filter; filter only with the kalman estimator)",
+    )
+    p.add_argument(
+        "--estimator",
+        choices=ESTIMATORS,
+        help="the line model's state estimator: kalman (default; a Kalman filter in the track "
+        "frame) or theil-sen (robust lines through the recent observations)",
     )
     p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
     _add_settings_flags(p, "saved in the config; a recipe may set them in [settings]")
@@ -367,6 +373,7 @@ def _fit_inputs(args, say=lambda msg: None):
 
     # the flags given override the recipe's values, or the defaults
     flags = dict(holdout=args.holdout, blend=args.blend, model=args.model, solver=args.solver)
+    flags["estimator"] = args.estimator
     flags = {k: v for k, v in flags.items() if v is not None}
     if len(args.logs) == 1 and args.logs[0].endswith(".toml"):
         r = load_recipe(args.logs[0])
@@ -376,6 +383,7 @@ def _fit_inputs(args, say=lambda msg: None):
             blend=r.blend,
             model=r.model,
             solver=r.solver,
+            estimator=r.estimator,
             settings=r.settings,
             waypoints=r.waypoints,
         )
@@ -394,6 +402,7 @@ def _fit_inputs(args, say=lambda msg: None):
 
     drives, tests = read(args.logs, "drive"), read(args.test or [], "test drive")
     opts = dict(holdout=0.3, fit=None, blend="auto", model=None, solver=None, settings={})
+    opts["estimator"] = None
     return drives, tests, args.out, opts | {"waypoints": args.waypoints} | flags
 
 
@@ -461,6 +470,7 @@ def cmd_fit(args) -> int:
             test_drives=[d for d, _, _ in tests] or None,
             test_tracks=test_tracks,
             solver=solver_named(opts["solver"] or SOLVERS[0], "--solver"),
+            estimator=opts["estimator"] or spec.LINE_ESTIMATOR,
             init=init,
             progress=say,
         )
@@ -497,7 +507,7 @@ def cmd_evaluate(args) -> int:
         say("reading the drive and waypoints")
         params, waypoints = _load_predictor(args)
         cfg = read_config(args.config) if args.config else {}
-        cov = (cfg.get("uncertainty") or {}).get("cov_m2")
+        unc = cfg.get("uncertainty")
         # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
         drive, wp, _, _ = local_frame(_load_drive_from_args(args), waypoints.xy_m)
         track = Track.from_waypoints(wp)
@@ -506,7 +516,7 @@ def cmd_evaluate(args) -> int:
         if len(data.targets.rows) == 0:
             raise InputError(args.log, "no prediction has a target", "a longer drive")
         say(f"predicting {len(data.targets.rows)} observations and scoring them")
-        metrics = evaluate(params, [data], cov)
+        metrics = evaluate(params, [data], uncertainty=unc)
     from fpe_jax.report import format_table
 
     name = args.config or args.preset
@@ -514,7 +524,7 @@ def cmd_evaluate(args) -> int:
         print(json.dumps(_finite_or_null(metrics), indent=2, allow_nan=False))
     else:
         print(format_table({name: metrics}))
-        if cov is not None:
+        if unc is not None:
             print(_coverage_line(metrics))
     return 0
 
@@ -576,15 +586,13 @@ def cmd_predict(args) -> int:
     with _progress(args) as say:
         _start_jax(args, say)
         from fpe_jax.drive import local_frame
-        from fpe_jax.evaluate import covariance_map, path_heading
+        from fpe_jax.evaluate import covariance_map, path_heading, prediction_covariance
         from fpe_jax.predict import predict_rows, states_from_drive
         from fpe_jax.track import Track
 
         say("reading the drive and waypoints")
         params, waypoints = _load_predictor(args)
-        cov = None
-        if args.config:
-            cov = (read_config(args.config).get("uncertainty") or {}).get("cov_m2")
+        unc = read_config(args.config).get("uncertainty") if args.config else None
         drive = _load_drive_from_args(args)
         # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
         local, wp, t0_s, origin = local_frame(drive, waypoints.xy_m)
@@ -593,8 +601,10 @@ def cmd_predict(args) -> int:
         say(f"predicting {len(drive.t_s)} observations")
         states = states_from_drive(params, local, track)
         poses = predict_rows(params, states, track)
-        if cov is not None:  # the config's per-step ellipses, turned into the map frame
-            cov = covariance_map(cov, path_heading(track, poses.xy_m, states))
+        cov = None
+        if unc is not None:  # the config's ellipses, turned into the map frame
+            cov_track = prediction_covariance(params, states, track, unc)
+            cov = covariance_map(cov_track, path_heading(track, poses.xy_m, states))
         stamps_s = local.t_s + t0_s
         poses = np.array(poses.packed(), dtype=np.float64)  # a writable copy
         poses[..., :2] += origin

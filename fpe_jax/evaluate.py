@@ -21,9 +21,24 @@ from fpe_jax import aot
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.history import distinct_mask, history_windows
-from fpe_jax.metrics import coverage, errors_m, fit_covariance, summarize, track_frame_residuals
+from fpe_jax.metrics import (
+    coverage,
+    errors_m,
+    fit_covariance,
+    fit_variance_model,
+    row_covariance,
+    summarize,
+    track_frame_residuals,
+)
 from fpe_jax.params import Params, Settings
-from fpe_jax.predict import pad_rows, predict_rows, row_blocks, states_from_drive, uses_filter
+from fpe_jax.predict import (
+    pad_rows,
+    predict_rows,
+    row_blocks,
+    states_from_drive,
+    uses_filter,
+    variance_rows,
+)
 from fpe_jax.state import Poses, State
 from fpe_jax.track import Track, project_rollout
 
@@ -140,19 +155,41 @@ def heldout_predictions(drive: Drive, track, params_by_name: dict) -> Heldout:
     )
 
 
-def evaluate(params: Params, datasets: Sequence[Dataset], cov_m2=None) -> dict:
-    """Metrics (see `metrics.summarize`) of params over datasets, plus coverage when cov given."""
-    errs, res, masks = [], [], []
+def evaluate(
+    params: Params, datasets: Sequence[Dataset], cov_m2=None, *, uncertainty: dict | None = None
+) -> dict:
+    """Metrics (see `metrics.summarize`) of params over datasets, plus the coverage of the
+    uncertainty's ellipses when given: a fit's `uncertainty` (per prediction where it has the
+    filter's terms, `prediction_covariance`), or a per-step track-frame cov_m2 (H, 2, 2)."""
+    if cov_m2 is not None:
+        uncertainty = {"cov_m2": cov_m2}
+    errs, res, masks, covs = [], [], [], []
     for d in datasets:
         xy = predict_targets(params, d).xy_m
         errs.append(errors_m(xy, d.targets.xy_m, d.targets.mask))
-        if cov_m2 is not None:
+        if uncertainty is not None:
             res.append(_track_residuals(xy, d, params))
             masks.append(d.targets.mask)
+            covs.append(prediction_covariance(params, d.states(params), d.track, uncertainty))
     out = summarize(np.concatenate(errs))
-    if cov_m2 is not None:
-        out.update(coverage(np.concatenate(res), np.concatenate(masks), np.asarray(cov_m2)))
+    if uncertainty is not None:
+        out.update(coverage(np.concatenate(res), np.concatenate(masks), np.concatenate(covs)))
     return out
+
+
+def prediction_covariance(
+    params: Params, states: State, track: Track, uncertainty: dict
+) -> np.ndarray:
+    """(N, H, 2, 2) track-frame covariance [m^2] of the predictions from N states (leading axis
+    N): from each one's state estimate (`metrics.row_covariance`) where the uncertainty has the
+    filter's terms (`fit_uncertainty`), else its per-step cov_m2 for every prediction."""
+    if "state_scale" not in uncertainty:
+        cov = np.asarray(uncertainty["cov_m2"], dtype=np.float64)
+        return np.broadcast_to(cov, (len(states.x_m), *cov.shape))
+    var = variance_rows(params, states, track)
+    return row_covariance(
+        var, uncertainty["state_scale"], uncertainty["model_var_m2"], uncertainty["correlation"]
+    )
 
 
 def path_heading(track: Track, xy_m: np.ndarray, states: State) -> np.ndarray:
@@ -178,10 +215,11 @@ def _heading_chunk(track: Track, xy_m, start_xy_m, s_start_m):
 
 
 def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
-    """(N, H, 2, 2) map-frame covariance [m^2] from the per-step track-frame one (H, 2, 2)."""
+    """(N, H, 2, 2) map-frame covariance [m^2] from the track-frame one, per step (H, 2, 2) or
+    per prediction (N, H, 2, 2), turned by the path heading (N, H) [rad]."""
     c, s = np.cos(heading_rad), np.sin(heading_rad)
     rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (N, H, 2, 2)
-    return rot @ np.asarray(cov_track_m2)[None] @ np.swapaxes(rot, -1, -2)
+    return rot @ np.asarray(cov_track_m2) @ np.swapaxes(rot, -1, -2)
 
 
 def _track_residuals(xy_m: np.ndarray, d: Dataset, params: Params) -> np.ndarray:
@@ -222,18 +260,28 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
 
 
 def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
-    """Per-step residual covariance (H, 2, 2) in the (along-track, cross-track) frame.
+    """The predictions' uncertainty in the (along-track, cross-track) frame, fitted on the
+    residuals of the datasets' predictions (for the line model cross-fitted, `_cross_fitted`).
 
-    For the line model from cross-fitted predictions (`_cross_fitted`)."""
+    Returns {"frame": "track", "axes", "cov_m2": (H, 2, 2) [m^2]}: per step the residuals'
+    covariance. With the Kalman filter also the per-prediction terms of
+    `metrics.fit_variance_model`, state_scale (H, 2), model_var_m2 (H, 2) [m^2] and correlation
+    (H,): a prediction's covariance is then its own state estimate's variance
+    (`fpe_jax.rollout.estimate_variance`) scaled, plus the model's error
+    (`prediction_covariance`); cov_m2 is their mean over the datasets' predictions.
+    """
     line = params.settings.model == "line"
     xy = [_cross_fitted(params, d) if line else predict_targets(params, d).xy_m for d in datasets]
     res = np.concatenate([_track_residuals(p, d, params) for p, d in zip(xy, datasets)])
     mask = np.concatenate([d.targets.mask for d in datasets])
-    return {
-        "frame": "track",
-        "axes": ["along_m", "cross_m"],
-        "cov_m2": fit_covariance(res, mask).tolist(),
-    }
+    out = {"frame": "track", "axes": ["along_m", "cross_m"]}
+    if not uses_filter(params.settings):
+        return out | {"cov_m2": fit_covariance(res, mask).tolist()}
+    var = np.concatenate([variance_rows(params, d.states(params), d.track) for d in datasets])
+    terms = fit_variance_model(res, var, mask)
+    cov = row_covariance(var, **terms)
+    mean = np.sum(cov * mask[..., None, None], axis=0) / np.maximum(mask.sum(0), 1)[:, None, None]
+    return out | {"cov_m2": mean.tolist()} | {k: v.tolist() for k, v in terms.items()}
 
 
 def split_drive(drive: Drive, holdout: float) -> tuple[Drive, Drive]:

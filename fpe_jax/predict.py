@@ -21,7 +21,7 @@ from fpe_jax.estimate import (
 from fpe_jax.history import history_windows
 from fpe_jax.kalman import kalman_params, kalman_window
 from fpe_jax.params import Params, Settings
-from fpe_jax.rollout import rollout
+from fpe_jax.rollout import estimate_variance, rollout
 from fpe_jax.state import Poses, State
 from fpe_jax.track import Track, arclength_along
 
@@ -41,15 +41,16 @@ def uses_filter(settings: Settings) -> bool:
 def filtered(params: Params, state: State, track: Track) -> State:
     """One car's state with its track-frame estimate from the Kalman filter over the state's
     window (`fpe_jax.kalman`) under params' noise values: s_fit_m, sdot_mps, offset_m at the
-    newest stamp, and sdot_age_s, the age of the filter's speed. Unchanged where the model does
-    not use the filter or the state carries no window."""
+    newest stamp, sdot_age_s, the age of the filter's speed, and filter_cov, the estimate's
+    covariance. Unchanged where the model does not use the filter or the state carries no
+    window."""
     if not uses_filter(params.settings) or state.window_s_m is None:
         return state
     return _filter_state(kalman_params(params), state, track)
 
 
 def _filter_state(values: tuple, state: State, track: Track) -> State:
-    mean, _, speed_age = kalman_window(
+    mean, cov, speed_age = kalman_window(
         state.window_age_s,
         state.window_s_m,
         state.window_d_m,
@@ -62,7 +63,8 @@ def _filter_state(values: tuple, state: State, track: Track) -> State:
     if state.s_fit_m is not None:  # an empty window (an export's default): the state's own
         has = jnp.any(state.window_valid > 0.5)
         new = {k: jnp.where(has, v, getattr(state, k)) for k, v in new.items()}
-    return dataclasses.replace(state, **new)
+        cov = jnp.where(has, cov, 0.0)  # of an estimate given as it is: unknown
+    return dataclasses.replace(state, **new, filter_cov=cov)
 
 
 def _poses(params: Params, state: State, track: Track) -> Poses:
@@ -90,9 +92,21 @@ def predict_batch(params: Params, states: State, track: Track) -> Float[Array, "
     return predict_poses(params, states, track).packed()
 
 
+def predict_variance(params: Params, states: State, track: Track) -> Float[Array, "N H 2"]:
+    """(N, H, 2) variance [m^2] along and across the track of N cars' predicted points from
+    their state estimates' uncertainty (`fpe_jax.rollout.estimate_variance`, each car's window
+    filtered first); zeros without the Kalman filter."""
+
+    def one(state):
+        return estimate_variance(params, filtered(params, state, track))
+
+    return jax.vmap(one)(states)
+
+
 # the commands' path: executables kept on disk (`aot`), so a warm run traces nothing; the public
 # predict_batch stays a plain jit (it also runs on sharded arrays and inside other traces)
 _predict_rows_block = aot.jit(predict_poses)
+_variance_rows_block = aot.jit(predict_variance)
 
 
 def stack_params(params_list: list[Params]) -> Params:
@@ -159,18 +173,28 @@ def no_arclength() -> np.ndarray:
     return np.full((), np.nan, jax.dtypes.canonicalize_dtype(np.float64))
 
 
-def predict_rows(params: Params, states: State, track: Track) -> Poses:
-    """`Poses` (NumPy fields (N, H)) of N states (leading axis N): `predict_poses` over the
-    padded blocks of `row_blocks`, so intermediates stay O(chunk x H) for any N and every drive
-    reuses the same compiled shapes."""
+def _over_rows(block_fn, params: Params, states: State, track: Track, empty):
+    """block_fn(params, states, track) over the padded blocks of `row_blocks` of N states
+    (leading axis N), its outputs' leaves as NumPy (N, ...); `empty` for N = 0. Intermediates
+    stay O(chunk x H) for any N, and every drive reuses the same compiled shapes."""
     out = []
     for rows, size in row_blocks(len(states.x_m)):
         part = pad_rows(jax.tree.map(lambda x, r=rows: x[r], states), size)
-        poses = _predict_rows_block(params, part, track)
-        out.append(jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], poses))
-    if not out:
-        out = [Poses(*[np.zeros((0, params.settings.horizon))] * 3)]
-    return jax.tree.map(lambda *xs: np.concatenate(xs), *out)
+        res = block_fn(params, part, track)
+        out.append(jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], res))
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *out) if out else empty
+
+
+def predict_rows(params: Params, states: State, track: Track) -> Poses:
+    """`Poses` (NumPy fields (N, H)) of N states (leading axis N): `predict_poses` in blocks."""
+    empty = Poses(*[np.zeros((0, params.settings.horizon))] * 3)
+    return _over_rows(_predict_rows_block, params, states, track, empty)
+
+
+def variance_rows(params: Params, states: State, track: Track) -> np.ndarray:
+    """(N, H, 2) `predict_variance` of N states (leading axis N) in blocks."""
+    empty = np.zeros((0, params.settings.horizon, 2))
+    return _over_rows(_variance_rows_block, params, states, track, empty)
 
 
 @aot.jit

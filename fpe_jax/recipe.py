@@ -5,6 +5,7 @@ waypoints = "../../shared/data/levine/levine-waypoints.csv"
 holdout = 0.4                  # or [[test_drives]] for separate held-out drives
 model = "auto"                 # (default) line or blend by inner validation; or "line", "blend"
 solver = "bfgs"                # or "lm"
+estimator = "kalman"           # the line model's state estimator (default); or "theil-sen"
 
 [settings]                     # the car and the prediction grid (default: F1TENTH, 10 x 0.1 s)
 wheelbase_m = 2.578            # also max_steer_rad, dt_s, horizon
@@ -34,7 +35,7 @@ from fpe_jax.errors import InputError
 DRIVE_KEYS = {"path", "rate_hz", "pose_topic", "truth_topic", "waypoints", "log_time", "simulate"}
 DRIVE_KEYS |= {"tag_id", "tag_to_base", "drop_outside_tf"}
 TOP_KEYS = {"out", "waypoints", "holdout", "fit", "model", "blend", "solver", "drives"}
-TOP_KEYS |= {"test_drives", "settings"}
+TOP_KEYS |= {"test_drives", "settings", "estimator"}
 SETTINGS_KEYS = S.USER_SETTINGS
 SIMULATE_KEYS = {"track", "duration_s", "latency_s", "seed", "raceline", "half_width_m"}
 _STR, _BOOL = "a string", "true or false"
@@ -136,6 +137,7 @@ class Recipe:
     blend: str
     model: str | None
     solver: str | None
+    estimator: str | None
     settings: dict  # {"[settings] key": (Settings field, value)}, see config.apply_settings
     waypoints: Path | None = None  # the top-level waypoint file (drives may name their own)
 
@@ -218,6 +220,8 @@ def load_recipe(path) -> Recipe:
         S.check_choice(spec["model"], S.FIT_MODELS, path, "model")
     S.check_choice(spec.get("blend", "auto"), S.FIT_BLENDS, path, "blend")
     S.check_choice(spec.get("solver", S.DEFAULT_SOLVER), S.SOLVERS, path, "solver")
+    if "estimator" in spec:
+        S.check_choice(spec["estimator"], S.ESTIMATORS, path, "estimator")
     out = _confined(base, spec["out"], path, "out") if "out" in spec else None
     drives = [_load_entry(e, base, wp, path) for e in spec["drives"]]
     tests = [_load_entry(e, base, wp, path) for e in spec.get("test_drives", [])]
@@ -231,6 +235,7 @@ def load_recipe(path) -> Recipe:
         blend=spec.get("blend", "auto"),
         model=spec.get("model"),
         solver=spec.get("solver"),
+        estimator=spec.get("estimator"),
         settings={f"[settings] {k}": (k, v) for k, v in table.items()},
         waypoints=None if wp is None else base / wp,
     )

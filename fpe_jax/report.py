@@ -55,12 +55,12 @@ def format_fitted(result: FitResult) -> str:
         return choice + (
             f"fitted (line model, {info['steps']} {info['solver']} steps): delay "
             f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
-            f"{p['speed_tau_s']:.3f} s, "
+            f"{p['speed_tau_s']:.3f} s, position smoothing {p['position_smoothing']:.2f}"
             + (
-                f"filter noise {p['filter_accel_mps2']:.2f} / {p['filter_lat_accel_mps2']:.2f} "
+                f", filter noise {p['filter_accel_mps2']:.2f} / {p['filter_lat_accel_mps2']:.2f} "
                 f"m/s^2, {p['filter_obs_m']:.3f} m, gate {p['filter_gate_sigma']:.2f} sigma\n"
                 if result.params.settings.estimator == "kalman"
-                else f"position smoothing {p['position_smoothing']:.2f}\n"
+                else "\n"
             )
             + f"line: {len(p['line_offset_m'])} points, {covered:.0%} "
             f"covered, offset rms {np.sqrt(np.mean(np.square(p['line_offset_m']))):.3f} m"

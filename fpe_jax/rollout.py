@@ -240,9 +240,9 @@ SLOPE_DS_M = 0.5  # half the arc-length step of the target offset's slope [m]
 def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
     """Frenet rollout: along-track speed and a lateral offset that decays toward the line.
 
-    s0, d0 = the car's arc length and signed offset from the path (left positive): the Kalman
-    filter's estimate ("kalman" estimator), or between the newest observation's projection and
-    the Theil-Sen estimate (`position_smoothing`); its along-track speed v0 is the track-frame
+    s0, d0 = the car's arc length and signed offset from the path (left positive): between the
+    newest observation's projection and the track-frame estimate (the Kalman filter's or the
+    Theil-Sen lines', by `position_smoothing`); its along-track speed v0 is the track-frame
     estimate's (without one: v cos(course - heading)).
     Without a line profile ("frenet") the speed is held and the offset decays to 0:
     d(t) = d0 exp(-t / offset_tau_s). With one ("line") the offset decays toward the learned
@@ -268,10 +268,7 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
     age = jnp.zeros_like(v0)
     if state.s_fit_m is not None:  # the track-frame estimate; NaN (an export's input): absent
         ok = jnp.isfinite(state.s_fit_m)
-        # the filter's estimate as it is (it weighs the newest observation by its noise
-        # values, and its speed is at the newest stamp: age 0); Theil-Sen's blended
-        kalman = params.settings.estimator == "kalman"
-        w = jnp.where(ok, 1.0 if kalman else params.position_smoothing, 0.0)
+        w = jnp.where(ok, params.position_smoothing, 0.0)
         fit_s = jnp.where(ok, state.s_fit_m, s0)
         fit_d = jnp.where(ok, state.offset_m, d0)
         s0, d0 = s0 + w * (fit_s - s0), d0 + w * (fit_d - d0)
@@ -327,6 +324,37 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
     xs, ys = xy[:, 0] - d * jnp.sin(heading), xy[:, 1] + d * jnp.cos(heading)
     dd_ds = jnp.diff(d, prepend=d0) / jnp.maximum(jnp.diff(s, prepend=s0), 1e-3)
     return _emit(xs, ys, wrap_angle(heading + jnp.arctan(dd_ds)))
+
+
+def estimate_variance(params: Params, state: State) -> Float[Array, "H 2"]:
+    """Variance [m^2] (H, 2) along and across the track of each predicted point that the state
+    estimate's own uncertainty causes: the Kalman filter's covariance `state.filter_cov`
+    carried through `rollout_frenet`, linearised. Zeros without the filter.
+
+    The rollout starts at s0 = z + w (s_hat - z) between the newest observation z (noise
+    r = filter_obs_m) and the filter's estimate s_hat (w = position_smoothing). z was the
+    filter's last update, so the estimate's error covaries with z's by exactly the estimate's
+    own variance (a Kalman gain times r^2 is the posterior variance): var(s0) = u r^2 +
+    (1 - u) P_ss with u = (1 - w)^2, and cov(s0, speed) = P_sv. Along the track at the step's
+    time t (the delay included): var(s0) + 2 t P_sv + t^2 P_vv; across: var(d0) times the
+    squared sensitivity of the offset's return to its start, (1 + t / tau)^2 exp(-2 t / tau)
+    for the line model's critically damped return, exp(-2 t / tau) for frenet's decay.
+    """
+    h = params.settings.horizon
+    if state.filter_cov is None:
+        return jnp.zeros((h, 2), params.delay_s.dtype)
+    p = state.filter_cov
+    t = jnp.cumsum(_step_times(params))[1:]
+    w = params.position_smoothing
+    u = (1.0 - w) * (1.0 - w)
+    r2 = params.filter_obs_m * params.filter_obs_m
+    var_s0 = u * r2 + (1.0 - u) * p[0, 0]
+    var_d0 = u * r2 + (1.0 - u) * p[2, 2]
+    along = var_s0 + 2.0 * t * p[0, 1] + t * t * p[1, 1]
+    decay = jnp.exp(-t / params.offset_tau_s)
+    if params.line_offset_m.shape[0] > 0:  # static: the line model
+        decay = (1.0 + t / params.offset_tau_s) * decay
+    return jnp.stack([along, var_d0 * decay * decay], axis=-1)
 
 
 def rollout(params: Params, state: State, track: Track) -> Poses:

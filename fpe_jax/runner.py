@@ -527,7 +527,7 @@ class Runner:
         cx, cy = path.point_at(s0)
         h = path.heading_at(s0)
         d0 = (est[1] - cy) * math.cos(h) - (est[0] - cx) * math.sin(h)
-        w = 1.0 if self._kalman else self._smoothing
+        w = self._smoothing
         s0, d0 = s0 + w * (s_fit - s0), d0 + w * (d_fit - d0)
         t, s_all, d_all = 0.0, [], []
         l0, tau = 0.0, self._offset_tau_s

@@ -36,6 +36,9 @@ class State(eqx.Module):
             Theil-Sen s [m], ds/dt [m/s], d [m], dd/dt [m/s] at the newest stamp and the
             median observation's age [s] (the filter's start). None: the track-frame estimate
             above is used as it is.
+        filter_cov: (4, 4) the Kalman filter's covariance of its estimate of s [m], ds/dt
+            [m/s], d [m], dd/dt [m/s] at the newest stamp (`fpe_jax.kalman.kalman_window`);
+            None without the filter.
     """
 
     x_m: Float[Value, "*batch"]
@@ -54,6 +57,7 @@ class State(eqx.Module):
     window_d_m: Float[Value, "*batch W"] | None = None
     window_valid: Float[Value, "*batch W"] | None = None
     window_prior: Float[Value, "*batch 5"] | None = None
+    filter_cov: Float[Value, "*batch 4 4"] | None = None
 
     def __post_init__(self):
         # omitted fields: no turn, moving along the body heading

@@ -13,6 +13,7 @@ import pytest
 from fpe_jax import cli
 from fpe_jax.demo import demo_checks, run_demo
 from fpe_jax.sim import simulate, write_simulation
+from fpe_jax.spec import SCHEMA_VERSION
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -47,7 +48,7 @@ def test_demo_pipeline_on_a_short_drive_writes_everything(tmp_path):
     for name in ("trajectory.png", "error_vs_horizon.png", "line.png"):
         assert _is_png(tmp_path / "out" / "demo" / name), name
     cfg = json.loads((tmp_path / "out" / "demo" / "config.json").read_text())
-    assert cfg["schema_version"] == 1 and len(cfg["params"]["weights"]) == 10
+    assert cfg["schema_version"] == SCHEMA_VERSION and len(cfg["params"]["weights"]) == 10
     assert cfg["uncertainty"]["frame"] == "track"
     assert cfg["settings"]["model"] == "line" and cfg["line"]["waypoints"].endswith("waypoints.csv")
     # the written waypoints are the ones the line belongs to

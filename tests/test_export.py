@@ -27,6 +27,7 @@ from fpe_jax.export import (
 from fpe_jax.predict import states_from_drive
 from fpe_jax.runner import Runner
 from fpe_jax.sim import simulate
+from fpe_jax.spec import SCHEMA_VERSION
 
 ROOT = Path(__file__).resolve().parents[1]
 TOL_M = 1e-6
@@ -153,7 +154,8 @@ def test_sidecar_documents_the_inputs(case):
 def test_round_trip_ros2_yaml_holds_every_fitted_value(case):
     """(c) The ROS 2 parameter file parses and holds the fitted values exactly, typed."""
     text = (case["out"] / "params.yaml").read_text()
-    assert "from tuned.json, config schema_version 1; fitted 2026-11-22T04:00:00+00:00" in text
+    version = f"config schema_version {SCHEMA_VERSION}"
+    assert f"from tuned.json, {version}; fitted 2026-11-22T04:00:00+00:00" in text
     doc = yaml.safe_load(text)
     assert list(doc) == ["future_pose_estimator"]
     ros = doc["future_pose_estimator"]["ros__parameters"]
@@ -172,7 +174,7 @@ def test_round_trip_ros2_yaml_holds_every_fitted_value(case):
     assert ros["speed_weight"] == physical["speed_weight"]
     assert ros["typical_speed_mps"] == physical["speed_mps"]
     assert ros["waypoint_file"] == str(case["tmp"] / "wp.csv")
-    assert ros["schema_version"] == 1
+    assert ros["schema_version"] == SCHEMA_VERSION
     assert set(ros) == {n for n, *_ in ROS2_PARAMS} | {"schema_version", "waypoint_file"}
 
 

@@ -23,12 +23,13 @@ from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.export import INPUTS
 from fpe_jax.metrics import coverage, summarize
-from fpe_jax.params import Settings, presets
+from fpe_jax.params import Settings, presets, unconstrain
 from fpe_jax.predict import predict_batch, states_from_drive
 from fpe_jax.recipe import solver_named
 from fpe_jax.report import format_fitted, format_table, md_table
 from fpe_jax.runner import Runner
 from fpe_jax.sim import simulate
+from fpe_jax.spec import FILTER_DEFAULTS
 from fpe_jax.track import Track
 
 
@@ -119,22 +120,41 @@ def test_fit_without_latency_fits_no_delay(model, fit):
     assert float(res.params.delay_s) <= 0.05
 
 
-def test_the_line_models_estimator_follows_its_fit_groups(oval_drives):
-    """Theil-Sen with `smoothing` by default; naming `filter` runs the Kalman filter, and each
-    estimator's own group is refused with the other."""
+def test_the_line_models_estimator_is_the_kalman_filter_unless_told(oval_drives):
+    """The Kalman filter with its noise values fitted by default; `estimator="theil-sen"` runs
+    the Theil-Sen lines, whose fit refuses the filter's group; an unknown name is an error."""
+    fit_d, _, track = oval_drives
+    drive = fit_d.drive.slice_time(0, 20)
+    kal = F.fit([drive], [track], model="line")
+    assert kal.params.settings.estimator == "kalman"
+    assert kal.info["fit"] == ["delay", "tau", "smoothing", "filter"]
+    ts = F.fit([drive], [track], model="line", estimator="theil-sen", free=("delay", "smoothing"))
+    assert ts.params.settings.estimator == "theil-sen" and ts.info["fit"] == ["delay", "smoothing"]
+    assert F.default_groups(ts.params.settings) == ("delay", "tau", "smoothing")
+    data = E.make_datasets([drive], [track], ts.params.settings, "training")
+    with pytest.raises(InputError, match="filter do.es. not apply to model line with the theil"):
+        F.fit_params(data, ts.params, free=("filter",))
+    with pytest.raises(InputError, match="unknown estimator 'ukf'"):
+        F.fit([drive], [track], model="line", estimator="ukf")
+
+
+def test_the_filters_fitted_values_stay_near_their_defaults_on_a_short_drive(oval_drives):
+    """The prior on the filter's values (FILTER_PRIOR_M2): fitted on 20 s, each stays within a
+    factor 2 of its default (without the prior, the Levine lap's fit went to a gate of 1.0 and
+    4.5 x the acceleration noise); and the prior is part of the loss the solver reports."""
     fit_d, _, track = oval_drives
     drive = fit_d.drive.slice_time(0, 20)
     res = F.fit([drive], [track], model="line")
-    assert res.params.settings.estimator == "theil-sen"
-    assert res.info["fit"] == ["delay", "tau", "smoothing"]
-    kal = F.fit([drive], [track], model="line", free=("delay", "filter"))
-    assert kal.params.settings.estimator == "kalman" and kal.info["fit"] == ["delay", "filter"]
-    assert F.default_groups(kal.params.settings) == ("delay", "tau", "filter")
-    data = E.make_datasets([drive], [track], kal.params.settings, "training")
-    with pytest.raises(InputError, match="smoothing do.es. not apply to model line with the kal"):
-        F.fit_params(data, kal.params, free=("smoothing",))
-    with pytest.raises(InputError, match="filter do.es. not apply to model line with the theil"):
-        F.fit_params(data, res.params, free=("filter",))
+    values = res.params.physical()
+    for key, default in FILTER_DEFAULTS.items():
+        assert 0.5 * default <= values[key] <= 2.0 * default, (key, values[key])
+    data = E.make_datasets([drive], [track], res.params.settings, "training")
+    raw = unconstrain(res.params)
+    free, fixed = eqx.partition(raw, F._free_mask(raw, F.default_groups(res.params.settings)))
+    groups = [(d.states(res.params), d.track, d.targets.xy_m, d.targets.mask) for d in data]
+    full = F._residuals(free, (fixed, groups, F.HUBER_M))
+    prior = np.sqrt(F.FILTER_PRIOR_M2) * np.log([values[k] / v for k, v in FILTER_DEFAULTS.items()])
+    np.testing.assert_allclose(np.asarray(full[-4:]), prior, rtol=1e-12, atol=1e-15)
 
 
 def test_blend_default_fit_drives_at_the_measured_speed(oval_drives):
@@ -405,14 +425,22 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
     assert main(["predict", log, "--waypoints", wp, "--config", str(out), "--out", str(pred)]) == 0
     assert pred.read_text().startswith("stamp,step,horizon_s,x,y,yaw,cov_xx_m2,cov_xy_m2,cov_yy_m2")
     rows = np.genfromtxt(pred, delimiter=",", names=True)
-    # the map-frame covariance keeps the track-frame one's eigenvalues (a rotation)
-    cov_track = np.asarray(cfg["uncertainty"]["cov_m2"])
-    cov_map = np.array(
-        [[rows["cov_xx_m2"][3], rows["cov_xy_m2"][3]], [rows["cov_xy_m2"][3], rows["cov_yy_m2"][3]]]
-    )
-    np.testing.assert_allclose(
-        np.linalg.eigvalsh(cov_map), np.linalg.eigvalsh(cov_track[3]), rtol=1e-6
-    )
+    # the map-frame covariance keeps the eigenvalues of the prediction's own track-frame one (a
+    # rotation): with the Kalman filter its state estimate's variance scaled plus the model's
+    params = config_to_params(cfg)
+    track = Track.from_waypoints(io.load_waypoints(wp).xy_m)
+    states = states_from_drive(params, io.load_drive(log), track)
+    cov_track = E.prediction_covariance(params, states, track, cfg["uncertainty"])
+    for row, (car, step) in ((3, (0, 3)), (57, (5, 7))):
+        cov_map = np.array(
+            [
+                [rows["cov_xx_m2"][row], rows["cov_xy_m2"][row]],
+                [rows["cov_xy_m2"][row], rows["cov_yy_m2"][row]],
+            ]
+        )
+        np.testing.assert_allclose(
+            np.linalg.eigvalsh(cov_map), np.linalg.eigvalsh(cov_track[car, step]), rtol=1e-6
+        )
 
     # fit -> export all -> the NumPy runner and the ROS 2 YAML agree with the JAX predictor
     exp = tmp_path / "export"

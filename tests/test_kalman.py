@@ -21,6 +21,9 @@ from fpe_jax.params import FILTER_DEFAULTS, constrain, unconstrain
 from fpe_jax.predict import predict_drive, states_from_drive
 
 NOISE = tuple(jnp.asarray(FILTER_DEFAULTS[k]) for k in FILTER_DEFAULTS)
+# a filter whose one-second window outweighs its prior (the defaults lean on the prior more):
+# for what the observations alone must give
+RESPONSIVE = tuple(jnp.asarray(v) for v in (3.0, 1.0, 0.15, 4.0))
 W = 10
 kalman = eqx.filter_jit(kalman_window)
 
@@ -61,7 +64,7 @@ def test_the_speed_age_is_when_an_accelerating_car_had_the_filtered_speed(accel_
     t = irregular_stamps(seed=4)
     t = t[t <= 1.0]
     s = 1.0 + 6.0 * t + 0.5 * accel_mps2 * t * t
-    mean, _, age = kalman(*window(t, s, np.zeros(len(t))), *NOISE)
+    mean, _, age = kalman(*window(t, s, np.zeros(len(t))), *RESPONSIVE)
     speed_then = 6.0 + accel_mps2 * (t[-1] - float(age))
     assert 0.0 < float(age) < 0.6 * t[-1]
     # exact but for the prior's (medians, not a linear filter): measured 3e-3 m/s
@@ -74,7 +77,7 @@ def test_the_filter_corrects_a_wrong_prior_speed():
     s, d = 3.0 + 5.0 * t, np.zeros(W)
     age, s_m, d_m, valid, prior = window(t, s, d)
     off = prior.at[1].add(-1.0).at[0].add(-0.1)
-    mean, _, _ = kalman(age, s_m, d_m, valid, off, *NOISE)
+    mean, _, _ = kalman(age, s_m, d_m, valid, off, *RESPONSIVE)
     assert abs(float(mean[1]) - 5.0) < 0.3 and abs(float(mean[0]) - s[-1]) < 0.05
 
 
@@ -243,6 +246,22 @@ def test_estimator_setting_is_validated():
     assert Settings().estimator == "theil-sen"
     assert presets["frenet"].settings.estimator == "kalman"
     assert presets["seed"].settings.estimator == "theil-sen"
+
+
+def test_a_schema_1_kalman_config_keeps_starting_from_the_filters_position(tmp_path):
+    """Schema 1 ignored position_smoothing with the Kalman estimator (the rollout started at the
+    filter's estimate); reading such a config sets it to 1, so it predicts as it did. A schema 2
+    config keeps its value."""
+    p = dataclasses.replace(presets["frenet"], position_smoothing=jnp.asarray(0.0))
+    cfg = params_to_config(p)
+    assert cfg["schema_version"] == 2
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(cfg))
+    assert config_to_params(read_config(path)).physical()["position_smoothing"] == 0.0
+    path.write_text(json.dumps(cfg | {"schema_version": 1}))
+    old = config_to_params(read_config(path))
+    assert old.physical()["position_smoothing"] == 1.0
+    assert old.physical() == presets["frenet"].physical()
 
 
 def test_config_round_trip_and_old_configs_without_the_keys(tmp_path):

@@ -18,6 +18,7 @@ from fpe_jax.config import params_to_config, write_config
 from fpe_jax.errors import InputError
 from fpe_jax.io.stream import _Skip, parse_line
 from fpe_jax.runner import GoalScan, Runner, RunnerPath, run_stream
+from fpe_jax.spec import SCHEMA_VERSION
 
 ROOT = Path(__file__).resolve().parents[1]
 TOL_M = 1e-6
@@ -354,13 +355,14 @@ def test_from_config_rejects_newer_schema_and_missing_fields(tmp_path, sim_drive
 
 def test_fpe_run_reports_a_newer_schema_in_one_line(tmp_path, sim_drive):
     wp = write_waypoints(tmp_path / "wp.csv", sim_drive[0])
-    cfg = dict(params_to_config(presets["default"]), schema_version=2)
+    cfg = dict(params_to_config(presets["default"]), schema_version=SCHEMA_VERSION + 1)
     (tmp_path / "cfg.json").write_text(json.dumps(cfg))
     proc = run_python(
         CLI + "sys.exit(rc)", "run", "--config", str(tmp_path / "cfg.json"), "--waypoints", str(wp)
     )
     assert proc.returncode == 2
-    assert proc.stderr.count("\n") == 1 and "schema_version 2 is not supported" in proc.stderr
+    newer = f"schema_version {SCHEMA_VERSION + 1} is not supported"
+    assert proc.stderr.count("\n") == 1 and newer in proc.stderr
 
 
 def test_update_rejects_bad_observations_and_keeps_its_state(sim_drive):
