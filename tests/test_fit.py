@@ -93,18 +93,20 @@ def test_fit_recovers_the_latency_and_beats_the_presets(oval_drives):
 
 
 def test_line_model_coverage_is_calibrated_on_separate_drives():
-    """The line model's covariance comes from cross-fitted residuals (two halves gave 1-sigma
-    53 % on the hairpin study). One 40 s test drive's coverage varies by more than 10 points
-    with its seed alone (the simulated driver's wander: hairpin 1-sigma 25-49 % over seeds
-    2-6), so calibration is judged on five separate drives of the same track pooled: within 5
-    points of the ideal 39.3 % / 86.5 %."""
+    """The line model's covariance, each prediction's own (its Kalman state's variance scaled,
+    plus the model's error), is fitted on cross-fitted residuals (two halves gave 1-sigma 53 %
+    on the hairpin study). One 40 s test drive's coverage varies by more than 10 points with
+    its seed alone (the simulated driver's wander: hairpin 1-sigma 25-49 % over seeds 2-6), so
+    calibration is judged on five separate drives of the same track pooled: within 5 points of
+    the ideal 39.3 % / 86.5 %."""
     from fpe_jax.cases import fit_case, simulated_case
 
     case = simulated_case("hairpin")  # the uncertainty study's case
     res = fit_case(case, model="line")
     tests = [simulated_case("hairpin", test_seed=seed).test_drive for seed in range(2, 7)]
     data = E.make_datasets(tests, [case.track()] * len(tests), res.params.settings, "test")
-    pooled = E.evaluate(res.params, data, cov_m2=res.uncertainty["cov_m2"])
+    assert "state_scale" in res.uncertainty
+    pooled = E.evaluate(res.params, data, uncertainty=res.uncertainty)
     assert abs(pooled["coverage_1sigma"] - 0.393) <= 0.05, pooled
     assert abs(pooled["coverage_2sigma"] - 0.865) <= 0.05, pooled
 

@@ -1,8 +1,10 @@
-"""Calibrated uncertainty: the fitted per-step covariance drawn as 1- and 2-sigma ellipses on a
-corner, and how often the held-out positions fall inside them (coverage).
+"""Calibrated uncertainty: each prediction's fitted covariance drawn as 1- and 2-sigma ellipses
+on a corner, and how often the held-out positions fall inside them (coverage).
 
-The config's covariance is per step, in the track frame (along-track, cross-track), fitted on the
-training part; each ellipse is rotated into the map frame by the path heading at its predicted
+A prediction's covariance is in the track frame (along-track, cross-track): its state estimate's
+variance (the Kalman filter's covariance carried through the rollout) times a fitted per-step
+scale, plus the fitted per-step model error (`fpe_jax.evaluate.fit_uncertainty`, fitted on the
+training part); each ellipse is rotated into the map frame by the path heading at its predicted
 point (as the fit measures residuals). Ideal coverage for a 2-D Gaussian: 39.3 % (1 sigma),
 86.5 % (2 sigma).
 
@@ -28,7 +30,13 @@ import numpy as np
 
 from fpe_jax import plots
 from fpe_jax.cases import LATENCY_S, fit_case, real_cases, simulated_case
-from fpe_jax.evaluate import covariance_map, evaluate, heldout_predictions, make_datasets
+from fpe_jax.evaluate import (
+    covariance_map,
+    evaluate,
+    heldout_predictions,
+    make_datasets,
+    prediction_covariance,
+)
 from fpe_jax.metrics import coverage, track_frame_residuals
 from fpe_jax.path import nearest_index
 from fpe_jax.progress import Progress
@@ -49,11 +57,12 @@ def headings_at(track, xy_m: np.ndarray) -> np.ndarray:
 
 
 def per_step_coverage(held, heading: np.ndarray, cov_m2: np.ndarray) -> np.ndarray:
-    """(H, 2) fraction of held-out targets inside the 1- and 2-sigma ellipse at each step."""
+    """(H, 2) fraction of held-out targets inside the 1- and 2-sigma ellipse at each step, of
+    the predictions' covariances (N, H, 2, 2)."""
     res = track_frame_residuals(held.pred_xy_m["fitted"], held.target_xy_m, heading)
     out = []
     for k in range(res.shape[1]):
-        c = coverage(res[:, k : k + 1], held.mask[:, k : k + 1], cov_m2[k : k + 1])
+        c = coverage(res[:, k : k + 1], held.mask[:, k : k + 1], cov_m2[:, k : k + 1])
         out.append((c["coverage_1sigma"], c["coverage_2sigma"]))
     return np.array(out)
 
@@ -117,7 +126,8 @@ def main() -> None:
             track = case.track()
             held = heldout_predictions(case.test_drive, track, {"fitted": r.params})
             heading = headings_at(track, held.pred_xy_m["fitted"])
-            cov = np.asarray(r.uncertainty["cov_m2"])
+            test = make_datasets([case.test_drive], [track], r.params.settings, "test")[0]
+            cov = prediction_covariance(r.params, test.states(r.params), track, r.uncertainty)
             runs.append((case, r, held, heading, cov, per_step_coverage(held, heading, cov)))
             if case.latency_s is not None:
                 say(f"{case.name}: coverage on {len(POOLED_SEEDS)} separate test drives")
@@ -141,9 +151,8 @@ def pooled_coverage(case, r) -> dict:
         for seed in POOLED_SEEDS
     ]
     data = make_datasets(drives, [case.track()] * len(drives), r.params.settings, "test")
-    cov = r.uncertainty["cov_m2"]
-    out = evaluate(r.params, data, cov_m2=cov)
-    single = [evaluate(r.params, [d], cov_m2=cov)["coverage_1sigma"] for d in data]
+    out = evaluate(r.params, data, uncertainty=r.uncertainty)
+    single = [evaluate(r.params, [d], uncertainty=r.uncertainty)["coverage_1sigma"] for d in data]
     out["single_1sigma"] = (min(single), max(single))
     return out
 
@@ -193,14 +202,16 @@ def markdown(runs, pooled: dict, seconds: float) -> str:
         "Regenerate: `.venv/bin/python experiments/uncertainty/run.py` (this run: "
         f"{seconds / 60:.1f} min).",
         "",
-        "Fitted model: `fpe fit`'s default, the line model. The covariance is fitted per step "
-        "on the training part from cross-fitted residuals (each fifth of the fit drive, "
-        "contiguous in time, predicted with the line learned on the rest), in the track frame "
-        "(along-track, cross-track), and drawn rotated by the path heading at each predicted "
-        "point. Coverage: the fraction of held-out targets inside the ellipse (ideal for a 2-D "
-        "Gaussian: 39.3 % at 1 sigma, 86.5 % at 2 sigma). Levine: fit first 60 %, test last "
-        f"40 % (real); hairpin and oval: 60 s fit drive, separate 40 s test drive, latency "
-        f"{LATENCY_S} s.",
+        "Fitted model: `fpe fit`'s default, the line model with the Kalman filter. Each "
+        "prediction's covariance is its state estimate's variance (the filter's covariance "
+        "carried through the rollout) times a per-step scale, plus a per-step model error, "
+        "both fitted on the training part from cross-fitted residuals (each fifth of the fit "
+        "drive, contiguous in time, predicted with the line learned on the rest), in the track "
+        "frame (along-track, cross-track), and drawn rotated by the path heading at each "
+        "predicted point. Coverage: the fraction of held-out targets inside the ellipse (ideal "
+        "for a 2-D Gaussian: 39.3 % at 1 sigma, 86.5 % at 2 sigma). Levine: fit first 60 %, "
+        "test last 40 % (real); hairpin and oval: 60 s fit drive, separate 40 s test drive, "
+        f"latency {LATENCY_S} s.",
         "",
         "![uncertainty](uncertainty.png)",
         "",
@@ -237,14 +248,29 @@ def markdown(runs, pooled: dict, seconds: float) -> str:
             ],
         ),
         "",
-        "## Fitted 1-sigma sizes (sqrt of the diagonal) [m]",
+        "## Fitted 1-sigma sizes [m]",
+        "",
+        "The square root of the diagonal of the covariance: the mean over the training "
+        "predictions (the config's `cov_m2`), and the 10th-90th percentile over the held-out "
+        "predictions (each its own, from its state estimate).",
         "",
         *md_table(
             "case | axis | " + steps,
             [
-                [c.name, axis, *(f"{np.sqrt(x[a, a]):.3f}" for x in cov[:h])]
-                for c, _, _, _, cov, _ in runs
+                [
+                    c.name,
+                    axis,
+                    *(
+                        "{:.3f} ({:.3f}-{:.3f})".format(
+                            np.sqrt(mean[k][a][a]),
+                            *np.sqrt(np.percentile(cov[:, k, a, a], [10, 90])),
+                        )
+                        for k in range(h)
+                    ),
+                ]
+                for c, r, _, _, cov, _ in runs
                 for a, axis in enumerate(("along", "cross"))
+                for mean in [r.uncertainty["cov_m2"]]
             ],
         ),
     ]
