@@ -2,17 +2,22 @@
 fit's provenance. Readable without JAX (`read_config` is plain JSON + checks) so the NumPy runner
 can load the same files.
 
-Schema (version 1):
-    {"schema_version": 1,
+Schema (version 2):
+    {"schema_version": 2,
      "params": {"lookahead_m", "lookahead_gain_s", "weights": [H], "delay_s", "speed_weight",
-                "speed_mps", optional: "offset_tau_s", "speed_tau_s", "position_smoothing"
-                (frenet / line models),
+                "speed_mps", optional: "offset_tau_s", "speed_tau_s", "position_smoothing",
+                "filter_accel_mps2", "filter_lat_accel_mps2", "filter_obs_m",
+                "filter_gate_sigma" (frenet / line models),
                 "line_offset_m", "line_speed_mps", "line_coverage": [P] (line model only)},
      "settings": {"dt_s", "horizon", "wheelbase_m", "max_steer_rad", "blend", "model",
-                  "min_lookahead_m", "history"},
+                  "min_lookahead_m", "history", optional "estimator"},
      "line": {"waypoints_sha256", "waypoints"},   # line model only: what the line belongs to
-     "uncertainty": null | {"frame": "track", "cov_m2": [H][2][2]},   # along-, cross-track
+     "uncertainty": null | {"frame": "track", "cov_m2": [H][2][2],   # along-, cross-track
+                            optional, all or none: "state_scale": [H][2],
+                            "model_var_m2": [H][2], "correlation": [H]},
      "provenance": {...}}
+Version 1 read the same keys; with the Kalman estimator its rollouts ignored
+position_smoothing (started at the filter's position), so such a config is read with 1.
 """
 
 from __future__ import annotations
