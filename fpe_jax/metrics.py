@@ -113,7 +113,7 @@ def _scaled_plus_constant(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 def fit_variance_model(
     residuals_m: np.ndarray, state_var_m2: np.ndarray, mask: np.ndarray
 ) -> dict[str, np.ndarray]:
-    """The per-row uncertainty's fitted values: per step and axis the variance of a residual is
+    """The per-prediction uncertainty's fitted values: per step and axis the variance of a residual is
     `state_scale` x its state estimate's variance + `model_var_m2` (the model's own error),
     with `correlation` between the axes per step.
 
@@ -147,10 +147,9 @@ def row_covariance(state_var_m2: np.ndarray, state_scale, model_var_m2, correlat
     """(N, H, 2, 2) track-frame covariance [m^2] of each prediction from its state estimate's
     variance (N, H, 2) and the fitted values of `fit_variance_model`."""
     var = np.asarray(state_scale) * state_var_m2 + np.asarray(model_var_m2)
-    off = np.asarray(correlation)[..., None] * np.sqrt(var[..., 0] * var[..., 1])[..., None]
-    return np.stack(
-        [np.stack([var[..., 0], off[..., 0]], -1), np.stack([off[..., 0], var[..., 1]], -1)], -2
-    )
+    along, cross = var[..., 0], var[..., 1]
+    off = np.asarray(correlation) * np.sqrt(along * cross)
+    return np.stack([np.stack([along, off], -1), np.stack([off, cross], -1)], -2)
 
 
 def coverage(residuals_m: np.ndarray, mask: np.ndarray, cov_m2: np.ndarray) -> dict:
