@@ -11,7 +11,9 @@ smoothest (least-curvature) line within the room the car used (`min_curvature_of
 car's line on a stretch it has not been seen on); on open paths, and for the log speed, ridge
 regressions on the centerline's curvature (its magnitude for the speed), smoothed at a few
 widths and read a few metres behind and ahead (braking comes before a corner, the apex on its
-inside). There the
+inside); on loops the speed's also on the fastest speed along the car's line within grip,
+acceleration and braking limits (`limit_speed`, the limits' shape fitted on the covered
+speeds: the corners ahead of the car say where it will brake). There the
 rollout keeps the car's own offset, following only the prior's change, and the prior's speed
 ratio (`fpe_jax.rollout.rollout_frenet`). With less than PRIOR_MIN_COVERED_M covered the prior
 is the covered mean (no change: the car's offset and speed held).
@@ -51,6 +53,15 @@ PRIOR_LAG_M = 4.0  # ... judged on changes over this distance [m] (about 1 s of 
 MIN_CURV_RIDGE = 1e-4
 MIN_CURV_RHO = 0.01
 MIN_CURV_ITERS = 1000
+# the speed a racing car can hold along its line (loops): grip limits it in corners
+# (v^2 |kappa| <= a_lat), acceleration and braking between them. Only the profile's shape enters
+# the prior, set by the ratios below (acceleration and braking to a_lat; top speed^2 / a_lat,
+# the radius from which on the car is at top speed [m]): the combination that fits the covered
+# speeds best (log speed, least squares with a free scale and exponent)
+LIMIT_ACCEL_RATIOS = (0.03, 0.1, 0.3, 1.0)
+LIMIT_BRAKE_RATIOS = (0.05, 0.15, 0.4, 1.0)
+LIMIT_TOP_RADII_M = (1.0, 3.0, 10.0, 30.0, 100.0)
+LIMIT_SMOOTH_M = 1.0  # the line's curvature is smoothed with this kernel [m]
 
 
 @aot.jit
@@ -207,6 +218,65 @@ def min_curvature_offset(kappa_pm: np.ndarray, spacing_m: float, limit_m: float)
     return z
 
 
+def limit_speed(
+    kappa_pm: np.ndarray,
+    step_m: np.ndarray,
+    lat_mps2: float,
+    accel_mps2: float,
+    brake_mps2: float,
+    top_mps: float,
+) -> np.ndarray:
+    """The fastest speed profile (P,) [m/s] around a loop of P points within the limits.
+
+    Point i has curvature kappa_pm[i] [1/m] and lies step_m[i] [m] before point i + 1 (the
+    last before point 0). v_i^2 <= lat_mps2 / |kappa_i| and v_i <= top_mps; speeding up from
+    one point to the next adds at most 2 accel_mps2 step to v^2, slowing down removes at most
+    2 brake_mps2 step. Each pass is a running minimum (v_i^2 - 2 a x_i is non-increasing along
+    the pass), taken over two laps so the loop closes.
+    """
+    n = len(kappa_pm)
+    cap = np.minimum(top_mps**2, lat_mps2 / np.maximum(np.abs(kappa_pm), 1e-12))
+    cap2 = np.concatenate([cap, cap])
+    x = np.concatenate([[0.0], np.cumsum(np.concatenate([step_m, step_m])[:-1])])
+    fwd = np.minimum.accumulate(cap2 - 2.0 * accel_mps2 * x) + 2.0 * accel_mps2 * x
+    fwd2 = np.concatenate([fwd[n:], fwd[n:]])
+    back = (x[-1] - x)[::-1]  # distance to the end, along the reversed pass
+    v2 = np.minimum.accumulate(fwd2[::-1] - 2.0 * brake_mps2 * back) + 2.0 * brake_mps2 * back
+    return np.sqrt(v2[::-1][:n])
+
+
+def _limit_feature(
+    track: Track, offset: np.ndarray, log_v: np.ndarray, w: np.ndarray, spacing: float
+) -> np.ndarray:
+    """(P,) log of the along-track speed of `limit_speed` on the line at `offset` (P,) [m] from
+    a closed centerline, for the limits' shape that fits log_v (weights w) best."""
+    n = len(offset)
+    s = np.arange(n) * spacing
+    centre = np.asarray(jax.vmap(track.point_at)(s))
+    heading = np.asarray(jax.vmap(track.heading_at)(s))
+    xy = centre + offset[:, None] * np.stack([-np.sin(heading), np.cos(heading)], axis=1)
+    chord = np.roll(xy, -1, axis=0) - xy
+    step = np.hypot(chord[:, 0], chord[:, 1])
+    direction = np.arctan2(chord[:, 1], chord[:, 0])
+    turn = np.angle(np.exp(1j * (direction - np.roll(direction, 1))))
+    kappa = _smooth(turn / (0.5 * (step + np.roll(step, 1))), True, LIMIT_SMOOTH_M / spacing)
+    # the limits act along the line; the profile is the speed along the centerline
+    to_track = np.log(spacing / np.maximum(step, 1e-9))
+    sw = np.sqrt(w)
+    best, best_sse = to_track, np.inf
+    for accel in LIMIT_ACCEL_RATIOS:
+        for brake in LIMIT_BRAKE_RATIOS:
+            for radius in LIMIT_TOP_RADII_M:
+                x = np.log(limit_speed(kappa, step, 1.0, accel, brake, np.sqrt(radius)))
+                x += to_track
+                design = np.stack([np.ones(n), x], axis=1)
+                coef = np.linalg.lstsq(design * sw[:, None], log_v * sw, rcond=None)[0]
+                sse = np.sum(w * (log_v - design @ coef) ** 2)
+                if sse < best_sse:
+                    best, best_sse = x, sse
+    return best
+
+
 def _ridge(feats: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Weighted ridge regression of y on feats (the constant, column 0, unpenalised): the
     coefficients."""
@@ -258,10 +328,16 @@ def _prior(track: Track, offset, speed, coverage, spacing: float) -> tuple[np.nd
     else:
         feats = _curvature_features(track, n, spacing, False)
         prior_offset = _shrunk_fit(feats, offset, coverage, lag)
+    prior_offset = np.clip(prior_offset, -lim, lim)
     feats = _curvature_features(track, n, spacing, True)
-    log_v = _shrunk_fit(feats, np.log(np.maximum(speed, 1e-3)), has_v, lag)
+    log_v = np.log(np.maximum(speed, 1e-3))
+    if track.closed:  # where the car can go fast on its line, the prior's with the covered one
+        line = coverage * offset + (1.0 - coverage) * prior_offset
+        limit = _limit_feature(track, line, log_v, has_v, spacing)
+        feats = np.concatenate([feats, _standardised(np.stack([np.ones(n), limit], 1))[:, 1:]], 1)
+    log_v = _shrunk_fit(feats, log_v, has_v, lag)
     v_seen = speed[seen & (speed > 0)]
     prior_speed = (
         np.clip(np.exp(log_v), v_seen.min(), v_seen.max()) if len(v_seen) else np.exp(log_v)
     )
-    return np.clip(prior_offset, -lim, lim), prior_speed
+    return prior_offset, prior_speed

@@ -403,7 +403,8 @@ def _drive(ref, start, offset_m, stop_times_s, stop_waits_s, veh: Vehicle, drv: 
     x, y = px[i] + off0 * nx[i], py[i] + off0 * ny[i]
     j = (i + 1) % n_ref
     yaw = math.atan2(py[j] - py[i - 1], px[j] - px[i - 1])
-    v, r, steer, beta = vref[i], 0.0, 0.0, 0.0
+    # the car starts at its own target pace (speed_factor), not at the unscaled profile's
+    v, r, steer, beta = vref[i] * drv.speed_factor, 0.0, 0.0, 0.0
     mode, next_stop, stop_k, wait_until, steer_cmd = "drive", 0, 0, 0.0, 0.0
     out = []
     for k, off in enumerate(offset_m.tolist()):

@@ -93,6 +93,16 @@ def test_car_stays_on_track(drives, name):
     assert off_m.max() > 0.1  # and it does not just trace the centerline
 
 
+def test_speed_factor_scales_the_pace_from_the_start():
+    """A drive at speed factor f starts at f times the default drive's speed (not at the
+    unscaled pace, braking down to its own) and never exceeds f times the top speed."""
+    base = simulate("oval", duration_s=10.0, seed=5).drive.truth_v_mps
+    slow = simulate("oval", duration_s=10.0, seed=5, driver=Driver(speed_factor=0.5))
+    v = slow.drive.truth_v_mps
+    assert v[0] == pytest.approx(0.5 * base[0], rel=1e-12)
+    assert v.max() <= 0.5 * Driver().v_max_mps
+
+
 def test_stops_brake_to_zero_wait_and_go_on():
     res = simulate("oval", duration_s=120.0, seed=4, driver=Driver(stops_per_min=3.0))
     v = res.drive.truth_v_mps
