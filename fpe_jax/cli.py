@@ -406,6 +406,15 @@ def _fit_inputs(args, say=lambda msg: None):
     return drives, tests, args.out, opts | {"waypoints": args.waypoints} | flags
 
 
+def _solver_option(name: str | None):
+    """The solver `fit` gets for a --solver (or recipe) name: None for the default (bfgs), so a
+    warm fit loads its stored solve without importing optimistix (~0.1-0.3 s, `fit._Static`)."""
+    from fpe_jax.recipe import solver_named
+
+    name = name or SOLVERS[0]
+    return None if name == SOLVERS[0] else solver_named(name, "--solver")
+
+
 def _local_drives(entries):
     """(drive, waypoints, description) entries in their local frames (see drive.local_frame)."""
     from fpe_jax.drive import local_frame
@@ -446,7 +455,6 @@ def cmd_fit(args) -> int:
         from fpe_jax.config import apply_settings
         from fpe_jax.fit import fit
         from fpe_jax.params import presets
-        from fpe_jax.recipe import solver_named
         from fpe_jax.report import format_fitted, format_table, line_section, provenance
         from fpe_jax.track import Track
 
@@ -469,7 +477,7 @@ def cmd_fit(args) -> int:
             holdout=opts["holdout"],
             test_drives=[d for d, _, _ in tests] or None,
             test_tracks=test_tracks,
-            solver=solver_named(opts["solver"] or SOLVERS[0], "--solver"),
+            solver=_solver_option(opts["solver"]),
             estimator=opts["estimator"] or spec.LINE_ESTIMATOR,
             init=init,
             progress=say,

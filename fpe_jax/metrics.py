@@ -113,9 +113,9 @@ def _scaled_plus_constant(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 def fit_variance_model(
     residuals_m: np.ndarray, state_var_m2: np.ndarray, mask: np.ndarray
 ) -> dict[str, np.ndarray]:
-    """The per-prediction uncertainty's fitted values: per step and axis the variance of a residual is
-    `state_scale` x its state estimate's variance + `model_var_m2` (the model's own error),
-    with `correlation` between the axes per step.
+    """The per-prediction uncertainty's fitted values: per step and axis the variance of a
+    residual is `state_scale` x its state estimate's variance + `model_var_m2` (the model's own
+    error), with `correlation` between the axes per step.
 
     Args:
         residuals_m: (N, H, 2) track-frame residuals [m] (along, cross).

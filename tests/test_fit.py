@@ -295,6 +295,31 @@ def test_fit_params_takes_solver_objects_and_the_old_fit_keyword_with_a_warning(
     assert "0x" not in repr(F._Static(F.default_solver()))
 
 
+def test_default_bfgs_stops_on_a_negligible_predicted_decrease():
+    """The default solver is optimistix's BFGS that also stops once its next step is predicted
+    to lower the loss by at most decrease_rtol of it; without that test it runs on. The
+    default is passed to the compiled solve as None, keyed without optimistix (a warm fit loads
+    its solve without importing it)."""
+    import optimistix as optx
+
+    from fpe_jax.bfgs import BFGS
+
+    def f(y, args):  # Rosenbrock's valley, minimum 1 at (1, 1)
+        return 1.0 + (1.0 - y[0]) ** 2 + 100.0 * (y[1] - y[0] ** 2) ** 2
+
+    def solve(decrease_rtol):
+        solver = BFGS(rtol=1e-13, atol=1e-13, decrease_rtol=decrease_rtol)
+        sol = optx.minimise(f, solver, jnp.array([-1.2, 1.0]), max_steps=500, throw=False)
+        assert sol.result == optx.RESULTS.successful
+        return float(f(sol.value, None)), int(sol.stats["num_steps"])
+
+    (f_full, n_full), (f_stop, n_stop) = solve(0.0), solve(1e-8)
+    assert f_full == pytest.approx(1.0, abs=1e-12)
+    assert n_stop < n_full and f_stop - 1.0 < 1e-7
+    assert isinstance(F.default_solver(), BFGS)
+    assert repr(F._Static()) == "default_solver()" and isinstance(F._Static().solver, BFGS)
+
+
 def test_fit_errors_name_the_argument_and_the_cli_names_its_flag(oval_drives, tmp_path, capsys):
     fit_d, _, track = oval_drives
     with pytest.raises(InputError, match="^free: "):
