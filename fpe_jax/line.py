@@ -65,11 +65,17 @@ LIMIT_SMOOTH_M = 1.0  # the line's curvature is smoothed with this kernel [m]
 
 
 @aot.jit
+def _centerline_at(track: Track, s_m):
+    """The centerline's points (N, 2) [m] and headings (N,) [rad] at arc lengths s_m (N,) [m]."""
+    return jax.vmap(track.point_at)(s_m), jax.vmap(track.heading_at)(s_m)
+
+
+@aot.jit
 def _project(track: Track, xy_m, s_before_m):
     """Arc length s (N,) [m] of points (N, 2) [m] (continuing from s_before_m, NaN: none), the
     centerline point (N, 2) [m] and heading (N,) [rad] there."""
     s = arclength_along(track, xy_m, s_before_m)
-    return s, jax.vmap(track.point_at)(s), jax.vmap(track.heading_at)(s)
+    return (s, *_centerline_at(track, s))
 
 
 def _samples(drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -252,8 +258,7 @@ def _limit_feature(
     a closed centerline, for the limits' shape that fits log_v (weights w) best."""
     n = len(offset)
     s = np.arange(n) * spacing
-    centre = np.asarray(jax.vmap(track.point_at)(s))
-    heading = np.asarray(jax.vmap(track.heading_at)(s))
+    centre, heading = (np.asarray(a) for a in _centerline_at(track, s))
     xy = centre + offset[:, None] * np.stack([-np.sin(heading), np.cos(heading)], axis=1)
     chord = np.roll(xy, -1, axis=0) - xy
     step = np.hypot(chord[:, 0], chord[:, 1])

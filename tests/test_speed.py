@@ -274,3 +274,43 @@ def test_drives_of_similar_length_share_executables():
     finally:
         jax.monitoring.clear_event_listeners()
     assert first > 0 and poses.shape == (len(b.drive.t_s), params.settings.horizon, 3)
+
+
+# `fpe` with a listener on XLA's compilations: prints how many ran
+_COUNTING_FPE = """
+import sys, jax
+from fpe_jax import cli
+compiles = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, *a, **k: compiles.append(name)
+    if name == "/jax/core/compile/backend_compile_duration" else None
+)
+rc = cli.main(sys.argv[1:])
+print("xla compilations:", len(compiles), file=sys.stderr)
+sys.exit(rc)
+"""
+
+
+def test_a_warm_fit_compiles_nothing(tmp_path, drive_dir):
+    """The second `fpe fit` of a drive, with the cache the first one filled, loads every
+    executable it runs: no eager JAX operation compiles a program of its own (each took
+    10-40 ms; the line's prior once added 28 of them, a second, to every warm fit)."""
+    env = {**os.environ, "FPE_CACHE_DIR": str(tmp_path / "cache")}
+    argv = ["fit", str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
+    counts = []
+    for k in range(2):
+        r = subprocess.run(
+            [sys.executable, "-c", _COUNTING_FPE, *argv, "--out", str(tmp_path / f"c{k}.json")],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env=env,
+            timeout=600,
+        )
+        assert r.returncode == 0, r.stderr
+        counts.append(int(r.stderr.rsplit("xla compilations:", 1)[1]))
+    assert counts[0] > 0 and counts[1] == 0, counts
+    a, b = (json.loads((tmp_path / f"c{k}.json").read_text()) for k in range(2))
+    for c in (a, b):  # when and how long, not what
+        del c["provenance"]["fitted_at"], c["provenance"]["solver"]["seconds"]
+    assert a == b
