@@ -968,8 +968,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry() -> None:
-    """The `fpe` console script: `main`, then the process ends without Python's teardown, whose
-    destructors of JAX's runtime and loaded executables took 0.3-0.5 s after every command.
+    """The `fpe` console script: `main`, then the process ends without Python's teardown (the
+    destructors of JAX's runtime and of the loaded executables, a pause after every command).
     Every file a command writes is closed when it returns; the streams are flushed here."""
     rc = main()
     for stream in (sys.stdout, sys.stderr):

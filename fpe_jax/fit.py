@@ -208,6 +208,10 @@ class _Static:
 
 
 def _is_least_squares(solver) -> bool:
+    """Whether solver is a least-squares one; None (the default, BFGS) is not, and asking
+    imports no optimistix."""
+    if solver is None:
+        return False
     import optimistix as optx
 
     return isinstance(solver, optx.AbstractLeastSquaresSolver)
@@ -370,7 +374,7 @@ def fit_params(
         return State(**fields | {"filter_cov": cov if kalman else None})
 
     t0 = time.perf_counter()
-    kind = "least_squares" if solver is not None and _is_least_squares(solver) else "minimise"
+    kind = "least_squares" if _is_least_squares(solver) else "minimise"
     steps_limit = MAX_STEPS[kind] if max_steps is None else max_steps
     static = dict(max_steps=steps_limit, solver=_Static(solver))
     abstract = [(shape_of(xy), d.track, xy, m) for d, (xy, m) in zip(datasets, targets)]

@@ -63,30 +63,41 @@ def test_min_curvature_offset_solves_its_problem():
     assert np.abs(tight).max() <= 0.3 + 1e-12 and np.abs(tight).max() == pytest.approx(0.3)
 
 
-def test_prior_carries_a_racing_line_onto_unseen_stretches(shared_data):
-    """Silverstone's raceline offsets seen on the first 40 % of the lap: the prior predicts the
-    other 60 % within 0.2 m RMS (the centerline-curvature regression: 0.48 m)."""
+def _silverstone_raceline(shared_data):
+    """Silverstone's centerline Track, its profile points' arc lengths `at` (P,) [m] (0.5 m
+    apart), and the raceline's (the file's repeated first point dropped) offset from the
+    centerline (P,) [m] and speed along the centerline (P,) [m/s] there."""
     from fpe_jax.io import load_waypoints
-    from fpe_jax.line import _prior
 
     tracks = shared_data / "tracks"
     track = Track.from_waypoints(load_waypoints(tracks / "Silverstone_centerline.csv").xy_m)
-    raceline = load_waypoints(tracks / "Silverstone_raceline.csv").xy_m
+    rl = load_waypoints(tracks / "Silverstone_raceline.csv")
+    step = np.hypot(*np.diff(np.vstack([rl.xy_m, rl.xy_m[:1]]), axis=0).T)
+    xy, v = rl.xy_m[step > 1e-6], rl.speed_mps[step > 1e-6]
     length = float(track.length_m)
     n = int(round(length / 0.5))
     at = np.arange(n) * length / n
-    s = np.asarray(jax.vmap(track.project)(jnp.asarray(raceline)))
+    s = np.asarray(jax.vmap(track.project)(jnp.asarray(xy)))
     centre = np.asarray(jax.vmap(track.point_at)(jnp.asarray(s)))
     heading = np.asarray(jax.vmap(track.heading_at)(jnp.asarray(s)))
-    d = (raceline[:, 1] - centre[:, 1]) * np.cos(heading) - (
-        raceline[:, 0] - centre[:, 0]
-    ) * np.sin(heading)
+    d = (xy[:, 1] - centre[:, 1]) * np.cos(heading) - (xy[:, 0] - centre[:, 0]) * np.sin(heading)
+    # along the centerline: the raceline's speed times centerline metres per raceline metre
+    ds = np.mod(np.diff(np.append(s, s[0])), length)
+    v_track = v * ds / np.hypot(*np.diff(np.vstack([xy, xy[:1]]), axis=0).T)
     order = np.argsort(s)
-    truth = np.interp(at, s[order], d[order], period=length)
-    coverage = (at < 0.4 * length).astype(float)
-    prior, _ = _prior(
-        track, truth * coverage, np.where(coverage > 0, 3.0, 0.0), coverage, length / n
-    )
+    d_at, v_at = (np.interp(at, s[order], a[order], period=length) for a in (d, v_track))
+    return track, at, d_at, v_at
+
+
+def test_prior_carries_a_racing_line_onto_unseen_stretches(shared_data):
+    """Silverstone's raceline offsets seen on the first 40 % of the lap: the prior predicts the
+    other 60 % within 0.2 m RMS (the centerline-curvature regression: 0.48 m)."""
+    from fpe_jax.line import _prior
+
+    track, at, truth, _ = _silverstone_raceline(shared_data)
+    coverage = (at < 0.4 * float(track.length_m)).astype(float)
+    speed = np.where(coverage > 0, 3.0, 0.0)
+    prior, _ = _prior(track, truth * coverage, speed, coverage, at[1])
     unseen = coverage == 0
     assert np.sqrt(np.mean((prior - truth)[unseen] ** 2)) < 0.2
 
@@ -112,28 +123,12 @@ def test_speed_prior_follows_a_racing_lines_speed_onto_unseen_stretches(shared_d
     first 40 % of the lap: the prior predicts their change over 4 m on the other 60 % within
     0.07 in log speed RMS (0.059; without the grip-limited profile on the prior line 0.082, a
     constant speed 0.125)."""
-    from fpe_jax.io import load_waypoints
     from fpe_jax.line import _prior
 
-    tracks = shared_data / "tracks"
-    track = Track.from_waypoints(load_waypoints(tracks / "Silverstone_centerline.csv").xy_m)
-    rl = load_waypoints(tracks / "Silverstone_raceline.csv")
-    step = np.hypot(*np.diff(np.vstack([rl.xy_m, rl.xy_m[:1]]), axis=0).T)
-    xy, v = rl.xy_m[step > 1e-6], rl.speed_mps[step > 1e-6]  # the file repeats its first point
-    length = float(track.length_m)
-    n = int(round(length / 0.5))
-    at = np.arange(n) * length / n
-    s = np.asarray(jax.vmap(track.project)(jnp.asarray(xy)))
-    centre = np.asarray(jax.vmap(track.point_at)(jnp.asarray(s)))
-    heading = np.asarray(jax.vmap(track.heading_at)(jnp.asarray(s)))
-    d = (xy[:, 1] - centre[:, 1]) * np.cos(heading) - (xy[:, 0] - centre[:, 0]) * np.sin(heading)
-    # along the centerline: the raceline's speed times centerline metres per raceline metre
-    ds = np.mod(np.diff(np.append(s, s[0])), length)
-    v_track = v * ds / np.hypot(*np.diff(np.vstack([xy, xy[:1]]), axis=0).T)
-    order = np.argsort(s)
-    truth_d, truth_v = (np.interp(at, s[order], a[order], period=length) for a in (d, v_track))
-    coverage = (at < 0.4 * length).astype(float)
-    _, prior = _prior(track, truth_d * coverage, truth_v * coverage, coverage, length / n)
+    track, at, truth_d, truth_v = _silverstone_raceline(shared_data)
+    n = len(at)
+    coverage = (at < 0.4 * float(track.length_m)).astype(float)
+    _, prior = _prior(track, truth_d * coverage, truth_v * coverage, coverage, at[1])
     unseen = coverage == 0
     i = np.flatnonzero(unseen & np.roll(unseen, -8))
     j = (i + 8) % n

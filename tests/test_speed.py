@@ -293,8 +293,7 @@ sys.exit(rc)
 
 def test_a_warm_fit_compiles_nothing(tmp_path, drive_dir):
     """The second `fpe fit` of a drive, with the cache the first one filled, loads every
-    executable it runs: no eager JAX operation compiles a program of its own (each took
-    10-40 ms; the line's prior once added 28 of them, a second, to every warm fit)."""
+    executable it runs: no eager JAX operation compiles a program of its own."""
     env = {**os.environ, "FPE_CACHE_DIR": str(tmp_path / "cache")}
     argv = ["fit", str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
     counts = []

@@ -18,8 +18,8 @@ from fpe_jax.sim import Driver, simulate
 from fpe_jax.track import Track
 
 # Measured on this test's short drives: slow fit FDE 0.429 m, fast fit 0.351 m (ratio 1.22),
-# frenet 1.72 m (before the simulated car started at its own pace: 0.458 m, ratio 1.32). The
-# issue's 1.15 holds on the 60 s drives of experiments/speed_shift but not on these short ones.
+# frenet 1.72 m. The 1.15 holds on the 60 s drives of experiments/speed_shift but not
+# on these short ones.
 MAX_RATIO = 1.3
 
 
