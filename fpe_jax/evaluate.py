@@ -239,7 +239,7 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
     rest of d's drive (CROSS_FOLDS contiguous folds in time): the line fits its own drive's
     truth, so in-sample residuals would understate the error on drives the line was not
     learned on."""
-    from fpe_jax.line import learn_line
+    from fpe_jax.line import line_from_samples, line_samples
 
     # at least MIN_FOLD_S per fold: on a 40 s drive five folds' lines were too good (the oval
     # test's 2-sigma coverage 74.7 %)
@@ -248,9 +248,9 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
     edges[-1] = np.inf
     t_rows = d.drive.t_s[d.targets.rows]
     out = np.zeros((len(t_rows), params.settings.horizon, 2))
+    whole = line_samples(d.drive, d.track)  # projected once; each fold leaves out its part
     for lo, hi in zip(edges[:-1], edges[1:]):
-        rest = [d.drive.slice_time(-np.inf, lo), d.drive.slice_time(hi, np.inf)]
-        line = learn_line([r for r in rest if len(r.t_s)], d.track)
+        line = line_from_samples([whole.outside(lo, hi)], d.track)
         pred = predict_targets(
             dataclasses.replace(params, **{k: aot.device_array(v) for k, v in line.items()}), d
         )

@@ -24,6 +24,7 @@ The profile is tied to the waypoints it was learned on by `waypoints_sha256`.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -78,15 +79,35 @@ def _project(track: Track, xy_m, s_before_m):
     return (s, *_centerline_at(track, s))
 
 
-def _samples(drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Arc length s [m] (unwrapped), offset d [m] and along-track speed [m/s] (NaN at gaps)."""
+class LineSamples(NamedTuple):
+    """Where a car was, in the track frame (`line_samples`): each field (M,)."""
+
+    t_s: np.ndarray  # stamps [s]
+    s_m: np.ndarray  # arc length [m], unwrapped
+    d_m: np.ndarray  # signed lateral offset [m], left positive
+    v_mps: np.ndarray  # along-track speed [m/s], NaN at gaps
+
+    def outside(self, t0_s: float, t1_s: float) -> LineSamples:
+        """The samples before t0_s or from t1_s on, as `line_samples` gives them for the parts
+        of the drive before and after (`Drive.slice_time`): a speed whose central difference
+        reaches into [t0_s, t1_s) is NaN."""
+        keep = (self.t_s < t0_s) | (self.t_s >= t1_s)
+        inner = keep.copy()  # both neighbours kept too
+        inner[1:] &= keep[:-1]
+        inner[:-1] &= keep[1:]
+        v = np.where(inner, self.v_mps, np.nan)
+        return LineSamples(self.t_s[keep], self.s_m[keep], self.d_m[keep], v[keep])
+
+
+def line_samples(drive: Drive, track: Track) -> LineSamples:
+    """A drive's positions in the track frame: its ground truth when it has one, else its
+    distinct observations."""
     if drive.has_truth:
         t, xy = drive.truth_t_s, drive.truth_xy_m
     else:
         keep = distinct_mask(drive.xy_m)
         t, xy = drive.t_s[keep], drive.xy_m[keep]
-    # in the padded blocks of `row_blocks`: a drive and every fold of it (the cross-fitted
-    # uncertainty) reuse one stored executable
+    # in the padded blocks of `row_blocks`: drives of every length reuse one stored executable
     s, centre, heading = np.zeros(0), np.zeros((0, 2)), np.zeros(0)
     parts, s_before = [], no_arclength()
     for rows, size in row_blocks(len(xy)):
@@ -103,7 +124,7 @@ def _samples(drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray, np.nda
         ok = (dt[1:] <= MAX_GAP_S) & (dt[:-1] <= MAX_GAP_S)
         central = (s[2:] - s[:-2]) / np.maximum(t[2:] - t[:-2], 1e-9)
         v[1:-1] = np.where(ok, central, np.nan)
-    return s, d, v
+    return LineSamples(np.asarray(t, dtype=np.float64), s, d, v)
 
 
 def _smooth(values: np.ndarray, closed: bool, sigma_pts: float) -> np.ndarray:
@@ -133,12 +154,21 @@ def learn_line(
 
     Returns dict with line_offset_m, line_speed_mps, line_coverage (see `fpe_jax.params.Params`).
     """
+    return line_from_samples([line_samples(d, track) for d in drives], track, ds_m, smooth_m)
+
+
+def line_from_samples(
+    samples: Sequence[LineSamples],
+    track: Track,
+    ds_m: float = PROFILE_DS_M,
+    smooth_m: float = PROFILE_SMOOTH_M,
+) -> dict[str, np.ndarray]:
+    """`learn_line` from the drives' `line_samples`."""
     length = float(track.length_m)
     n = max(int(round(length / ds_m)), 8)
     spacing = length / (n if track.closed else n - 1)
     sums = {k: np.zeros(n) for k in ("w", "d", "vw", "v")}
-    for drive in drives:
-        s, d, v = _samples(drive, track)
+    for _, s, d, v in samples:
         u = (np.mod(s, length) if track.closed else np.clip(s, 0.0, length)) / spacing
         i = np.floor(u).astype(np.int64)
         f = u - i
@@ -205,20 +235,21 @@ def min_curvature_offset(kappa_pm: np.ndarray, spacing_m: float, limit_m: float)
     The line's curvature is, to first order in d, kappa + d'' (second difference over spacing_m);
     d minimises sum (kappa + d'')^2 + MIN_CURV_RIDGE sum d^2 within the bound, by ADMM. The
     second difference on a loop is circulant, so each ADMM step solves its linear system with one
-    FFT pair: O(P log P) per step on any track length.
+    real FFT pair: O(P log P) per step on any track length.
 
     Args:
         kappa_pm: (P,) centerline curvature [1/m] at P points spacing_m [m] apart on a loop.
         limit_m: bound on |d| [m] (the room the car uses).
     """
     n = len(kappa_pm)
-    # eigenvalues of the circulant second difference (symmetric: its own transpose)
-    lam = (2.0 * np.cos(2.0 * np.pi * np.arange(n) / n) - 2.0) / spacing_m**2
-    diag = lam**2 + MIN_CURV_RIDGE
-    rhs = -np.fft.ifft(np.fft.fft(kappa_pm) * lam).real
+    # eigenvalues of the circulant second difference (symmetric: its own transpose), at the
+    # frequencies of a real FFT
+    lam = (2.0 * np.cos(2.0 * np.pi * np.arange(n // 2 + 1) / n) - 2.0) / spacing_m**2
+    gain = 1.0 / (lam**2 + MIN_CURV_RIDGE + MIN_CURV_RHO)
+    rhs = -np.fft.irfft(np.fft.rfft(kappa_pm) * lam, n)
     z, u = np.zeros(n), np.zeros(n)
     for _ in range(MIN_CURV_ITERS):
-        d = np.fft.ifft(np.fft.fft(rhs + MIN_CURV_RHO * (z - u)) / (diag + MIN_CURV_RHO)).real
+        d = np.fft.irfft(np.fft.rfft(rhs + MIN_CURV_RHO * (z - u)) * gain, n)
         z = np.clip(d + u, -limit_m, limit_m)
         u += d - z
     return z

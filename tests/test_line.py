@@ -7,7 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fpe_jax.line import PRIOR_FOLDS, _shrunk_fit, learn_line, limit_speed, min_curvature_offset
+from fpe_jax.line import (
+    PRIOR_FOLDS,
+    _shrunk_fit,
+    learn_line,
+    limit_speed,
+    line_samples,
+    min_curvature_offset,
+)
 from fpe_jax.sim import simulate
 from fpe_jax.track import Track
 
@@ -29,6 +36,26 @@ def test_uncovered_points_get_a_prior_within_the_covered_range(partial):
     assert np.all(v[unseen] >= v[seen].min() - 1e-9) and np.all(v[unseen] <= v[seen].max() + 1e-9)
     assert np.all(np.abs(d[unseen]) <= np.abs(d[seen]).max() + 1e-9)
     assert np.ptp(v[unseen]) > 0.0  # shaped by the track, not a constant
+
+
+def test_samples_outside_a_time_range_are_the_samples_of_the_parts_around_it():
+    """The cross-fitted uncertainty projects a drive once and leaves out one fold at a time:
+    what remains must be what projecting the parts before and after the fold gives."""
+    res = simulate("oval", duration_s=20.0, seed=4)
+    drive, track = res.drive, Track.from_waypoints(res.centerline_xy_m)
+    whole = line_samples(drive, track)
+    length = float(track.length_m)
+    for lo, hi in ((-np.inf, 7.0), (7.0, 13.0), (13.0, np.inf)):
+        got = whole.outside(lo, hi)
+        parts = [drive.slice_time(-np.inf, lo), drive.slice_time(hi, np.inf)]
+        want = [line_samples(p, track) for p in parts if len(p.t_s)]
+        t, s, d, v = (np.concatenate(a) for a in zip(*want))
+        np.testing.assert_array_equal(got.t_s, t)
+        ds = np.mod(got.s_m - s + 0.5 * length, length) - 0.5 * length  # a lap apart is equal
+        np.testing.assert_allclose(ds, 0.0, atol=1e-9)
+        np.testing.assert_allclose(got.d_m, d, atol=1e-9)
+        np.testing.assert_array_equal(np.isnan(got.v_mps), np.isnan(v))
+        np.testing.assert_allclose(got.v_mps, v, atol=1e-9)  # NaN where a neighbour is left out
 
 
 def test_shrinkage_trusts_a_predictive_prior_and_not_noise():

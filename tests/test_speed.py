@@ -239,9 +239,11 @@ def test_predict_shows_progress_unless_quiet(tmp_path, drive_dir):
 def test_bucket_sizes():
     from fpe_jax.predict import bucket
 
-    sizes = [bucket(n) for n in (0, 1, 64, 65, 96, 97, 129, 600, 668, 768, 769)]
-    assert sizes == [64, 64, 64, 96, 96, 128, 192, 768, 768, 768, 1024]
-    assert all(bucket(n) < 1.5 * n + 1 for n in range(64, 5000))  # at most a half more rows
+    sizes = [bucket(n) for n in (0, 1, 64, 65, 96, 97, 129, 600, 668, 768, 769, 4696)]
+    assert sizes == [64, 64, 64, 80, 96, 112, 160, 640, 768, 768, 896, 5120]
+    assert all(bucket(n) < 1.25 * n + 1 for n in range(64, 20000))  # at most a quarter more rows
+    # four sizes per doubling: drives within ~20 % of each other's length share a solver
+    assert len({bucket(n) for n in range(1025, 2049)}) == 4
 
 
 def test_drives_of_similar_length_share_executables():
