@@ -35,7 +35,7 @@ from fpe_jax.predict import (
     pad_rows,
     predict_rows,
     row_blocks,
-    states_from_drive,
+    states_both,
     uses_filter,
     variance_rows,
 )
@@ -100,17 +100,17 @@ class Dataset:
     def states(self, params: Params) -> State:
         """The model's states at the target rows (the seed model uses raw rows).
 
-        Cached: states depend only on the estimator window, on whether the model is the
-        seed's and on whether it uses the Kalman filter (whose windows they then carry), and a
-        fit asks for them once per solve, for the uncertainty and per preset.
+        Cached: states depend only on the estimator window and on whether the model is the
+        seed's (`states_both` gives both estimators' at once; the Kalman filter's carry their
+        windows: `predict` filters them under the params at hand), and a fit asks for them once
+        per solve, for the uncertainty and per preset.
         """
-        kalman = uses_filter(params.settings)
-        key = (params.settings.history, params.settings.model == "seed", kalman)
+        key = (params.settings.history, params.settings.model == "seed")
         if key not in self._states:
-            # the filter's windows kept: `predict` filters them under the params at hand
-            all_states = states_from_drive(params, self.drive, self.track, keep_window=kalman)
-            self._states[key] = jax.tree.map(lambda x: x[self.targets.rows], all_states)
-        return self._states[key]
+            both = states_both(params, self.drive, self.track)
+            self._states[key] = [jax.tree.map(lambda x: x[self.targets.rows], s) for s in both]
+        theil_sen, kalman = self._states[key]
+        return kalman if uses_filter(params.settings) else theil_sen
 
 
 def predict_targets(params: Params, dataset: Dataset) -> Poses:

@@ -12,12 +12,7 @@ from jaxtyping import Array, Float
 
 from fpe_jax import aot
 from fpe_jax.drive import Drive
-from fpe_jax.estimate import (
-    estimate_state,
-    estimate_track_frame,
-    track_frame_lines,
-    track_frame_window,
-)
+from fpe_jax.estimate import estimate_state, track_frame_lines, track_frame_window
 from fpe_jax.history import history_windows
 from fpe_jax.kalman import kalman_params, kalman_window
 from fpe_jax.params import Params, Settings
@@ -200,29 +195,27 @@ def variance_rows(params: Params, states: State, track: Track) -> np.ndarray:
 
 
 @aot.jit
-def _states_from_windows(
-    windows: dict, track: Track, s_before_m, filter_values: tuple | None, keep_window: bool
-) -> State:
-    """States of a block of windows; filter_values: the Kalman estimator's (`kalman_params`),
-    None for the Theil-Sen one (only the filter's values are arguments: every other model
-    shares one executable)."""
+def _states_from_windows(windows: dict, track: Track, s_before_m, filter_values: tuple):
+    """States of a block of windows under both track-frame estimators: (Theil-Sen's, the Kalman
+    filter's under filter_values (`kalman_params`), carrying its windows).
+
+    One program for both: they share all but the filter (whose prior is the Theil-Sen lines),
+    and an evaluation or a fit needs both (the line model and the presets), so every model
+    shares one executable, compiled once.
+    """
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
     )
     s_m = arclength_along(track, jnp.stack([states.x_m, states.y_m], axis=1), s_before_m)
     states = dataclasses.replace(states, s_m=s_m)
-    if filter_values is None:
-        s_fit, sdot, offset, age = jax.vmap(estimate_track_frame, in_axes=(0, 0, 0, 0, None))(
-            windows["t_s"], windows["xy_m"], windows["valid"], s_m, track
-        )
-        return dataclasses.replace(
-            states, s_fit_m=s_fit, sdot_mps=sdot, offset_m=offset, sdot_age_s=age
-        )
     s_win, d_win = jax.vmap(track_frame_window, in_axes=(0, 0, 0, None))(
         windows["xy_m"], windows["valid"], s_m, track
     )
     s_ts, sdot_ts, d_ts, ddot_ts, age_ts = jax.vmap(track_frame_lines)(
         windows["t_s"], s_win, d_win, windows["valid"]
+    )
+    theil_sen = dataclasses.replace(
+        states, s_fit_m=s_ts, sdot_mps=sdot_ts, offset_m=d_ts, sdot_age_s=age_ts
     )
     window = dict(
         window_age_s=windows["t_s"][:, -1:] - windows["t_s"],
@@ -231,43 +224,52 @@ def _states_from_windows(
         window_valid=windows["valid"].astype(s_win.dtype),
         window_prior=jnp.stack([s_ts, sdot_ts, d_ts, ddot_ts, age_ts], axis=1),
     )
-    states = jax.vmap(_filter_state, in_axes=(None, 0, None))(
+    kalman = jax.vmap(_filter_state, in_axes=(None, 0, None))(
         filter_values, dataclasses.replace(states, **window), track
     )
-    return states if keep_window else dataclasses.replace(states, **dict.fromkeys(window))
+    return theil_sen, kalman
+
+
+def states_both(params: Params, drive: Drive, track: Track) -> tuple[State, State]:
+    """The state at every observation of a drive (numpy leaves, leading axis N) under both
+    track-frame estimators: (Theil-Sen's, the Kalman filter's under params' noise values,
+    carrying its windows `State.window_s_m`, ... so that `predict` filters them again under
+    other values). For the seed model the original's rules apply to both: the current row is
+    used alone (position and observed yaw as recorded; the direction of motion stands in when
+    the log has no yaw)."""
+    # in blocks of PREDICT_CHUNK rows, each block's projection window continuing from the last
+    # arc length of the one before: memory stays O(block) for a log of any length
+    parts, s_before = [], no_arclength()
+    dtype = jax.dtypes.canonicalize_dtype(np.float64)
+    values = tuple(np.asarray(v, dtype) for v in kalman_params(params))
+    for rows, size in list(row_blocks(len(drive.t_s))) or [(slice(0, 0), BLOCK_ROWS)]:
+        windows = history_windows(drive, params.settings.history, rows)
+        part = _states_from_windows(pad_rows(windows, size), track, s_before, values)
+        part = jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], part)
+        s_before = np.asarray(part[0].s_m[-1]) if len(part[0].s_m) else no_arclength()
+        parts.append(part)
+    both = jax.tree.map(lambda *xs: np.concatenate(xs), *parts) if len(parts) > 1 else parts[0]
+    if params.settings.model == "seed":
+        yaw_obs = np.asarray(drive.yaw_rad)
+        seed = dict(
+            x_m=np.asarray(drive.xy_m[:, 0]),
+            y_m=np.asarray(drive.xy_m[:, 1]),
+            yaw_rad=np.where(np.isfinite(yaw_obs), yaw_obs, both[0].yaw_rad),
+        )
+        both = tuple(dataclasses.replace(s, **seed) for s in both)
+    return both
 
 
 def states_from_drive(
     params: Params, drive: Drive, track: Track, *, keep_window: bool = False
 ) -> State:
-    """The state at every observation of a drive (numpy leaves, leading axis N).
-
-    For the seed model the original's rules apply: the current row is used alone (position and
-    observed yaw as recorded; the direction of motion stands in when the log has no yaw). With
-    the Kalman estimator the track-frame estimate is the filter's under params' noise values;
-    keep_window: the states also carry their windows (`State.window_s_m`, ...), so that
-    `predict` filters them again under other values (the fit's).
+    """The state at every observation of a drive (numpy leaves, leading axis N), under params'
+    estimator (`states_both`); keep_window: the Kalman filter's states also carry their windows.
     """
-    # in blocks of PREDICT_CHUNK rows, each block's projection window continuing from the last
-    # arc length of the one before: memory stays O(block) for a log of any length
-    parts, s_before = [], no_arclength()
-    values = kalman_params(params) if uses_filter(params.settings) else None
-    for rows, size in list(row_blocks(len(drive.t_s))) or [(slice(0, 0), BLOCK_ROWS)]:
-        windows = history_windows(drive, params.settings.history, rows)
-        part = _states_from_windows(pad_rows(windows, size), track, s_before, values, keep_window)
-        part = jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], part)
-        s_before = np.asarray(part.s_m[-1]) if len(part.s_m) else no_arclength()
-        parts.append(part)
-    states = jax.tree.map(lambda *xs: np.concatenate(xs), *parts) if len(parts) > 1 else parts[0]
-    if params.settings.model == "seed":
-        yaw_obs = np.asarray(drive.yaw_rad)
-        states = dataclasses.replace(
-            states,
-            x_m=np.asarray(drive.xy_m[:, 0]),
-            y_m=np.asarray(drive.xy_m[:, 1]),
-            yaw_rad=np.where(np.isfinite(yaw_obs), yaw_obs, states.yaw_rad),
-        )
-    return states
+    theil_sen, kalman = states_both(params, drive, track)
+    if not uses_filter(params.settings):
+        return theil_sen
+    return kalman if keep_window else dataclasses.replace(kalman, **dict.fromkeys(WINDOW_FIELDS))
 
 
 def predict_drive(params: Params, drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray]:

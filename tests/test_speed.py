@@ -1,5 +1,6 @@
 """The compilation cache, the JAX-free fast commands, progress lines and bucketed shapes."""
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -276,6 +277,44 @@ def test_drives_of_similar_length_share_executables():
     finally:
         jax.monitoring.clear_event_listeners()
     assert first > 0 and poses.shape == (len(b.drive.t_s), params.settings.horizon, 3)
+
+
+def test_both_estimators_states_come_from_one_executable():
+    """An evaluation or a fit needs the Kalman filter's states (the line model) and the
+    Theil-Sen ones (the presets): one compiled program gives both, so the second estimator's
+    states compile nothing."""
+    import jax
+
+    from fpe_jax import sim
+    from fpe_jax.predict import states_from_drive
+    from fpe_jax.track import Track
+
+    res = sim.simulate("oval", duration_s=20.0, seed=5)
+    track = Track.from_waypoints(res.centerline_xy_m)
+    # a history no other test uses: its windows' shapes are compiled here first
+    frenet = presets["frenet"]
+    kalman = dataclasses.replace(frenet, settings=dataclasses.replace(frenet.settings, history=7))
+    ts_settings = dataclasses.replace(kalman.settings, estimator="theil-sen")
+    theil_sen = dataclasses.replace(kalman, settings=ts_settings)
+    events = []
+
+    def listen(name, *args, **kw):
+        if name == "/jax/core/compile/backend_compile_duration":
+            events.append(name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        a = states_from_drive(theil_sen, res.drive, track)
+        first = len(events)
+        b = states_from_drive(kalman, res.drive, track, keep_window=True)
+        assert len(events) == first, "the Kalman filter's states compiled a program of their own"
+    finally:
+        jax.monitoring.clear_event_listeners()
+    assert first > 0
+    assert a.filter_cov is None and a.window_s_m is None
+    assert b.filter_cov.shape == (len(res.drive.t_s), 4, 4) and b.window_s_m.shape[1] == 7
+    np.testing.assert_array_equal(a.s_m, b.s_m)  # one projection, both estimators
+    assert not np.array_equal(a.s_fit_m, b.s_fit_m)  # ... and their own track-frame estimates
 
 
 # `fpe` with a listener on XLA's compilations: prints how many ran
