@@ -249,13 +249,17 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
     t_rows = d.drive.t_s[d.targets.rows]
     out = np.zeros((len(t_rows), params.settings.horizon, 2))
     whole = line_samples(d.drive, d.track)  # projected once; each fold leaves out its part
+    states = d.states(params)
     for lo, hi in zip(edges[:-1], edges[1:]):
-        line = line_from_samples([whole.outside(lo, hi)], d.track)
-        pred = predict_targets(
-            dataclasses.replace(params, **{k: aot.device_array(v) for k, v in line.items()}), d
-        )
         fold = (t_rows >= lo) & (t_rows < hi)
-        out[fold] = pred.xy_m[fold]
+        if not fold.any():
+            continue
+        line = line_from_samples([whole.outside(lo, hi)], d.track)
+        fold_params = dataclasses.replace(
+            params, **{k: aot.device_array(v) for k, v in line.items()}
+        )
+        fold_states = jax.tree.map(lambda x, f=fold: x[f], states)
+        out[fold] = predict_rows(fold_params, fold_states, d.track).xy_m
     return out
 
 
