@@ -32,6 +32,7 @@ from fpe_jax.metrics import (
 )
 from fpe_jax.params import Params, Settings
 from fpe_jax.predict import (
+    as_recorded,
     pad_rows,
     predict_rows,
     row_blocks,
@@ -98,18 +99,21 @@ class Dataset:
     _states: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     def states(self, params: Params) -> State:
-        """The model's states at the target rows (the seed model uses raw rows).
+        """The model's states at the target rows (the seed model's `as_recorded`).
 
-        Cached: states depend only on the estimator window and on whether the model is the
-        seed's (`states_both` gives both estimators' at once; the Kalman filter's carry their
-        windows: `predict` filters them under the params at hand), and a fit asks for them once
-        per solve, for the uncertainty and per preset.
+        Cached: states depend only on the estimator window (`states_both` gives both
+        estimators' at once; the Kalman filter's carry their windows: `predict` filters them
+        under the params at hand), and a fit asks for them once per solve, for the uncertainty
+        and per preset.
         """
-        key = (params.settings.history, params.settings.model == "seed")
+        key = params.settings.history
         if key not in self._states:
             both = states_both(params, self.drive, self.track)
             self._states[key] = [jax.tree.map(lambda x: x[self.targets.rows], s) for s in both]
         theil_sen, kalman = self._states[key]
+        if params.settings.model == "seed":
+            rows = self.targets.rows
+            return as_recorded(theil_sen, self.drive.xy_m[rows], self.drive.yaw_rad[rows])
         return kalman if uses_filter(params.settings) else theil_sen
 
 

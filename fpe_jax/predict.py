@@ -234,9 +234,7 @@ def states_both(params: Params, drive: Drive, track: Track) -> tuple[State, Stat
     """The state at every observation of a drive (numpy leaves, leading axis N) under both
     track-frame estimators: (Theil-Sen's, the Kalman filter's under params' noise values,
     carrying its windows `State.window_s_m`, ... so that `predict` filters them again under
-    other values). For the seed model the original's rules apply to both: the current row is
-    used alone (position and observed yaw as recorded; the direction of motion stands in when
-    the log has no yaw)."""
+    other values). The seed model's are `as_recorded` from them."""
     # in blocks of PREDICT_CHUNK rows, each block's projection window continuing from the last
     # arc length of the one before: memory stays O(block) for a log of any length
     parts, s_before = [], no_arclength()
@@ -248,16 +246,20 @@ def states_both(params: Params, drive: Drive, track: Track) -> tuple[State, Stat
         part = jax.tree.map(lambda x, n=rows.stop - rows.start: np.asarray(x)[:n], part)
         s_before = np.asarray(part[0].s_m[-1]) if len(part[0].s_m) else no_arclength()
         parts.append(part)
-    both = jax.tree.map(lambda *xs: np.concatenate(xs), *parts) if len(parts) > 1 else parts[0]
-    if params.settings.model == "seed":
-        yaw_obs = np.asarray(drive.yaw_rad)
-        seed = dict(
-            x_m=np.asarray(drive.xy_m[:, 0]),
-            y_m=np.asarray(drive.xy_m[:, 1]),
-            yaw_rad=np.where(np.isfinite(yaw_obs), yaw_obs, both[0].yaw_rad),
-        )
-        both = tuple(dataclasses.replace(s, **seed) for s in both)
-    return both
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *parts) if len(parts) > 1 else parts[0]
+
+
+def as_recorded(states: State, xy_m: np.ndarray, yaw_rad: np.ndarray) -> State:
+    """The seed model's states by the original's rules: the current row alone, its position
+    (N, 2) [m] and observed yaw (N,) [rad] as recorded (the direction of motion where the log
+    has no yaw)."""
+    yaw_obs = np.asarray(yaw_rad)
+    return dataclasses.replace(
+        states,
+        x_m=np.asarray(xy_m[:, 0]),
+        y_m=np.asarray(xy_m[:, 1]),
+        yaw_rad=np.where(np.isfinite(yaw_obs), yaw_obs, states.yaw_rad),
+    )
 
 
 def states_from_drive(
@@ -267,6 +269,8 @@ def states_from_drive(
     estimator (`states_both`); keep_window: the Kalman filter's states also carry their windows.
     """
     theil_sen, kalman = states_both(params, drive, track)
+    if params.settings.model == "seed":
+        return as_recorded(theil_sen, drive.xy_m, drive.yaw_rad)
     if not uses_filter(params.settings):
         return theil_sen
     return kalman if keep_window else dataclasses.replace(kalman, **dict.fromkeys(WINDOW_FIELDS))

@@ -317,6 +317,29 @@ def test_both_estimators_states_come_from_one_executable():
     assert not np.array_equal(a.s_fit_m, b.s_fit_m)  # ... and their own track-frame estimates
 
 
+def test_a_dataset_estimates_its_states_once_for_every_model(monkeypatch):
+    """The fitted line model, the seed preset (whose states are the recorded rows) and the
+    other presets read one estimate of a dataset's states."""
+    import fpe_jax.evaluate as ev
+    from fpe_jax import sim
+    from fpe_jax.params import Settings
+    from fpe_jax.track import Track
+
+    res = sim.simulate("oval", duration_s=20.0, seed=6)
+    track = Track.from_waypoints(res.centerline_xy_m)
+    (d,) = ev.make_datasets([res.drive], [track], Settings(), "test")
+    calls = []
+    real = ev.states_both
+    monkeypatch.setattr(ev, "states_both", lambda *a: calls.append(1) or real(*a))
+    seed = d.states(presets["seed"])
+    others = [d.states(presets[name]) for name in ("frenet", "default", "ctrv")]
+    assert len(calls) == 1
+    rows = d.targets.rows
+    np.testing.assert_array_equal(seed.x_m, res.drive.xy_m[rows, 0])  # the recorded rows
+    assert not np.array_equal(others[1].x_m, seed.x_m)  # the estimate, not the rows
+    assert others[0].filter_cov is not None and others[1].filter_cov is None
+
+
 # `fpe` with a listener on XLA's compilations: prints how many ran
 _COUNTING_FPE = """
 import sys, jax
