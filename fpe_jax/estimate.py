@@ -148,36 +148,21 @@ def track_frame_window(
     return s, d
 
 
-def estimate_track_frame(
-    t_s: Float[Array, " W"],
-    xy_m: Float[Array, "W 2"],
-    valid: Bool[Array, " W"],
-    s_hint_m: Float[Array, ""],
-    track,
-) -> tuple[Float[Array, ""], Float[Array, ""], Float[Array, ""], Float[Array, ""]]:
-    """Arc length s [m], along-track speed ds/dt [m/s], lateral offset d [m] (left positive)
-    at the newest stamp of one window, by Theil-Sen lines in the track frame, and the speed's
-    age [s] (the median observation's age: a slope describes the window's middle).
-
-    The observations in the track frame come from `track_frame_window`. s and d at the newest
-    stamp are the medians of the observations moved along their Theil-Sen slopes: noise along
-    the line of sight averages out over the window, and unlike a straight line in the map frame
-    the path's curvature adds no bias. The frenet and line rollouts start from these (with the
-    "theil-sen" estimator).
-    """
-    s, d = track_frame_window(xy_m, valid, s_hint_m, track)
-    s_now, sdot, d_now, _, age = track_frame_lines(t_s, s, d, valid)
-    return s_now, sdot, d_now, age
-
-
 def track_frame_lines(
     t_s: Float[Array, " W"],
     s_m: Float[Array, " W"],
     d_m: Float[Array, " W"],
     valid: Bool[Array, " W"],
 ) -> tuple[Float[Array, ""], ...]:
-    """Theil-Sen lines through a window in the track frame: s [m], ds/dt [m/s], d [m],
-    dd/dt [m/s] at the newest stamp, and the median observation's age [s]."""
+    """Theil-Sen lines through a window in the track frame (`track_frame_window`): s [m],
+    ds/dt [m/s], d [m], dd/dt [m/s] at the newest stamp, and the speed's age [s] (the median
+    observation's age: a slope describes the window's middle).
+
+    s and d at the newest stamp are the medians of the observations moved along their Theil-Sen
+    slopes: noise along the line of sight averages out over the window, and unlike a straight
+    line in the map frame the path's curvature adds no bias. The frenet and line rollouts start
+    from these with the "theil-sen" estimator; the Kalman filter starts from them.
+    """
     w = t_s.shape[0]
     s, d = s_m, d_m
     i, j = np.triu_indices(w, 1)

@@ -60,7 +60,7 @@ class Settings:
         history: number of distinct recent observations the state estimator uses.
         estimator: the frenet and line models' track-frame state: "kalman" (a Kalman filter
             over the history window, `fpe_jax.kalman`; its noise values are fitted) or
-            "theil-sen" (robust lines through the window, `estimate_track_frame`).
+            "theil-sen" (robust lines through the window, `estimate.track_frame_lines`).
     """
 
     dt_s: float = 0.1
@@ -97,7 +97,7 @@ class Params(eqx.Module):
         position_smoothing: () frenet / line models, in [0, 1]: where the rollout starts
             along and across the track: 0 = the newest observation's projection, 1 = the
             track-frame estimate at the newest stamp (the Kalman filter's, or the Theil-Sen
-            lines' `estimate_track_frame`), linear between. The speed is the estimate's
+            lines' `estimate.track_frame_lines`), linear between. The speed is the estimate's
             either way. (On the real Levine lap, whose targets are later detections with the
             same tag's errors, the fit chose 0; on simulated drives scored against the truth
             0.6-0.9.)

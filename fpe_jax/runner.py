@@ -46,7 +46,7 @@ from fpe_jax.spec import MODELS as MODELS
 WINDOW_BEHIND_M = 2.0
 WINDOW_AHEAD_M = 4.0
 LOCAL_PROJECTION_ITERS = 2
-TRACK_FRAME_ITERS = 3  # fpe_jax.estimate.estimate_track_frame's project_local iterations
+TRACK_FRAME_ITERS = 3  # fpe_jax.estimate.track_frame_window's project_local iterations
 MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.rollout's
 MAX_SPEED_RATIO = 3.0
 FALLBACK_TAU_S = 3.0
@@ -436,7 +436,8 @@ class Runner:
         return x, y, yaw, math.hypot(vx, vy), rate, course
 
     def _track_frame(self, s_hint_m: float) -> tuple[float, float, float, float]:
-        """(s, ds/dt, d, age) [m, m/s, m, s]: fpe_jax.estimate.estimate_track_frame."""
+        """(s, ds/dt, d, age) [m, m/s, m, s]: fpe_jax.estimate.track_frame_window, then
+        track_frame_lines."""
         path = self.path
         t_new = self._history[-1][0]
         obs = [o for o in self._history if t_new - o[0] <= MAX_SPAN_S]

@@ -25,7 +25,7 @@ BLEND_MODES = ("position", "heading")
 MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
 MIN_TAU_S = 0.01  # time constants stay above this: exp(-t / tau) must not underflow to 0/0
 # the track-frame state estimators of the frenet and line models: a Kalman filter over the
-# history window (`fpe_jax.kalman`) or Theil-Sen lines (`fpe_jax.estimate.estimate_track_frame`)
+# history window (`fpe_jax.kalman`) or Theil-Sen lines (`fpe_jax.estimate.track_frame_lines`)
 ESTIMATORS = ("kalman", "theil-sen")
 DEFAULT_ESTIMATOR = "theil-sen"  # what a config without settings.estimator was fitted with
 # The line model's estimator in a new fit unless told otherwise: the Kalman filter in the track

@@ -24,10 +24,10 @@ class State(eqx.Module):
         yaw_rate_rps: yaw rate [rad/s].
         course_rad: direction of motion [rad] (differs from yaw when sliding or noisy).
         s_m: arc length hint [m]: where on the track the car is (from a windowed projection).
-        s_fit_m, sdot_mps, offset_m: the track-frame estimate (`estimate_track_frame`): arc
-            length [m], along-track speed [m/s] and lateral offset [m] at the newest stamp,
-            and sdot_age_s, how old the speed is [s] (the window's middle); None: the frenet
-            and line rollouts take them from x, y, v and the course.
+        s_fit_m, sdot_mps, offset_m: the track-frame estimate (`track_frame_lines` or the
+            Kalman filter): arc length [m], along-track speed [m/s] and lateral offset [m] at
+            the newest stamp, and sdot_age_s, how old the speed is [s] (the window's middle);
+            None: the frenet and line rollouts take them from x, y, v and the course.
         window_age_s, window_s_m, window_d_m, window_valid: (W,) the history window in the
             track frame, oldest first, for the Kalman estimator to filter with the params at
             hand (`fpe_jax.predict.filtered`; a fit changes the filter's values): each slot's
