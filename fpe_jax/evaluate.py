@@ -96,6 +96,7 @@ class Dataset:
     drive: Drive
     track: Track
     targets: Targets
+    kalman: bool = False  # estimate the Kalman filter's states with the first states of all
     _states: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     def states(self, params: Params) -> State:
@@ -104,11 +105,15 @@ class Dataset:
         Cached: states depend only on the estimator window (`states_both` gives both
         estimators' at once; the Kalman filter's carry their windows: `predict` filters them
         under the params at hand), and a fit asks for them once per solve, for the uncertainty
-        and per preset.
+        and per preset. The Kalman filter runs only for a model that uses it, or with the first
+        estimate when the dataset was made with kalman=True (a fit scores both kinds of model
+        on it: one program then gives both); a Kalman model after a Theil-Sen one without it
+        estimates both again.
         """
         key = params.settings.history
-        if key not in self._states:
-            both = states_both(params, self.drive, self.track)
+        need = uses_filter(params.settings)
+        if key not in self._states or (need and self._states[key][1] is None):
+            both = states_both(params, self.drive, self.track, kalman=need or self.kalman)
             self._states[key] = [jax.tree.map(lambda x: x[self.targets.rows], s) for s in both]
         theil_sen, kalman = self._states[key]
         if params.settings.model == "seed":
@@ -148,7 +153,8 @@ def heldout_predictions(drive: Drive, track, params_by_name: dict) -> Heldout:
     Uses the same targets (and, for equal shapes, the same compiled code) as `evaluate`.
     """
     settings = next(iter(params_by_name.values())).settings
-    data = Dataset(drive, track, make_targets(drive, settings))
+    kalman = any(uses_filter(p.settings) for p in params_by_name.values())
+    data = Dataset(drive, track, make_targets(drive, settings), kalman)
     preds = {n: predict_targets(p, data).xy_m for n, p in params_by_name.items()}
     return Heldout(
         rows=data.targets.rows,
@@ -301,17 +307,22 @@ def split_drive(drive: Drive, holdout: float) -> tuple[Drive, Drive]:
 
 
 def make_datasets(
-    drives: Sequence[Drive], tracks: Sequence[Track], settings: Settings, what: str
+    drives: Sequence[Drive],
+    tracks: Sequence[Track],
+    settings: Settings,
+    what: str,
+    *,
+    kalman: bool = False,
 ) -> list[Dataset]:
     """One `Dataset` per (drive, track) pair; `what` names the part in the error raised when a
-    drive has no usable prediction ("training", "held-out")."""
+    drive has no usable prediction ("training", "held-out"); kalman: `Dataset.kalman`."""
     out = []
     for drv, trk in zip(drives, tracks, strict=True):
         targets = make_targets(drv, settings)
         if len(targets.rows) == 0:
             src = drv.meta.get("source", "drive")
             raise InputError(src, f"no usable predictions in the {what} part", "a longer drive")
-        out.append(Dataset(drv, trk, targets))
+        out.append(Dataset(drv, trk, targets, kalman))
     return out
 
 

@@ -482,8 +482,12 @@ def fit(
         model, blend, init, free, train_d, tracks, test_tracks, progress, estimator
     )
     settings = next(iter(candidates.values()))[0].settings  # every candidate's targets
-    train = make_datasets(train_d, tracks, settings, "training")
-    test = make_datasets(test_d, test_tracks, settings, "held-out")
+    # whether the first states estimate also runs the Kalman filter (`Dataset.kalman`): on the
+    # training data if a candidate needs it, on the held-out data also if a preset does
+    kalman = any(uses_filter(p.settings) for p, _ in candidates.values())
+    scored = kalman or any(uses_filter(baseline(n, settings).settings) for n in BASELINES)
+    train = make_datasets(train_d, tracks, settings, "training", kalman=kalman)
+    test = make_datasets(test_d, test_tracks, settings, "held-out", kalman=scored)
     for label, (p0, groups) in candidates.items():
         if "speed" in groups:  # start the typical speed where the data is
             v = np.concatenate([np.asarray(d.states(p0).v_mps) for d in train])
@@ -495,7 +499,9 @@ def fit(
         inner = [split_drive(d, 0.25) for d in train_d]
         # the inner fit masks the training targets after the inner split instead of slicing the
         # drives: the same shapes as the final fit, so the chosen candidate's solver compiles once
-        inner_val = make_datasets([p[1] for p in inner], tracks, settings, "validation")
+        inner_val = make_datasets(
+            [p[1] for p in inner], tracks, settings, "validation", kalman=kalman
+        )
         inner_fit = [
             targets_before(d, v.drive.t_s[0], settings.dt_s) for d, v in zip(train, inner_val)
         ]

@@ -195,13 +195,15 @@ def variance_rows(params: Params, states: State, track: Track) -> np.ndarray:
 
 
 @aot.jit
-def _states_from_windows(windows: dict, track: Track, s_before_m, filter_values: tuple):
+def _states_from_windows(windows: dict, track: Track, s_before_m, filter_values: tuple | None):
     """States of a block of windows under both track-frame estimators: (Theil-Sen's, the Kalman
-    filter's under filter_values (`kalman_params`), carrying its windows).
+    filter's under filter_values (`kalman_params`), carrying its windows); with filter_values
+    None, (Theil-Sen's, None).
 
     One program for both: they share all but the filter (whose prior is the Theil-Sen lines),
-    and an evaluation or a fit needs both (the line model and the presets), so every model
-    shares one executable, compiled once.
+    and a fit scores both (the line model and the presets), so every model shares one
+    executable, compiled once. Without the filter the program is a third smaller and faster to
+    compile, load and run: the blend and seed models never need it.
     """
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
@@ -224,22 +226,26 @@ def _states_from_windows(windows: dict, track: Track, s_before_m, filter_values:
         window_valid=windows["valid"].astype(s_win.dtype),
         window_prior=jnp.stack([s_ts, sdot_ts, d_ts, ddot_ts, age_ts], axis=1),
     )
+    if filter_values is None:
+        return theil_sen, None
     kalman = jax.vmap(_filter_state, in_axes=(None, 0, None))(
         filter_values, dataclasses.replace(states, **window), track
     )
     return theil_sen, kalman
 
 
-def states_both(params: Params, drive: Drive, track: Track) -> tuple[State, State]:
+def states_both(
+    params: Params, drive: Drive, track: Track, *, kalman: bool = True
+) -> tuple[State, State | None]:
     """The state at every observation of a drive (numpy leaves, leading axis N) under both
     track-frame estimators: (Theil-Sen's, the Kalman filter's under params' noise values,
     carrying its windows `State.window_s_m`, ... so that `predict` filters them again under
-    other values). The seed model's are `as_recorded` from them."""
+    other values; None unless `kalman`). The seed model's are `as_recorded` from them."""
     # in blocks of PREDICT_CHUNK rows, each block's projection window continuing from the last
     # arc length of the one before: memory stays O(block) for a log of any length
     parts, s_before = [], no_arclength()
     dtype = jax.dtypes.canonicalize_dtype(np.float64)
-    values = tuple(np.asarray(v, dtype) for v in kalman_params(params))
+    values = tuple(np.asarray(v, dtype) for v in kalman_params(params)) if kalman else None
     for rows, size in list(row_blocks(len(drive.t_s))) or [(slice(0, 0), BLOCK_ROWS)]:
         windows = history_windows(drive, params.settings.history, rows)
         part = _states_from_windows(pad_rows(windows, size), track, s_before, values)
@@ -268,7 +274,7 @@ def states_from_drive(
     """The state at every observation of a drive (numpy leaves, leading axis N), under params'
     estimator (`states_both`); keep_window: the Kalman filter's states also carry their windows.
     """
-    theil_sen, kalman = states_both(params, drive, track)
+    theil_sen, kalman = states_both(params, drive, track, kalman=uses_filter(params.settings))
     if params.settings.model == "seed":
         return as_recorded(theil_sen, drive.xy_m, drive.yaw_rad)
     if not uses_filter(params.settings):

@@ -279,23 +279,10 @@ def test_drives_of_similar_length_share_executables():
     assert first > 0 and poses.shape == (len(b.drive.t_s), params.settings.horizon, 3)
 
 
-def test_both_estimators_states_come_from_one_executable():
-    """An evaluation or a fit needs the Kalman filter's states (the line model) and the
-    Theil-Sen ones (the presets): one compiled program gives both, so the second estimator's
-    states compile nothing."""
+def _count_compilations():
+    """A list that grows by one per XLA compilation until jax.monitoring's listeners are cleared."""
     import jax
 
-    from fpe_jax import sim
-    from fpe_jax.predict import states_from_drive
-    from fpe_jax.track import Track
-
-    res = sim.simulate("oval", duration_s=20.0, seed=5)
-    track = Track.from_waypoints(res.centerline_xy_m)
-    # a history no other test uses: its windows' shapes are compiled here first
-    frenet = presets["frenet"]
-    kalman = dataclasses.replace(frenet, settings=dataclasses.replace(frenet.settings, history=7))
-    ts_settings = dataclasses.replace(kalman.settings, estimator="theil-sen")
-    theil_sen = dataclasses.replace(kalman, settings=ts_settings)
     events = []
 
     def listen(name, *args, **kw):
@@ -303,23 +290,80 @@ def test_both_estimators_states_come_from_one_executable():
             events.append(name)
 
     jax.monitoring.register_event_duration_secs_listener(listen)
+    return events
+
+
+def _with_history(params, n: int):
+    return dataclasses.replace(params, settings=dataclasses.replace(params.settings, history=n))
+
+
+def test_both_estimators_states_come_from_one_executable():
+    """A fit scores the Kalman filter's states (the line model, the frenet preset) and the
+    Theil-Sen ones (the other presets) on the same datasets: made with kalman=True, one
+    compiled program gives both, so the second estimator's states compile nothing."""
+    import jax
+
+    from fpe_jax import sim
+    from fpe_jax.evaluate import make_datasets
+    from fpe_jax.track import Track
+
+    res = sim.simulate("oval", duration_s=20.0, seed=5)
+    track = Track.from_waypoints(res.centerline_xy_m)
+    # a history no other test uses: its windows' shapes are compiled here first
+    kalman = _with_history(presets["frenet"], 7)
+    ts_settings = dataclasses.replace(kalman.settings, estimator="theil-sen")
+    theil_sen = dataclasses.replace(kalman, settings=ts_settings)
+    (d,) = make_datasets([res.drive], [track], kalman.settings, "test", kalman=True)
+    events = _count_compilations()
     try:
-        a = states_from_drive(theil_sen, res.drive, track)
+        a = d.states(theil_sen)
         first = len(events)
-        b = states_from_drive(kalman, res.drive, track, keep_window=True)
+        b = d.states(kalman)
         assert len(events) == first, "the Kalman filter's states compiled a program of their own"
     finally:
         jax.monitoring.clear_event_listeners()
     assert first > 0
     assert a.filter_cov is None and a.window_s_m is None
-    assert b.filter_cov.shape == (len(res.drive.t_s), 4, 4) and b.window_s_m.shape[1] == 7
+    assert b.filter_cov.shape == (len(d.targets.rows), 4, 4) and b.window_s_m.shape[1] == 7
     np.testing.assert_array_equal(a.s_m, b.s_m)  # one projection, both estimators
     assert not np.array_equal(a.s_fit_m, b.s_fit_m)  # ... and their own track-frame estimates
 
 
+def test_a_model_without_the_kalman_filter_never_runs_it(monkeypatch):
+    """The blend and seed models start from the Theil-Sen states: predicting, evaluating or
+    fitting them neither traces nor runs the Kalman filter (a larger program to compile, load
+    and run), unless a Dataset is told that a Kalman model will follow (kalman=True)."""
+    import importlib
+
+    from fpe_jax import sim
+    from fpe_jax.evaluate import Dataset, make_targets
+    from fpe_jax.track import Track
+
+    pr = importlib.import_module("fpe_jax.predict")  # the package's `predict` is the function
+    res = sim.simulate("oval", duration_s=20.0, seed=8)
+    track = Track.from_waypoints(res.centerline_xy_m)
+    # a history no other test uses: nothing compiled earlier hides a trace of the filter
+    blend, seed = (_with_history(presets[n], 11) for n in ("default", "seed"))
+    assert not pr.uses_filter(blend.settings)
+
+    def no_filter(*args):
+        raise AssertionError("the Kalman filter was traced for a model that does not use it")
+
+    monkeypatch.setattr(pr, "_filter_state", no_filter)
+    st = pr.states_from_drive(blend, res.drive, track)
+    assert st.filter_cov is None and np.isfinite(st.s_fit_m).all()
+    d = Dataset(res.drive, track, make_targets(res.drive, blend.settings))
+    np.testing.assert_array_equal(d.states(blend).s_fit_m, st.s_fit_m[d.targets.rows])
+    np.testing.assert_array_equal(d.states(seed).x_m, res.drive.xy_m[d.targets.rows, 0])
+    monkeypatch.undo()
+    frenet = _with_history(presets["frenet"], 11)  # a Kalman model after them
+    np.testing.assert_array_equal(d.states(frenet).s_m, d.states(blend).s_m)
+    assert d.states(frenet).filter_cov is not None
+
+
 def test_a_dataset_estimates_its_states_once_for_every_model(monkeypatch):
     """The fitted line model, the seed preset (whose states are the recorded rows) and the
-    other presets read one estimate of a dataset's states."""
+    other presets read one estimate of a dataset's states (kalman=True: as `fit` makes them)."""
     import fpe_jax.evaluate as ev
     from fpe_jax import sim
     from fpe_jax.params import Settings
@@ -327,10 +371,10 @@ def test_a_dataset_estimates_its_states_once_for_every_model(monkeypatch):
 
     res = sim.simulate("oval", duration_s=20.0, seed=6)
     track = Track.from_waypoints(res.centerline_xy_m)
-    (d,) = ev.make_datasets([res.drive], [track], Settings(), "test")
+    (d,) = ev.make_datasets([res.drive], [track], Settings(), "test", kalman=True)
     calls = []
     real = ev.states_both
-    monkeypatch.setattr(ev, "states_both", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setattr(ev, "states_both", lambda *a, **k: calls.append(1) or real(*a, **k))
     seed = d.states(presets["seed"])
     others = [d.states(presets[name]) for name in ("frenet", "default", "ctrv")]
     assert len(calls) == 1

@@ -1148,7 +1148,7 @@ def main() -> None:
     ap.add_argument("--with-scipy", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument(
         "--only",
-        choices=("fullsize", "commands"),
+        choices=("fullsize", "commands", "fit"),
         help="run one section and merge it into results.json",
     )
     args = ap.parse_args()
@@ -1164,6 +1164,10 @@ def main() -> None:
         results = json.loads((out_dir / "results.json").read_text())
         if args.only == "fullsize":
             results["fullsize"] = bench_fullsize(args.quick)
+        elif args.only == "fit":  # fit_params warm and cold, and the SciPy baseline
+            results["fit"] = bench_fit(args.quick)
+            results["fit"]["load_avg"] = load_average()
+            results["summary"] = summarize(results)
         else:
             results["commands"] = bench_commands(args.runs, fit_minutes)
             results["commands"]["load_avg"] = load_average()
