@@ -96,7 +96,7 @@ class Dataset:
     drive: Drive
     track: Track
     targets: Targets
-    kalman: bool = False  # estimate the Kalman filter's states with the first states of all
+    kalman: bool = False  # the first estimate also runs the Kalman filter, whatever the model
     _states: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     def states(self, params: Params) -> State:

@@ -202,8 +202,8 @@ def _states_from_windows(windows: dict, track: Track, s_before_m, filter_values:
 
     One program for both: they share all but the filter (whose prior is the Theil-Sen lines),
     and a fit scores both (the line model and the presets), so every model shares one
-    executable, compiled once. Without the filter the program is a third smaller and faster to
-    compile, load and run: the blend and seed models never need it.
+    executable, compiled once. Without the filter the program is a quarter smaller and faster
+    to compile, load and run: the blend and seed models never need it.
     """
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
