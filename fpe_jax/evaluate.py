@@ -32,7 +32,7 @@ from fpe_jax.metrics import (
 )
 from fpe_jax.params import Params, Settings
 from fpe_jax.predict import (
-    as_recorded,
+    model_states,
     pad_rows,
     predict_rows,
     row_blocks,
@@ -100,7 +100,7 @@ class Dataset:
     _states: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     def states(self, params: Params) -> State:
-        """The model's states at the target rows (the seed model's `as_recorded`).
+        """The model's states at the target rows (`model_states`).
 
         Cached: states depend only on the estimator window (`states_both` gives both
         estimators' at once; the Kalman filter's carry their windows: `predict` filters them
@@ -115,11 +115,7 @@ class Dataset:
         if key not in self._states or (need and self._states[key][1] is None):
             both = states_both(params, self.drive, self.track, kalman=need or self.kalman)
             self._states[key] = [jax.tree.map(lambda x: x[self.targets.rows], s) for s in both]
-        theil_sen, kalman = self._states[key]
-        if params.settings.model == "seed":
-            rows = self.targets.rows
-            return as_recorded(theil_sen, self.drive.xy_m[rows], self.drive.yaw_rad[rows])
-        return kalman if uses_filter(params.settings) else theil_sen
+        return model_states(params, *self._states[key], self.drive, self.targets.rows)
 
 
 def predict_targets(params: Params, dataset: Dataset) -> Poses:

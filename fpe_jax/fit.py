@@ -485,7 +485,7 @@ def fit(
     # whether the first states estimate also runs the Kalman filter (`Dataset.kalman`): on the
     # training data if a candidate needs it, on the held-out data also if a preset does
     kalman = any(uses_filter(p.settings) for p, _ in candidates.values())
-    scored = kalman or any(uses_filter(baseline(n, settings).settings) for n in BASELINES)
+    scored = kalman or any(uses_filter(presets[n].settings) for n in BASELINES)
     train = make_datasets(train_d, tracks, settings, "training", kalman=kalman)
     test = make_datasets(test_d, test_tracks, settings, "held-out", kalman=scored)
     for label, (p0, groups) in candidates.items():

@@ -202,8 +202,8 @@ def _states_from_windows(windows: dict, track: Track, s_before_m, filter_values:
 
     One program for both: they share all but the filter (whose prior is the Theil-Sen lines),
     and a fit scores both (the line model and the presets), so every model shares one
-    executable, compiled once. Without the filter the program is a quarter smaller and faster
-    to compile, load and run: the blend and seed models never need it.
+    executable, compiled once. Without the filter the program is smaller and faster to compile,
+    load and run: the blend and seed models never need it.
     """
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
@@ -240,7 +240,7 @@ def states_both(
     """The state at every observation of a drive (numpy leaves, leading axis N) under both
     track-frame estimators: (Theil-Sen's, the Kalman filter's under params' noise values,
     carrying its windows `State.window_s_m`, ... so that `predict` filters them again under
-    other values; None unless `kalman`). The seed model's are `as_recorded` from them."""
+    other values; None unless `kalman`). A model's are `model_states` of them."""
     # in blocks of PREDICT_CHUNK rows, each block's projection window continuing from the last
     # arc length of the one before: memory stays O(block) for a log of any length
     parts, s_before = [], no_arclength()
@@ -255,31 +255,33 @@ def states_both(
     return jax.tree.map(lambda *xs: np.concatenate(xs), *parts) if len(parts) > 1 else parts[0]
 
 
-def as_recorded(states: State, xy_m: np.ndarray, yaw_rad: np.ndarray) -> State:
-    """The seed model's states by the original's rules: the current row alone, its position
-    (N, 2) [m] and observed yaw (N,) [rad] as recorded (the direction of motion where the log
-    has no yaw)."""
-    yaw_obs = np.asarray(yaw_rad)
-    return dataclasses.replace(
-        states,
-        x_m=np.asarray(xy_m[:, 0]),
-        y_m=np.asarray(xy_m[:, 1]),
-        yaw_rad=np.where(np.isfinite(yaw_obs), yaw_obs, states.yaw_rad),
-    )
+def model_states(
+    params: Params, theil_sen: State, kalman: State | None, drive: Drive, rows=slice(None)
+) -> State:
+    """A model's states from both estimators' (`states_both`) at a drive's `rows` (numpy leaves,
+    leading axis N): the Kalman filter's where the model uses it, else Theil-Sen's; the seed
+    model's by the original's rules: the current row alone, its position and observed yaw as
+    recorded (the direction of motion where the log has no yaw)."""
+    if params.settings.model == "seed":
+        yaw_obs = np.asarray(drive.yaw_rad[rows])
+        return dataclasses.replace(
+            theil_sen,
+            x_m=np.asarray(drive.xy_m[rows, 0]),
+            y_m=np.asarray(drive.xy_m[rows, 1]),
+            yaw_rad=np.where(np.isfinite(yaw_obs), yaw_obs, theil_sen.yaw_rad),
+        )
+    return kalman if uses_filter(params.settings) else theil_sen
 
 
 def states_from_drive(
     params: Params, drive: Drive, track: Track, *, keep_window: bool = False
 ) -> State:
     """The state at every observation of a drive (numpy leaves, leading axis N), under params'
-    estimator (`states_both`); keep_window: the Kalman filter's states also carry their windows.
+    estimator (`model_states`); keep_window: the Kalman filter's states also carry their windows.
     """
-    theil_sen, kalman = states_both(params, drive, track, kalman=uses_filter(params.settings))
-    if params.settings.model == "seed":
-        return as_recorded(theil_sen, drive.xy_m, drive.yaw_rad)
-    if not uses_filter(params.settings):
-        return theil_sen
-    return kalman if keep_window else dataclasses.replace(kalman, **dict.fromkeys(WINDOW_FIELDS))
+    both = states_both(params, drive, track, kalman=uses_filter(params.settings))
+    states = model_states(params, *both, drive)
+    return states if keep_window else dataclasses.replace(states, **dict.fromkeys(WINDOW_FIELDS))
 
 
 def predict_drive(params: Params, drive: Drive, track: Track) -> tuple[np.ndarray, np.ndarray]:

@@ -247,6 +247,20 @@ def test_bucket_sizes():
     assert len({bucket(n) for n in range(1025, 2049)}) == 4
 
 
+def _count_compilations():
+    """A list that grows by one per XLA compilation until jax.monitoring's listeners are cleared."""
+    import jax
+
+    events = []
+
+    def listen(name, *args, **kw):
+        if name == "/jax/core/compile/backend_compile_duration":
+            events.append(name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    return events
+
+
 def test_drives_of_similar_length_share_executables():
     """Two drives in one bucket: the second predict traces and compiles nothing new."""
     import jax
@@ -262,13 +276,7 @@ def test_drives_of_similar_length_share_executables():
     # a horizon no other test uses: every drive shares the row blocks' executables, so with the
     # default one an earlier test would have compiled them already
     params = with_settings(presets["default"], horizon=13)
-    events = []
-
-    def listen(name, *args, **kw):
-        if name in ("/jax/core/compile/backend_compile_duration",):
-            events.append(name)
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
+    events = _count_compilations()
     try:
         predict_drive(params, a.drive, track)
         first = len(events)
@@ -277,20 +285,6 @@ def test_drives_of_similar_length_share_executables():
     finally:
         jax.monitoring.clear_event_listeners()
     assert first > 0 and poses.shape == (len(b.drive.t_s), params.settings.horizon, 3)
-
-
-def _count_compilations():
-    """A list that grows by one per XLA compilation until jax.monitoring's listeners are cleared."""
-    import jax
-
-    events = []
-
-    def listen(name, *args, **kw):
-        if name == "/jax/core/compile/backend_compile_duration":
-            events.append(name)
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    return events
 
 
 def _with_history(params, n: int):
