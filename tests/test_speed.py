@@ -162,6 +162,46 @@ def test_executables_are_kept_by_shape_and_reloaded_from_disk(tmp_path, monkeypa
     assert len(list(tmp_path.rglob("*.exe"))) == 3
 
 
+def _spy_compile_options(monkeypatch) -> list:
+    """Record the compiler_options of every XLA compilation from here on."""
+    import jax
+
+    seen, compile_ = [], jax.stages.Lowered.compile
+
+    def spy(self, compiler_options=None, **kwargs):
+        seen.append(compiler_options)
+        return compile_(self, compiler_options=compiler_options, **kwargs)
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", spy)
+    return seen
+
+
+def test_executables_compile_with_the_cpu_loop_emitters(monkeypatch):
+    import jax.numpy as jnp
+
+    from fpe_jax import aot
+
+    seen = _spy_compile_options(monkeypatch)
+    x = np.linspace(0.0, 1.0, 11)
+    exe = aot.executable(lambda x: jnp.cos(x) + 1.0, x)
+    assert seen == [{"xla_cpu_use_fusion_emitters": False}]
+    assert aot.CPU_COMPILER_OPTIONS == seen[0]
+    np.testing.assert_allclose(exe(x), np.cos(x) + 1.0, rtol=1e-14)
+
+
+def test_a_jaxlib_without_the_compiler_option_compiles_with_its_defaults(monkeypatch):
+    import jax.numpy as jnp
+
+    from fpe_jax import aot
+
+    monkeypatch.setattr(aot, "CPU_COMPILER_OPTIONS", {"xla_cpu_no_such_option": False})
+    seen = _spy_compile_options(monkeypatch)
+    x = np.linspace(0.0, 1.0, 13)
+    exe = aot.executable(lambda x: jnp.sin(x) * 3.0, x)
+    assert seen == [{"xla_cpu_no_such_option": False}, None]  # refused, then the defaults
+    np.testing.assert_allclose(exe(x), np.sin(x) * 3.0, rtol=1e-14)
+
+
 def test_cache_dir_follows_xdg(monkeypatch, tmp_path):
     monkeypatch.delenv("FPE_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
