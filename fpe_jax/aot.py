@@ -31,11 +31,20 @@ from fpe_jax import cache
 _MEMO: dict[str, Executable] = {}
 _LOCK = threading.Lock()
 # XLA's CPU backend has two code generators for fused loops. On these programs (vmapped history
-# windows, short scans, many small reductions) its older loop emitters compile much faster, and
-# the programs run as fast: the states of a 10-minute drive compiled in 1.85-2.19 s instead of
-# 2.26-2.90 s, ran in the same 68-95 ms and gave bitwise the same values; the fit's solver
-# compiled in 1.4-1.7 s instead of 2.7-3.2 s, its solve as fast (jax 0.10.2, 3 pairs each).
+# windows, short scans, many small reductions) its older loop emitters compile much faster and
+# run as fast: the states of a 10-minute drive compiled in 1.85-2.19 s instead of 2.26-2.90 s,
+# ran in the same 68-95 ms and gave bitwise the same values (jax 0.10.2, 3 pairs). Functions in
+# FUSION_EMITTERS keep XLA's defaults: the fit's solver compiled in 1.4 s instead of 2.9 s with
+# the loop emitters, but its steps, the work a warm fit repeats, took 7 % longer on the
+# 10-minute drive and a third longer on the 60-minute one.
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+FUSION_EMITTERS: set = set()
+
+
+def fusion_emitters(fun):
+    """Mark `fun` to compile with XLA's default emitters (see FUSION_EMITTERS); returns it."""
+    FUSION_EMITTERS.add(fun)
+    return fun
 
 
 @functools.cache
@@ -143,7 +152,7 @@ def _build(fun, leaves, treedef, traced, path: Path | None) -> Executable:
     ]
     lowered = jax.jit(flat).lower(*shapes)
     t1 = time.perf_counter()
-    compiled = _compile(lowered)
+    compiled = _compile(lowered, None if fun in FUSION_EMITTERS else CPU_COMPILER_OPTIONS)
     seconds = {"trace_s": t1 - t0, "compile_s": time.perf_counter() - t1}
     exe = Executable(compiled, out_treedef[0], traced, **seconds)
     if path is not None:
@@ -151,13 +160,13 @@ def _build(fun, leaves, treedef, traced, path: Path | None) -> Executable:
     return exe
 
 
-def _compile(lowered):
-    """XLA's executable of a lowered program, with `CPU_COMPILER_OPTIONS` on the CPU (a jaxlib
-    that does not know one of them compiles with its defaults)."""
-    if jax.default_backend() != "cpu":
+def _compile(lowered, cpu_options: dict | None):
+    """XLA's executable of a lowered program, with cpu_options on the CPU (a jaxlib that does
+    not know one of them compiles with its defaults)."""
+    if jax.default_backend() != "cpu" or cpu_options is None:
         return lowered.compile()
     try:
-        return lowered.compile(compiler_options=CPU_COMPILER_OPTIONS)
+        return lowered.compile(compiler_options=cpu_options)
     except Exception as e:  # noqa: BLE001 -- jaxlib's error type differs between versions
         if "no such compile option" not in str(e).lower():
             raise

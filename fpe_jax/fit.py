@@ -235,6 +235,7 @@ def _solver_object(solver):
     return solver
 
 
+@aot.fusion_emitters
 def _solve(raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: _Static):
     """Run the optimistix solver; returns (raw values, steps, converged, loss).
 

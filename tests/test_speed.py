@@ -202,6 +202,20 @@ def test_a_jaxlib_without_the_compiler_option_compiles_with_its_defaults(monkeyp
     np.testing.assert_allclose(exe(x), np.sin(x) * 3.0, rtol=1e-14)
 
 
+def test_the_fit_solver_compiles_with_xla_default_emitters(monkeypatch):
+    """The solver's steps are repeated work: its program keeps XLA's default emitters."""
+    import jax.numpy as jnp
+
+    from fpe_jax import aot, fit
+
+    seen = _spy_compile_options(monkeypatch)
+    x = np.linspace(0.0, 1.0, 17)
+    exe = aot.executable(aot.fusion_emitters(lambda x: jnp.tan(x) - 1.0), x)
+    assert seen == [None]
+    np.testing.assert_allclose(exe(x), np.tan(x) - 1.0, rtol=1e-14)
+    assert fit._solve in aot.FUSION_EMITTERS
+
+
 def test_cache_dir_follows_xdg(monkeypatch, tmp_path):
     monkeypatch.delenv("FPE_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
