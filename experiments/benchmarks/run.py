@@ -8,7 +8,8 @@ after compilation, with compile time reported separately):
            1e5, 1e6 cars, float32 and float64: cars in as a NumPy (N, 5) array without arc-length
            hints (the grid projects them), poses out as NumPy (N, 10, 3): the whole public path.
            Also the core `predict_batch` alone (hints given, arrays already on the device).
-2. ceiling a bare 10-step kinematic-bicycle rollout (no track, constant steering), jit(vmap).
+2. ceiling a bare 10-step kinematic-bicycle rollout (no track, constant steering), jit(vmap);
+           batch / ceiling (target >= 40 %) is judged on 7 alternating pairs of runs at N = 1e5.
 3. seed    the original 2019 algorithm as a faithful pure-Python per-prediction loop (reverse scan
            over the raw waypoints every step), checked against the `seed` preset.
 4. fit     fit wall time for 1, 10, 60 min of 10 Hz drive; SciPy L-BFGS-B baseline (see FIT below).
@@ -275,6 +276,49 @@ def bench_ceiling(sizes, dtypes) -> list[dict]:
                 rows.append(res)
                 print_rate("bare ", res)
     return rows
+
+
+def bench_paired_ratio(track, n: int, pairs: int) -> dict:
+    """Batch end to end over the bare rollout, float32, N cars, measured in alternating runs.
+
+    The two rates of the tables come from sections minutes apart; on a shared host whose speed
+    drifts their ratio ranged from 32 % to 46 % over six full runs within a day. Here each pair
+    measures both within a second, in the order batch-bare then bare-batch alternately, and the
+    ratio is the median of the per-pair ratios.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from fpe_jax.batch import BatchPredictor
+    from fpe_jax.params import presets
+
+    cars = make_cars(track, n)
+    with jax.enable_x64(False):
+        predictor = BatchPredictor(presets[PRESET], track, dtype="float32")
+        bare = jax.jit(jax.vmap(_bare_rollout))
+        steer = np.random.default_rng(0).normal(0, 0.2, n)
+        args = tuple(jnp.asarray(a, dtype=jnp.float32) for a in (*cars[:, :4].T, steer))
+        runs = {
+            "batch": lambda: predictor(cars),
+            "bare": lambda: jax.block_until_ready(bare(*args)),
+        }
+        for fn in runs.values():
+            fn()  # compiles
+        rates = {"batch": [], "bare": []}
+        for k in range(pairs):
+            for name in ("batch", "bare") if k % 2 == 0 else ("bare", "batch"):
+                rates[name].append(timed_runs(runs[name], n, runs=1, min_run_s=0.3)["rate_per_s"])
+    ratios = [b / c for b, c in zip(rates["batch"], rates["bare"])]
+    return {
+        "n_cars": n,
+        "dtype": "float32",
+        "pairs": pairs,
+        "batch_rates_per_s": rates["batch"],
+        "ceiling_rates_per_s": rates["bare"],
+        "ratios": ratios,
+        "median_ratio": float(np.median(ratios)),
+        "load_avg": load_average(),
+    }
 
 
 # ---- 3. the original algorithm, per prediction, in pure Python ---------------------------------
@@ -951,8 +995,12 @@ def summarize(results: dict) -> dict:
         "batch_over_ceiling": b32 / c32 if b32 and c32 else None,
         "batch_over_seed_python_loop": b32 / seed if b32 and seed else None,
         "target_2e6_pred_per_s_met": bool(b32 and b32 >= 2e6),
-        "target_40pct_of_ceiling_met": bool(b32 and c32 and b32 >= 0.4 * c32),
     }
+    # the target is judged on the paired ratio where this run measured it (bench_paired_ratio)
+    paired = results.get("paired")
+    ratio = paired["median_ratio"] if paired else out["batch_over_ceiling"]
+    out["batch_over_ceiling_paired"] = paired["median_ratio"] if paired else None
+    out["target_40pct_of_ceiling_met"] = bool(ratio and ratio >= 0.4)
     # per CPU second of this process: the same ratio, free of other processes' load and of how
     # many threads XLA managed to use (the bare rollout spreads over both cores, ours does not)
     b32c = rate(results["batch"], "float32", ref_n, "rate_per_cpu_s")
@@ -1050,8 +1098,20 @@ def write_markdown(results: dict, path: Path) -> None:
         f"({_met(h['target_2e6_pred_per_s_met'])}) |",
         f"| bare ceiling float32 at N = {n_ref} | "
         f"{h['ceiling_float32_pred_per_s']:.3g} pred/s | - |",
-        f"| batch / ceiling | {h['batch_over_ceiling']:.0%} | >= 40 % "
-        f"({_met(h['target_40pct_of_ceiling_met'])}) |",
+    ]
+    target = f">= 40 % ({_met(h['target_40pct_of_ceiling_met'])})"
+    paired = results.get("paired")
+    lines.append(
+        f"| batch / ceiling, from the rows above | {h['batch_over_ceiling']:.0%} | "
+        f"{'-' if paired else target} |"
+    )
+    if paired:
+        runs = ", ".join(f"{r:.0%}" for r in paired["ratios"])
+        lines.append(
+            f"| batch / ceiling, paired (median of {paired['pairs']} alternating runs at N = "
+            f"{paired['n_cars']:,}: {runs}) | {paired['median_ratio']:.0%} | {target} |"
+        )
+    lines += [
         f"| batch / ceiling, per CPU-second | {h['batch_over_ceiling_per_cpu_s']:.0%} | - |",
         f"| batch / original Python loop | {h['batch_over_seed_python_loop']:.3g} x | - |",
     ]
@@ -1239,6 +1299,9 @@ def main() -> None:
     results["core"] = bench_core(track, core_sizes, dtypes)
     print("ceiling", flush=True)
     results["ceiling"] = bench_ceiling(sizes, dtypes)
+    print("batch / ceiling, paired", flush=True)
+    results["paired"] = bench_paired_ratio(track, 10_000 if args.quick else 100_000, 7)
+    print(f"  median of 7 pairs: {results['paired']['median_ratio']:.0%}", flush=True)
     print("original algorithm (pure Python)", flush=True)
     results["seed_loop"] = bench_seed_loop(track, waypoints, 20 if args.quick else 200)
     print("fit", flush=True)
