@@ -95,6 +95,29 @@ def test_grid_projection_equals_exhaustive_search(closed):
     np.testing.assert_allclose(np.asarray(s)[ok], exact[ok], atol=1e-9)
 
 
+def test_grid_lists_only_segments_that_can_be_nearest():
+    """A cell 1.2 m beside a straight path: every point of it has its nearest segment among the
+    cell's candidates, and the list holds little more than those (the coarse bound alone kept
+    17 segments here; the lattice test keeps 9, of which 3 are the nearest somewhere)."""
+    xy = np.column_stack([np.linspace(0.0, 20.0, 201), np.zeros(201)])  # 0.1 m segments
+    track = Track.from_waypoints(xy, closed=False)
+    grid = ProjectionGrid.build(track, max_candidates=64)
+    p = np.array([10.03, 1.2])
+    row, ok = grid.locate(jnp.asarray(p))
+    assert bool(ok)
+    candidates = set(np.asarray(grid.candidates[int(row)]).tolist())
+    origin, cell = np.asarray(grid.origin_m), float(grid.cell_m)
+    u = np.linspace(0.0, 1.0, 60)
+    points = origin + (np.floor((p - origin) / cell) + np.stack(np.meshgrid(u, u), -1)) * cell
+    points = points.reshape(-1, 2)
+    a, b = np.asarray(track.xy_m)[:-1], np.asarray(track.xy_m)[1:]
+    t = np.clip(np.einsum("pij,ij->pi", points[:, None] - a, b - a) / np.sum((b - a) ** 2, 1), 0, 1)
+    dist = np.linalg.norm(points[:, None] - (a + t[..., None] * (b - a)), axis=2)
+    nearest = set(np.argmin(dist, axis=1).tolist())
+    assert nearest <= candidates and len(nearest) == 3
+    assert len(candidates) <= 9
+
+
 def test_grid_flags_points_it_cannot_answer(loop, loop_grid):
     far = jnp.asarray([[100.0, 100.0], [0.0, 0.0], [-50.0, 3.0]])  # off-grid; centre of the loop
     _, ok = jax.jit(jax.vmap(lambda g, q: g.project(q), in_axes=(None, 0)))(loop_grid, far)
