@@ -141,7 +141,7 @@ class ProjectionGrid(eqx.Module):
     def build(
         cls, track: Track, *, cell_m: float = 0.2, margin_m: float = 1.5, max_candidates: int = 16
     ) -> ProjectionGrid:
-        """Build the grid for a track (NumPy, float64, once per track: ~0.3 s for Levine).
+        """Build the grid for a track (NumPy, float64, once per track: ~0.2 s for Levine).
 
         Args:
             track: the track whose `xy_m` polyline is searched.
@@ -271,7 +271,7 @@ class ProjectionGrid(eqx.Module):
 LATTICE_SIDE = 9  # lattice points per cell side in the build's fine candidate test
 
 
-def _lattice_test(cell, seg, a, b, origin, ny, cell_m, slack, pairs_per_pass=1 << 14):
+def _lattice_test(cell, seg, a, b, origin, ny, cell_m, slack, pairs_per_pass=1 << 10):
     """Which (cell, segment) pairs pass the fine test: the segment can be the nearest for some
     point of the cell, judged on an n x n lattice of points spanning the cell (n LATTICE_SIDE).
 
@@ -288,7 +288,8 @@ def _lattice_test(cell, seg, a, b, origin, ny, cell_m, slack, pairs_per_pass=1 <
         cell, seg: (P,) int pairs sorted by cell (each cell's pairs contiguous).
         a, b: (S, 2) segment ends [m]; origin: (2,) grid corner [m]; ny: cells along y.
         cell_m: cell side [m]; slack: added to the threshold [m] (float32 queries near a border).
-        pairs_per_pass: pairs per vectorised pass (whole cells; bounds memory).
+        pairs_per_pass: pairs per vectorised pass (whole cells). Its (pairs, n^2) arrays stay
+            in cache: on a 500 m loop 1024 built the grid in 1.9 s, 16384 in 2.4 s.
 
     Returns (P,) bool.
     """

@@ -1,6 +1,7 @@
 """Chunked batch prediction (`fpe_jax.batch`), the projection grid, and `fpe batch`."""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -116,6 +117,20 @@ def test_grid_lists_only_segments_that_can_be_nearest():
     nearest = set(np.argmin(dist, axis=1).tolist())
     assert nearest <= candidates and len(nearest) == 3
     assert len(candidates) <= 9
+
+
+def test_grid_is_the_same_whatever_the_lattice_pass_size(loop, loop_grid, monkeypatch):
+    """The lattice test runs over whole cells in passes of a bounded size: passes of 7 pairs,
+    far fewer than most cells hold, give the default build's grid exactly."""
+    from fpe_jax import batch
+
+    monkeypatch.setattr(
+        batch, "_lattice_test", functools.partial(batch._lattice_test, pairs_per_pass=7)
+    )
+    small = ProjectionGrid.build(loop)
+    for a, b in zip(jax.tree.leaves(small), jax.tree.leaves(loop_grid)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert small.shape == loop_grid.shape and small.n_complete == loop_grid.n_complete
 
 
 def test_grid_flags_points_it_cannot_answer(loop, loop_grid):
