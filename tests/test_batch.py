@@ -133,6 +133,28 @@ def test_grid_is_the_same_whatever_the_lattice_pass_size(loop, loop_grid, monkey
     assert small.shape == loop_grid.shape and small.n_complete == loop_grid.n_complete
 
 
+def test_levine_grid_of_16_covers_every_point_within_half_a_metre(shared_data, monkeypatch):
+    """On the real Levine loop, cells of at most 16 segments (the default) answer every point
+    within 0.5 m of the centre line, exactly; the coarse bound alone leaves some of them to the
+    exhaustive fallback (cells it lists more than 16 segments for)."""
+    from fpe_jax import batch
+
+    wps = np.loadtxt(shared_data / "levine" / "levine-waypoints.csv", delimiter=",")[:, :2]
+    track = Track.from_waypoints(wps)
+    normal = np.stack([-np.sin(track.heading_rad), np.cos(track.heading_rad)], axis=1)
+    offsets = np.linspace(-0.5, 0.5, 11)
+    p = jnp.asarray((track.xy_m[:, None] + offsets[:, None] * normal[:, None]).reshape(-1, 2))
+    project = jax.jit(jax.vmap(lambda g, q: g.project(q), in_axes=(None, 0)))
+    s, ok = project(ProjectionGrid.build(track), p)
+    assert bool(np.all(ok))
+    # as near as the exhaustive search's point (points on a vertex's normal tie between segments)
+    dist = jax.jit(jax.vmap(lambda t, q, s: jnp.linalg.norm(q - t.point_at(s)), (None, 0, 0)))
+    np.testing.assert_allclose(dist(track, p, s), dist(track, p, _project_all(track, p)), atol=1e-9)
+    monkeypatch.setattr(batch, "_lattice_test", lambda cell, *_: np.ones(len(cell), dtype=bool))
+    _, ok_coarse = project(ProjectionGrid.build(track), p)
+    assert not np.all(ok_coarse)
+
+
 def test_grid_flags_points_it_cannot_answer(loop, loop_grid):
     far = jnp.asarray([[100.0, 100.0], [0.0, 0.0], [-50.0, 3.0]])  # off-grid; centre of the loop
     _, ok = jax.jit(jax.vmap(lambda g, q: g.project(q), in_axes=(None, 0)))(loop_grid, far)
