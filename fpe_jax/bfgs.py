@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -21,7 +22,8 @@ def _quiet(**kwargs) -> None:
 class BFGS(optx.AbstractBFGS):
     """`optx.BFGS` (Armijo backtracking, Newton descent on the inverse Hessian, the same
     Cauchy test on rtol, atol) that also stops once the step it would take next is predicted to
-    lower the objective f by at most `decrease_rtol` |f|.
+    lower the objective f by at most `decrease_rtol` |f|, and that starts from the inverse
+    Hessian given as `options["hessian_inv"]` (the identity without it).
 
     The prediction is half the Newton decrement, g . H^-1 g / 2, from the gradient and inverse
     Hessian estimate at the last accepted point. Near its minimum the robust loss is flat to
@@ -45,6 +47,18 @@ class BFGS(optx.AbstractBFGS):
     descent: optx.NewtonDescent = optx.NewtonDescent(linear_solver=lx.Cholesky())
     search: optx.BacktrackingArmijo = optx.BacktrackingArmijo()
     verbose: Callable = _quiet
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        """The solver's state; its inverse Hessian estimate `options["hessian_inv"]` when given:
+        for a flat y (n,), an (n, n) symmetric positive definite array (a solve continuing
+        another's estimate, `fpe_jax.fit` after its pre-solve on a subsample)."""
+        state = super().init(fn, y, args, options, f_struct, aux_struct, tags)
+        start = options.get("hessian_inv")
+        if start is None:
+            return state
+        op = lx.PyTreeLinearOperator(start, jax.eval_shape(lambda: y), lx.positive_semidefinite_tag)
+        info = optx.FunctionInfo.EvalGradHessianInv(state.f_info.f, state.f_info.grad, op)
+        return eqx.tree_at(lambda s: s.f_info, state, info)
 
     def terminate(self, fn, y, args, options, state, tags):
         done, result = super().terminate(fn, y, args, options, state, tags)

@@ -24,11 +24,20 @@ def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
         "fit": result.info["fit"],
         "blend_selection_ade_m": result.info["validation_ade_m"],
         "model_selection": result.info["model"],
-        "solver": {k: result.info[k] for k in ("solver", "steps", "converged", "loss", "seconds")},
+        "solver": {
+            k: result.info[k]
+            for k in ("solver", "steps", "presolve_steps", "converged", "loss", "seconds")
+        },
         "heldout": result.report,
         "fitted_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "fpe_jax_version": __version__,
     }
+
+
+def _steps(info: dict) -> str:
+    """The solve's steps in words: "27 bfgs steps (+44 on a subsample)"."""
+    pre = info["presolve_steps"]
+    return f"{info['steps']} {info['solver']} steps" + (f" (+{pre} on a subsample)" if pre else "")
 
 
 def line_section(result: FitResult, waypoints: str | None) -> dict | None:
@@ -53,7 +62,7 @@ def format_fitted(result: FitResult) -> str:
     if result.params.settings.model == "line":
         covered = float(np.mean(np.asarray(result.params.line_coverage) > 0))
         return choice + (
-            f"fitted (line model, {info['steps']} {info['solver']} steps): delay "
+            f"fitted (line model, {_steps(info)}): delay "
             f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
             f"{p['speed_tau_s']:.3f} s, position smoothing {p['position_smoothing']:.2f}"
             + (
@@ -66,7 +75,7 @@ def format_fitted(result: FitResult) -> str:
             f"covered, offset rms {np.sqrt(np.mean(np.square(p['line_offset_m']))):.3f} m"
         )
     return choice + (
-        f"fitted ({info['blend']} blend, {info['steps']} {info['solver']} steps): "
+        f"fitted ({info['blend']} blend, {_steps(info)}): "
         f"lookahead {p['lookahead_m']:.3f} m + {p['lookahead_gain_s']:.3f} s * v, "
         f"delay {p['delay_s']:.3f} s, speed {p['speed_weight']:.2f} * measured + "
         f"{1 - p['speed_weight']:.2f} * {p['speed_mps']:.2f} m/s\n"

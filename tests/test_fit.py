@@ -320,6 +320,57 @@ def test_default_bfgs_stops_on_a_negligible_predicted_decrease():
     assert repr(F._Static()) == "default_solver()" and isinstance(F._Static().solver, BFGS)
 
 
+def test_bfgs_starts_from_the_inverse_hessian_it_is_given():
+    """options["hessian_inv"] is BFGS's first inverse Hessian estimate: on a quadratic the exact
+    one makes the first step a Newton step, which lands on the minimum; from the identity two
+    steps do not."""
+    import optimistix as optx
+
+    from fpe_jax.bfgs import BFGS
+
+    a = jnp.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
+    c = jnp.array([1.0, -2.0, 0.5])
+
+    def f(y, args):
+        return 0.5 * (y - c) @ a @ (y - c) + 2.0
+
+    def two_steps(options):  # the start's evaluation, then the first trial point
+        solver = BFGS(rtol=1e-13, atol=1e-13, decrease_rtol=0.0)
+        sol = optx.minimise(f, solver, jnp.zeros(3), max_steps=2, throw=False, options=options)
+        return np.asarray(sol.value)
+
+    np.testing.assert_allclose(two_steps({"hessian_inv": jnp.linalg.inv(a)}), c, atol=1e-12)
+    assert np.max(np.abs(two_steps({}) - c)) > 0.1
+
+
+def test_long_data_are_first_fitted_on_every_kth_row_to_the_same_minimum():
+    """Data of at least 2 x presolve_rows target rows are first fitted on every k-th row; the
+    solve over all rows goes on from there with that solve's curvature and ends where a solve
+    from the start does (loss to 1e-9 of it, the order of the stopping test), in fewer steps
+    over all rows. Shorter data are solved over all rows only, exactly as with 0. (A subsample
+    of a few dozen rows can lead to another local minimum: the default keeps 1024 or more.)"""
+    res = simulate("oval", duration_s=120, latency_s=0.3, seed=11)
+    track = Track.from_waypoints(res.centerline_xy_m)
+    init = presets["default"]
+    data = E.make_datasets([res.drive], [track], init.settings, "training")
+    rows = F.bucket(len(data[0].targets.rows))
+    whole, whole_info = F.fit_params(data, init, presolve_rows=0)
+    pre, pre_info = F.fit_params(data, init, presolve_rows=rows // 2)
+    assert whole_info["presolve_steps"] == 0 and pre_info["presolve_steps"] > 0
+    assert whole_info["converged"] and pre_info["converged"]
+    assert pre_info["loss"] <= whole_info["loss"] * (1.0 + 1e-9)
+    assert pre_info["steps"] < whole_info["steps"]
+    assert float(pre.delay_s) == pytest.approx(float(whole.delay_s), abs=1e-4)
+    np.testing.assert_allclose(np.asarray(pre.weights), np.asarray(whole.weights), atol=1e-3)
+    short, short_info = F.fit_params(data, init, presolve_rows=rows // 2 + 1)
+    assert short_info["presolve_steps"] == 0
+    assert short_info["loss"] == whole_info["loss"] and short_info["steps"] == whole_info["steps"]
+    assert float(short.delay_s) == float(whole.delay_s)
+    for bad in (-1, True):
+        with pytest.raises(InputError, match="^presolve_rows: .*a whole number >= 0"):
+            F.fit_params(data, init, presolve_rows=bad)
+
+
 def test_fit_errors_name_the_argument_and_the_cli_names_its_flag(oval_drives, tmp_path, capsys):
     fit_d, _, track = oval_drives
     with pytest.raises(InputError, match="^free: "):

@@ -484,6 +484,7 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         **{k: info[k] for k in ("trace_s", "compile_s", "solve_s")},
         "solver": info["solver"],
         "steps": info["steps"],
+        "presolve_steps": info["presolve_steps"],
         "converged": info["converged"],
         "loss": info["loss"],
         "fitted": fitted.physical(),
@@ -582,7 +583,7 @@ def fit_markdown(fit: dict, summary: dict) -> list[str]:
         "thread while the states are estimated) and the solve itself.",
         "",
         "| drive | samples | fit wall [s] (incl. compile), median | runs [s] | trace / compile / "
-        "solve [s] | solver steps | final loss |",
+        "solve [s] | solver steps (all rows + subsample) | final loss |",
         "| ---: | ---: | ---: | --- | --- | ---: | ---: |",
     ]
     for r in fit["drives"]:
@@ -590,7 +591,7 @@ def fit_markdown(fit: dict, summary: dict) -> list[str]:
         lines.append(
             f"| {r['minutes']:g} min | {r['n_samples']:,} | {r['wall_s_incl_compile']:.2f} | "
             f"{runs} | {r['trace_s']:.2f} / {r['compile_s']:.2f} / {r['solve_s']:.2f} | "
-            f"{r['steps']} ({r['solver']}) | {r['loss']:.5g} |"
+            f"{r['steps']} + {r.get('presolve_steps', 0)} ({r['solver']}) | {r['loss']:.5g} |"
         )
     sp_rows = [r for r in fit["drives"] if "scipy" in r]
     if sp_rows:
