@@ -103,12 +103,12 @@ BFGS_LOSS_UNIT_M2 = 1.0 / 300
 # PRESOLVE_ROWS (at least 2), to a looser stop (PRESOLVE_DECREASE_RTOL), then goes on over all
 # rows from that solution and that solve's inverse Hessian estimate. Most steps of a solve find
 # the basin and the curvature, which a subsample of these 10 Hz rows shows nearly as well as the
-# whole drive; the steps over all rows then only refine. Without the estimate the full solve
-# takes about half again as many steps (benchmark's 10-minute drive: 44 instead of 27). On 13
-# simulated 5-minute drives on eight tracks the final loss was within 1.2e-10 (relative) of a
-# solve over all rows from the start, the solve 1.1-1.9x faster (10 minutes: 58 steps over all
-# rows became 44 over every 6th and 27 over all). It costs compilation: the loss is compiled for
-# both row counts. A subsample of a few dozen rows can lead to another local minimum.
+# whole drive; the steps over all rows then only refine, with the curvature already known.
+# experiments/results/presolve.md compares it with solving over all rows from the start on
+# 5-minute drives (the same loss, fewer steps over all rows); on the benchmark's 10-minute drive
+# 58 steps over all rows became 44 over every 6th and 27 over all. It costs compilation: the
+# loss is compiled for both row counts. A subsample of a few dozen rows can lead to another
+# local minimum.
 PRESOLVE_ROWS = 1024
 PRESOLVE_DECREASE_RTOL = 1e-8
 
@@ -247,10 +247,13 @@ def _solver_object(solver):
     return solver
 
 
-def _loss_unit(groups):
-    """The BFGS loss's unit: BFGS_LOSS_UNIT_M2 per target point (at least one) [m^2]."""
+def _per_unit(unravel, groups):
+    """The BFGS objective over `groups`: the loss of the flat raw values in units of
+    BFGS_LOSS_UNIT_M2 per target point (at least one), and that unit [m^2], computed once here
+    rather than at every evaluation."""
     n_points = sum(jnp.sum(mask) for _, _, _, mask in groups)
-    return BFGS_LOSS_UNIT_M2 * jnp.maximum(n_points, 1).astype(groups[0][2].dtype)
+    unit = BFGS_LOSS_UNIT_M2 * jnp.maximum(n_points, 1).astype(groups[0][2].dtype)
+    return (lambda y, a: _loss(unravel(y), a) / unit), unit
 
 
 def _presolve_groups(groups, presolve_rows: int):
@@ -290,12 +293,17 @@ def _solve(
     if least_squares:
         run, fn = optx.least_squares, lambda y, a: _residuals(unravel(y), a)
     else:
-        run, fn = optx.minimise, lambda y, a: _loss(unravel(y), a) / _loss_unit(a[1])
+        run, (fn, unit) = optx.minimise, _per_unit(unravel, groups)
         sub = _presolve_groups(groups, presolve_rows) if isinstance(method, BFGS) else None
         if sub is not None:
             loose = eqx.tree_at(lambda m: m.decrease_rtol, method, PRESOLVE_DECREASE_RTOL)
             first = optx.minimise(
-                fn, loose, y0, args=(raw_fixed, sub, huber_m), max_steps=max_steps, throw=False
+                _per_unit(unravel, sub)[0],
+                loose,
+                y0,
+                args=(raw_fixed, sub, huber_m),
+                max_steps=max_steps,
+                throw=False,
             )
             y0, presolve_steps = first.value, first.stats["num_steps"]
             options["hessian_inv"] = first.state.f_info.hessian_inv.pytree
@@ -309,7 +317,7 @@ def _solve(
     if least_squares and hasattr(info, "residual"):
         loss = 0.5 * jnp.sum(info.residual * info.residual)
     elif not least_squares and hasattr(info, "f"):
-        loss = info.f * _loss_unit(groups)
+        loss = info.f * unit
     else:
         loss = _loss(value, args)
     return value, sol.stats["num_steps"], presolve_steps, ok, loss

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fpe_jax import State, Track, predict_batch, presets, stack_params
+from fpe_jax import State, Track, batch, predict_batch, presets, stack_params
 from fpe_jax.batch import (
     BatchPredictor,
     ProjectionGrid,
@@ -112,8 +112,7 @@ def test_grid_lists_only_segments_that_can_be_nearest():
     points = origin + (np.floor((p - origin) / cell) + np.stack(np.meshgrid(u, u), -1)) * cell
     points = points.reshape(-1, 2)
     a, b = np.asarray(track.xy_m)[:-1], np.asarray(track.xy_m)[1:]
-    t = np.clip(np.einsum("pij,ij->pi", points[:, None] - a, b - a) / np.sum((b - a) ** 2, 1), 0, 1)
-    dist = np.linalg.norm(points[:, None] - (a + t[..., None] * (b - a)), axis=2)
+    dist = batch._seg_dist(points[:, None], a, b)  # (points, segments)
     nearest = set(np.argmin(dist, axis=1).tolist())
     assert nearest <= candidates and len(nearest) == 3
     assert len(candidates) <= 9
@@ -122,8 +121,6 @@ def test_grid_lists_only_segments_that_can_be_nearest():
 def test_grid_is_the_same_whatever_the_lattice_pass_size(loop, loop_grid, monkeypatch):
     """The lattice test runs over whole cells in passes of a bounded size: passes of 7 pairs,
     far fewer than most cells hold, give the default build's grid exactly."""
-    from fpe_jax import batch
-
     monkeypatch.setattr(
         batch, "_lattice_test", functools.partial(batch._lattice_test, pairs_per_pass=7)
     )
@@ -137,8 +134,6 @@ def test_levine_grid_of_16_covers_every_point_within_half_a_metre(shared_data, m
     """On the real Levine loop, cells of at most 16 segments (the default) answer every point
     within 0.5 m of the centre line, exactly; the coarse bound alone leaves some of them to the
     exhaustive fallback (cells it lists more than 16 segments for)."""
-    from fpe_jax import batch
-
     wps = np.loadtxt(shared_data / "levine" / "levine-waypoints.csv", delimiter=",")[:, :2]
     track = Track.from_waypoints(wps)
     normal = np.stack([-np.sin(track.heading_rad), np.cos(track.heading_rad)], axis=1)

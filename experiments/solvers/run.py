@@ -23,7 +23,7 @@ jax.config.update("jax_enable_x64", True)
 
 from fpe_jax.cases import simulated_case, study_cases  # noqa: E402
 from fpe_jax.evaluate import evaluate, make_datasets  # noqa: E402
-from fpe_jax.fit import SOLVERS, fit_params  # noqa: E402
+from fpe_jax.fit import PRESOLVE_ROWS, SOLVERS, fit_params  # noqa: E402
 from fpe_jax.params import presets  # noqa: E402
 from fpe_jax.recipe import solver_named  # noqa: E402
 
@@ -56,8 +56,8 @@ def main() -> None:
         "preset; float64. Solve time includes compilation (each case's shapes compile anew, "
         "a few seconds per solver: on the 60 s drives it is most of the time).",
         "",
-        "BFGS first fits a drive of 2048 or more target rows on every k-th row "
-        "(`fpe_jax.fit.PRESOLVE_ROWS`): its steps there are the subsample column.",
+        f"BFGS first fits a drive of {2 * PRESOLVE_ROWS} or more target rows on every k-th "
+        "row (`fpe_jax.fit.PRESOLVE_ROWS`): its steps there are the subsample column.",
         "",
         "| case | solver | loss | loss / best - 1 | steps | subsample steps | converged | solve s "
         "| held-out FDE m |",
