@@ -269,7 +269,8 @@ def publish_catalogue(rounds: int, readers: int, period_s: float) -> None:
     """The publisher process of the two-process tests (domain from ROS_DOMAIN_ID): advertise
     every catalogue topic with DdsTransport and PoseStamped on BEST_EFFORT_TOPIC with a plain
     cyclonedds sensor-data writer; once `readers` readers match each catalogue topic (and one the
-    best-effort topic), publish `rounds` rounds every `period_s`; then stay until stdin closes."""
+    best-effort topic), print "matched", and after a line "go" on stdin publish `rounds` rounds
+    every `period_s`; then stay until stdin closes."""
     import sys
     import time
 
@@ -304,6 +305,11 @@ def publish_catalogue(rounds: int, readers: int, period_s: float) -> None:
             30,
             BEST_EFFORT_TOPIC,
         )
+        # a best-effort reader drops what arrives before it has matched the writer: the test
+        # says "go" once its readers see every writer
+        print("matched", flush=True)
+        if sys.stdin.readline().strip() != "go":
+            return
         for r in range(rounds):
             start = time.monotonic()
             for topic, (_, msg) in catalogue(r).items():

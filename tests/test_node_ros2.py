@@ -307,6 +307,13 @@ def test_two_processes(store, domain_id):
         text=True,
     )
     try:
+        assert publisher.stdout.readline() == "matched\n", publisher.communicate()
+        for topic in received:
+            wait_until(
+                lambda t=topic: transport.publisher_count(t) >= 1, 20, f"a writer of {topic}"
+            )
+        publisher.stdin.write("go\n")
+        publisher.stdin.flush()
         try:
             wait_until(
                 lambda: all(len(v) >= ROUNDS for v in received.values()) or publisher.poll(),
@@ -440,3 +447,36 @@ def test_subscribe_without_type_waits_out_unknown_types(store, domain_id, caplog
         assert (
             "ROS 2 topic /speed: writers announce type team_msgs::msg::dds_::Speed_" in caplog.text
         )
+
+
+def test_discovery_info_follows_the_store(domain_id):
+    """A Humble store announces the node with Humble's 24-byte GIDs (the GUID, zero-padded)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    humble = get_typestore(Stores.ROS2_HUMBLE)
+    with DdsTransport(humble, node_name="humble_node") as transport:
+        transport.advertise("/h", "geometry_msgs/msg/PoseStamped")
+        type_name = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+        participant = DomainParticipant(domain_id)
+        reader = DataReader(
+            participant,
+            Topic(participant, DISCOVERY_TOPIC, transport.codec.idl_class(type_name)),
+            qos=Qos(Policy.Reliability.Reliable(0), Policy.Durability.TransientLocal),
+        )
+        infos = []
+
+        def mine():
+            infos.extend(transport.codec.to_dict(type_name, s) for s in reader.take(N=16))
+            return [
+                i for i in infos if i["node_entities_info_seq"][0]["node_name"] == "humble_node"
+            ]
+
+        wait_until(
+            lambda: any(i["node_entities_info_seq"][0]["writer_gid_seq"] for i in mine()),
+            5,
+            "the node's announcement",
+        )
+        info = mine()[-1]
+        assert bytes(info["gid"]["data"]) == transport._participant.guid.bytes + bytes(8)
+        (writer,) = info["node_entities_info_seq"][0]["writer_gid_seq"]
+        assert len(writer["data"]) == 24

@@ -436,7 +436,10 @@ class DdsTransport:
         self.codec = IdlCodec(typestore)
         self._store = typestore
         self._lock = threading.RLock()
-        self._participant = DomainParticipant(self.domain_id)
+        # ROS 2 participants name their security enclave in USER_DATA (the default one here)
+        self._participant = DomainParticipant(
+            self.domain_id, qos=Qos(Policy.Userdata(b"enclave=/;"))
+        )
         self._waitset = WaitSet(self._participant)
         self._wake = GuardCondition(self._participant)
         self._waitset.attach(self._wake)
@@ -727,8 +730,11 @@ class DdsTransport:
         if writer is None:
             return
 
+        # a GID is the 16-byte DDS GUID, zero-padded where the store's Gid is longer (Humble: 24)
+        size = self._store.fielddefs["rmw_dds_common/msg/Gid"][1][0][1][1][1]
+
         def gid(entity) -> dict:
-            return {"data": list(entity.guid.bytes)}
+            return {"data": list(entity.guid.bytes.ljust(size, b"\0"))}
 
         info = {
             "gid": gid(self._participant),
