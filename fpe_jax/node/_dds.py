@@ -5,8 +5,9 @@ ROS 2 is DDS with naming and QoS conventions, which this module follows:
 - topic `/a/b` is the DDS topic `rt/a/b`; type `pkg/msg/T` is the DDS type `pkg::msg::dds_::T_`;
 - samples are plain CDR (XCDR1, little endian): every type is a final, keyless struct whose
   fields follow the message definition in order;
-- outputs are reliable, volatile, keep-last 10 (the ROS 2 default profile); inputs are best
-  effort, volatile, keep-last 10, which matches reliable and best-effort (sensor data) writers;
+- outputs are reliable, volatile, keep-last 10 (the ROS 2 default profile); inputs are volatile,
+  keep-last 10, reliable while every writer on the topic is reliable and best effort once a
+  best-effort (sensor data) writer appears, which a reliable reader could not match;
 - each endpoint carries `typehash=RIHS01_<sha256 hex>;` in its USER_DATA (ROS 2 Jazzy and later);
 - the node announces its readers and writers on `ros_discovery_info`, so `ros2 node list` shows it.
 
@@ -33,6 +34,7 @@ import numpy as np
 try:
     from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
     from cyclonedds.core import (
+        DDSException,
         GuardCondition,
         InstanceState,
         Policy,
@@ -65,7 +67,7 @@ WARN_PERIOD_S = 10.0  # one warning per topic and problem in this time
 DISCOVERY_TOPIC = "ros_discovery_info"
 MAX_DOMAIN_ID = 232  # the highest id whose RTPS ports fit in 16 bits
 
-_TOPIC = re.compile(r"/?[A-Za-z_~{}][A-Za-z0-9_~{}]*(/[A-Za-z_~{}][A-Za-z0-9_~{}]*)*")
+_TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 _TYPE = re.compile(r"([A-Za-z][A-Za-z0-9_]*)/msg/([A-Za-z][A-Za-z0-9_]*)")
 _DDS_TYPE = re.compile(r"([A-Za-z][A-Za-z0-9_]*)::msg::dds_::([A-Za-z][A-Za-z0-9_]*)_")
 _NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -101,6 +103,11 @@ def ros_type_name(dds_type: str) -> str | None:
     when the name does not follow the ROS 2 convention."""
     match = _DDS_TYPE.fullmatch(dds_type)
     return None if match is None else f"{match[1]}/msg/{match[2]}"
+
+
+def _ros_topic(topic: str) -> str:
+    """The absolute spelling of a ROS 2 topic (checked), used as the key of every table here."""
+    return "/" + dds_topic_name(topic)[3:]
 
 
 def resolve_domain_id(domain_id: int | None) -> int:
@@ -402,11 +409,12 @@ def _array_converter(convert: Callable[[Any], Any], size: int, *, exact: bool):
 class _Reader:
     """One DDS reader and the callbacks of every subscription on its topic."""
 
-    def __init__(self, topic: str, type_name: str, reader: DataReader, condition: ReadCondition):
+    def __init__(self, topic: str, type_name: str):
         self.topic = topic
         self.type_name = type_name
-        self.reader = reader
-        self.condition = condition
+        self.reader: DataReader | None = None
+        self.condition: ReadCondition | None = None
+        self.best_effort = False
         self.callbacks: list[Callable[[dict, str, int], None]] = []
 
 
@@ -449,6 +457,7 @@ class DdsTransport:
         self._writers: dict[str, tuple[DataWriter, str]] = {}  # ROS topic -> (writer, type name)
         self._pending: dict[str, list[Callable[[dict, str, int], None]]] = {}
         self._announced: dict[str, str] = {}  # DDS topic -> first DDS type name seen on it
+        self._best_effort: set[str] = set()  # DDS topics with a best-effort writer
         self._publications: BuiltinDataReader | None = None
         self._warned: dict[tuple[str, str], float] = {}
         self._closed = False
@@ -467,36 +476,37 @@ class DdsTransport:
     ) -> None:
         """Deliver each message on `topic` as callback(msg_dict, type_name, receive_time_ns)
         from `spin`. type_name None: the type the topic's writers announce in DDS discovery
-        (the reader is created once a writer of a known type is seen). Best-effort readers, so
-        both reliable and best-effort (sensor data) writers match. receive_time_ns: time.time_ns()
-        when the sample was taken."""
-        dds_topic_name(topic)
+        (the reader is created once a writer of a known type is seen). The reader is reliable
+        while every writer seen on the topic is, and is replaced by a best-effort one as soon as
+        a best-effort (sensor data) writer appears, which a reliable reader could not match
+        (as rosbag2 adapts its subscriptions): reliable writers lose nothing, best-effort ones
+        are accepted. receive_time_ns: time.time_ns() when the sample was taken."""
+        topic = _ros_topic(topic)
         if not callable(callback):
             raise ValueError(f"ROS 2 topic {topic}: callback {callback!r} is not callable")
         with self._lock:
             self._check_open()
+            if self._publications is None:
+                self._publications = BuiltinDataReader(
+                    self._participant, BuiltinTopicDcpsPublication
+                )
+                condition = ReadCondition(
+                    self._publications, SampleState.NotRead | ViewState.Any | InstanceState.Any
+                )
+                self._waitset.attach(condition)
+                self._entities += [self._publications, condition]
             if type_name is None:
-                if self._publications is None:
-                    self._publications = BuiltinDataReader(
-                        self._participant, BuiltinTopicDcpsPublication
-                    )
-                    condition = ReadCondition(
-                        self._publications,
-                        SampleState.NotRead | ViewState.Any | InstanceState.Any,
-                    )
-                    self._waitset.attach(condition)
-                    self._entities += [self._publications, condition]
                 self._pending.setdefault(topic, []).append(callback)
-                self._resolve_pending()
             else:
                 self.codec.idl_class(type_name)
                 self._add_reader(topic, type_name, callback)
-            self._wake.set(True)
+            self._wake.set(True)  # spin() reads discovery and resolves the type
 
     def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]:
         """Return publish(msg_dict) for `topic`: a reliable, volatile, keep-last 10 writer.
         publish raises ValueError for a message that does not fit the type (unknown field,
         wrong kind of value, out of range)."""
+        topic = _ros_topic(topic)
         dds_topic = dds_topic_name(topic)
         self.codec.idl_class(type_name)
         with self._lock:
@@ -537,8 +547,8 @@ class DdsTransport:
         try:
             while not stop.is_set() and not self._closed:
                 with self._lock:
-                    if self._publications is not None and self._pending:
-                        self._resolve_pending()
+                    if self._publications is not None:
+                        self._discover()
                     readers = list(self._readers.values())
                 for reader in readers:
                     self._drain(reader)
@@ -574,12 +584,14 @@ class DdsTransport:
 
     def subscriber_count(self, topic: str) -> int:
         """How many DDS readers match this node's writer on `topic` (0 if not advertised)."""
+        topic = _ros_topic(topic)
         with self._lock:
             entry = self._writers.get(topic)
             return 0 if entry is None else entry[0].get_publication_matched_status().current_count
 
     def publisher_count(self, topic: str) -> int:
         """How many DDS writers match this node's reader on `topic` (0 if none yet)."""
+        topic = _ros_topic(topic)
         with self._lock:
             entry = self._readers.get(topic)
             if entry is None:
@@ -589,6 +601,7 @@ class DdsTransport:
     def topic_type(self, topic: str) -> str | None:
         """The message type this node uses on `topic` (None while a subscription with
         type_name None has not yet seen a writer)."""
+        topic = _ros_topic(topic)
         with self._lock:
             if topic in self._writers:
                 return self._writers[topic][1]
@@ -627,37 +640,63 @@ class DdsTransport:
     ) -> None:
         entry = self._readers.get(topic)
         if entry is None:
-            dds_topic = dds_topic_name(topic)
-            qos = Qos(
-                Policy.Reliability.BestEffort,
-                Policy.Durability.Volatile,
-                Policy.History.KeepLast(INPUT_DEPTH),
-                Policy.Userdata(type_hash_user_data(self._store, type_name)),
-            )
-            reader = DataReader(self._participant, self._topic(dds_topic, type_name), qos=qos)
-            condition = ReadCondition(
-                reader, SampleState.NotRead | ViewState.Any | InstanceState.Any
-            )
-            self._waitset.attach(condition)
-            self._entities += [reader, condition]
-            entry = self._readers[topic] = _Reader(topic, type_name, reader, condition)
-            self._announce()
+            entry = self._readers[topic] = _Reader(topic, type_name)
+            self._open_reader(entry, dds_topic_name(topic) in self._best_effort)
         elif entry.type_name != type_name:
             raise ValueError(
                 f"ROS 2 topic {topic}: already subscribed as {entry.type_name}, not {type_name}"
             )
         entry.callbacks.append(callback)
 
-    def _resolve_pending(self) -> None:
-        """Create the readers of subscriptions without a type whose topic now has a writer."""
+    def _open_reader(self, entry: _Reader, best_effort: bool) -> None:
+        """Give `entry` a new DDS reader (reliable or best effort), replacing its old one after
+        delivering what the old one holds."""
+        old = (entry.reader, entry.condition)
+        if entry.reader is not None:
+            self._drain(entry)
+        qos = Qos(
+            Policy.Reliability.BestEffort
+            if best_effort
+            else Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)),
+            Policy.Durability.Volatile,
+            Policy.History.KeepLast(INPUT_DEPTH),
+            Policy.Userdata(type_hash_user_data(self._store, entry.type_name)),
+        )
+        topic = self._topic(dds_topic_name(entry.topic), entry.type_name)
+        entry.reader = DataReader(self._participant, topic, qos=qos)
+        entry.condition = ReadCondition(
+            entry.reader, SampleState.NotRead | ViewState.Any | InstanceState.Any
+        )
+        entry.best_effort = best_effort
+        self._waitset.attach(entry.condition)
+        self._entities += [entry.reader, entry.condition]
+        if old[0] is not None:
+            self._waitset.detach(old[1])
+            for entity in reversed(old):
+                self._entities.remove(entity)
+                entity.__del__()
+        self._announce()
+
+    def _discover(self) -> None:
+        """Read DDS discovery: the type each topic's first writer announces (subscriptions
+        without a type), and best-effort writers (their topic's reader turns best effort)."""
         while True:
             samples = self._publications.take(N=64)
             if not samples:
                 break
             for endpoint in samples:
                 name = getattr(endpoint, "topic_name", None)
-                if name and endpoint.type_name and name not in self._announced:
-                    self._announced[name] = endpoint.type_name
+                if not name or not endpoint.type_name:
+                    continue  # a writer that went away
+                self._announced.setdefault(name, endpoint.type_name)
+                qos = endpoint.qos
+                if Policy.Reliability in qos and qos[Policy.Reliability] == (
+                    Policy.Reliability.BestEffort
+                ):
+                    self._best_effort.add(name)
+        for entry in list(self._readers.values()):
+            if not entry.best_effort and dds_topic_name(entry.topic) in self._best_effort:
+                self._open_reader(entry, best_effort=True)
         for topic in list(self._pending):
             dds_type = self._announced.get(dds_topic_name(topic))
             if dds_type is None:
@@ -681,7 +720,9 @@ class DdsTransport:
         while not self._closed:
             try:
                 samples = entry.reader.take(N=1)
-            except Exception as err:  # the sample is taken, so the loop moves on
+            except DDSException:
+                raise
+            except Exception as err:  # a sample that does not decode is taken all the same
                 self._warn(
                     entry.topic,
                     "malformed",
