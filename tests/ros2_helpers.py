@@ -325,3 +325,35 @@ if __name__ == "__main__":
     import sys
 
     publish_catalogue(int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]))
+
+
+def random_message(store, type_name: str, rng: np.random.Generator, depth: int = 0) -> dict:
+    """A message of `type_name` with every field set to random values of its type's range
+    (float32 fields to float32 values, strings with non-ASCII characters, sequences of 0-3)."""
+    _, fields = store.fielddefs[type_name]
+    return {name: _random_value(store, node, rng, depth) for name, node in fields}
+
+
+def _random_value(store, node, rng, depth):
+    kind, spec = node
+    if kind == Nodetype.BASE:
+        base, bound = spec
+        if base == "string":
+            text = "".join(rng.choice(list("abcXYZ_09 äéπ→")) for _ in range(rng.integers(0, 9)))
+            return text[:bound] if bound else text
+        if base == "bool":
+            return bool(rng.integers(0, 2))
+        if base.startswith("float"):
+            value = float(rng.normal(0.0, 1e3))
+            return float(np.float32(value)) if base == "float32" else value
+        if base == "byte":  # an octet in ROS 2; rosbags packs a scalar byte signed: 0..127 agree
+            return int(rng.integers(0, 128))
+        info = np.iinfo(_NUMPY[base])
+        return int(rng.integers(info.min, info.max, endpoint=True, dtype=_NUMPY[base]))
+    if kind == Nodetype.NAME:
+        return random_message(store, spec, rng, depth + 1)
+    subnode, size = spec
+    n = size if kind == Nodetype.ARRAY else int(rng.integers(0, 4 if depth < 3 else 1))
+    if kind == Nodetype.SEQUENCE and size:
+        n = min(n, size)
+    return [_random_value(store, subnode, rng, depth + 1) for _ in range(n)]

@@ -306,7 +306,8 @@ class IdlCodec:
         if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
             subnode, size = spec
             elem = self._field(owner, name, subnode)
-            to_py = _identity if subnode[0] == Nodetype.BASE else _list_of(elem.to_py)
+            # cyclonedds hands byte arrays and sequences over as bytes: lists, like the rest
+            to_py = _as_list if subnode[0] == Nodetype.BASE else _list_of(elem.to_py)
             if kind == Nodetype.ARRAY:
                 return _Field(
                     name,
@@ -375,6 +376,10 @@ class IdlCodec:
     def decode(self, type_name: str, data: bytes | bytearray | memoryview) -> dict:
         """The nested dict of CDR bytes (with their encapsulation header) of `type_name`."""
         return self.to_dict(type_name, self.idl_class(type_name).deserialize(bytes(data)))
+
+
+def _as_list(values: Any) -> list:
+    return values if isinstance(values, list) else list(values)
 
 
 def _list_of(convert: Callable[[Any], Any]) -> Callable[[Any], list]:
