@@ -4,7 +4,10 @@ sides. Latency = the subscriber's receive time (the `receive_time_ns` the node c
 the publisher's wall clock just before `publish` (carried in header.stamp); both processes read
 the same system clock.
 
-Usage: python experiments/benchmarks/dds_roundtrip.py [--count 400] [--rate-hz 40] [--runs 3]
+Also the Python cost of each message type the node reads or writes (the message catalogue of the
+ROS 2 tests, tests/ros2_helpers.py): dict -> sample -> CDR bytes, and CDR bytes -> dict.
+
+Usage: python experiments/benchmarks/dds_roundtrip.py [--count 400] [--rate-hz 40] [--runs 5]
 Writes dds_roundtrip.md beside this file (--out to change). Nothing here gates CI.
 """
 
@@ -105,6 +108,40 @@ def measure(count: int = 400, rate_hz: float = 40.0) -> dict:
     return {"latency_ms": np.asarray(latencies_ms), "received": len(latencies_ms), "sent": count}
 
 
+def codec_costs(runs: int, iterations: int = 100) -> list[dict]:
+    """Median over `runs` of the mean time [us] to encode (dict -> CDR) and decode (CDR -> dict)
+    each catalogue message."""
+    sys.path.insert(0, str(HERE.parents[1] / "tests"))
+    from ros2_helpers import catalogue, ros2_typestore
+
+    from fpe_jax.node._dds import IdlCodec
+
+    codec = IdlCodec(ros2_typestore())
+    rows = []
+    for topic, (type_name, msg) in catalogue().items():
+        data = codec.encode(type_name, msg)
+        enc, dec = [], []
+        for _ in range(runs):
+            start = time.perf_counter()
+            for _ in range(iterations):
+                codec.encode(type_name, msg)
+            middle = time.perf_counter()
+            for _ in range(iterations):
+                codec.decode(type_name, data)
+            enc.append((middle - start) / iterations * 1e6)
+            dec.append((time.perf_counter() - middle) / iterations * 1e6)
+        rows.append(
+            {
+                "topic": topic,
+                "type": type_name,
+                "bytes": len(data),
+                "encode_us": statistics.median(enc),
+                "decode_us": statistics.median(dec),
+            }
+        )
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--count", type=int, default=400, help="messages per run")
@@ -135,6 +172,8 @@ def main() -> None:
         print(rows[-1], flush=True)
     from importlib.metadata import version
 
+    costs = codec_costs(args.runs)
+
     load = os.getloadavg()
     lines = [
         "# ROS 2 wire latency: DdsTransport to DdsTransport, two processes, loopback",
@@ -159,6 +198,21 @@ def main() -> None:
     lines += [
         f"| median of runs | | {statistics.median(r['p50'] for r in rows):.3f} | "
         f"{statistics.median(r['p99'] for r in rows):.3f} | |",
+        "",
+        "## Python cost per message (median of the runs' means, 100 messages each)",
+        "",
+        "Encode = dict -> sample -> CDR bytes (what `publish` does before the write); decode =",
+        "CDR bytes -> sample -> dict (what the reader does before the callback). Messages: the",
+        "catalogue of tests/ros2_helpers.py (e.g. a 4-marker MarkerArray, a 10-pose Path, a",
+        "50-point OpponentTrajectory).",
+        "",
+        "| topic | type | bytes | encode [us] | decode [us] |",
+        "| --- | --- | --- | --- | --- |",
+        *(
+            f"| {c['topic']} | {c['type']} | {c['bytes']} | {c['encode_us']:.0f} | "
+            f"{c['decode_us']:.0f} |"
+            for c in costs
+        ),
         "",
         f"Machine: {platform.platform()}, Python {platform.python_version()}, "
         f"{os.cpu_count()} CPUs, cyclonedds {version('cyclonedds')}; 1-minute load average "

@@ -179,6 +179,8 @@ def _int_converter(kind: str) -> Callable[[Any], int]:
     lo, hi = _INT_RANGES[kind]
 
     def convert(value: Any) -> int:
+        if type(value) is int and lo <= value <= hi:  # the common case, without ABC checks
+            return value
         if isinstance(value, bool | float | str) or not isinstance(value, numbers.Integral):
             raise _FieldError(f"expected an integer ({kind}), got {value!r}")
         value = operator.index(value)
@@ -191,6 +193,8 @@ def _int_converter(kind: str) -> Callable[[Any], int]:
 
 def _float_converter(kind: str) -> Callable[[Any], float]:
     def convert(value: Any) -> float:
+        if type(value) is float:  # the common case, without ABC checks
+            return value
         if isinstance(value, bool | str) or not isinstance(value, numbers.Real):
             raise _FieldError(f"expected a number ({kind}), got {value!r}")
         return float(value)
@@ -213,6 +217,9 @@ def _string_converter(bound: int) -> Callable[[Any], str]:
         return value
 
     return convert
+
+
+_MISSING = object()
 
 
 def _identity(value: Any) -> Any:
@@ -247,6 +254,7 @@ class IdlCodec:
         self._store = typestore
         self._classes: dict[str, type] = {}
         self._fields: dict[str, tuple[_Field, ...]] = {}
+        self._names: dict[str, frozenset[str]] = {}
         self._lock = threading.Lock()
 
     def idl_class(self, type_name: str) -> type:
@@ -276,6 +284,7 @@ class IdlCodec:
         )
         self._classes[type_name] = cls
         self._fields[type_name] = fields
+        self._names[type_name] = frozenset(f.name for f in fields)
         return cls
 
     def _field(self, owner: str, name: str, node: tuple) -> _Field:
@@ -332,22 +341,23 @@ class IdlCodec:
         if not isinstance(msg, Mapping):
             raise _FieldError(f"expected a dict for {type_name}, got {type(msg).__name__}")
         fields = self._fields[type_name]
-        known = {f.name for f in fields}
-        for key in msg:
-            if key not in known:
-                raise _FieldError(
-                    f"unknown field {key!r} of {type_name} (fields: {', '.join(sorted(known))})"
-                )
+        known = self._names[type_name]
+        if not known.issuperset(msg):
+            key = next(k for k in msg if k not in known)
+            raise _FieldError(
+                f"unknown field {key!r} of {type_name} (fields: {', '.join(sorted(known))})"
+            )
         values = {}
         for f in fields:
-            if f.name in msg:
-                try:
-                    values[f.name] = f.to_idl(msg[f.name])
-                except _FieldError as err:
-                    err.path.insert(0, f.name)
-                    raise
-            else:
+            value = msg.get(f.name, _MISSING)
+            if value is _MISSING:
                 values[f.name] = f.default()
+                continue
+            try:
+                values[f.name] = f.to_idl(value)
+            except _FieldError as err:
+                err.path.insert(0, f.name)
+                raise
         return self._classes[type_name](**values)
 
     def _to_dict(self, type_name: str, sample: Any) -> dict:
