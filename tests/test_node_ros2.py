@@ -512,3 +512,40 @@ def test_discovery_info_follows_the_store(domain_id):
         assert bytes(info["gid"]["data"]) == transport._participant.guid.bytes + bytes(8)
         (writer,) = info["node_entities_info_seq"][0]["writer_gid_seq"]
         assert len(writer["data"]) == 24
+
+
+def test_a_sample_that_does_not_decode_is_dropped_with_a_warning(store, domain_id, caplog):
+    """The reader's decoding fails for one sample (as for bytes from a writer whose layout
+    differs under the same type name): that sample is dropped with a warning naming the
+    topic, and the next one is delivered."""
+    type_name = "geometry_msgs/msg/PoseStamped"
+    with DdsTransport(store, node_name="a") as a, DdsTransport(store, node_name="b") as b:
+        got = []
+        b.subscribe("/flaky", type_name, lambda m, t, ns: got.append(m))
+        cls = b.codec.idl_class(type_name)
+        decode = cls.deserialize
+        calls = []
+
+        def fail_once(data, *args, **kwargs):
+            calls.append(data)
+            if len(calls) == 1:
+                raise ValueError("truncated sample")
+            return decode(data, *args, **kwargs)
+
+        cls.deserialize = fail_once
+        publish = a.advertise("/flaky", type_name)
+        wait_until(lambda: a.subscriber_count("/flaky") == 1, 10, "the reader")
+        for x in (1.0, 2.0):
+            publish({"pose": {"position": {"x": x}}})
+        stop = threading.Event()
+        with caplog.at_level("WARNING", logger="fpe_jax.node._dds"):
+            thread = threading.Thread(target=b.spin, args=(stop,))
+            thread.start()
+            try:
+                wait_until(lambda: got, 5, "the second message")
+            finally:
+                stop.set()
+                thread.join(2.0)
+        assert [m["pose"]["position"]["x"] for m in got] == [2.0]
+        assert "ROS 2 topic /flaky: dropped a sample that is not a valid" in caplog.text
+        assert "truncated sample" in caplog.text
