@@ -6,6 +6,10 @@ One parser for every table format we meet:
   comment line before the data (the F1TENTH centerline/raceline style `# x_m, y_m, ...`);
 - no header at all (the 2019 project's files);
 - a UTF-8 byte-order mark at the start of the file (ignored).
+Numbers are plain ASCII decimal or float syntax (`12`, `-1.5`, `.5e-3`, `nan`, `inf`): Python's
+`float` would also take `1_0`, other scripts' digits and non-breaking spaces, which no other tool
+reads as numbers, so they are refused. A time column keeps its exact integer nanoseconds
+(`Table.t_ns`): `1700000000.123456789` in float64 would already be rounded to ~240 ns.
 Malformed input raises InputError naming the file and the line. `read_cars` reads the cars of
 `fpe batch` from such a table or from a `.npy` array.
 """
@@ -13,6 +17,7 @@ Malformed input raises InputError naming the file and the line. `read_cars` read
 from __future__ import annotations
 
 import dataclasses
+import decimal
 import re
 from pathlib import Path
 
@@ -32,13 +37,57 @@ SPEED_NAMES = ("v", "v_mps", "speed", "speed_mps", "vx_mps")
 STATE_COLUMNS = ("x", "y", "yaw", "v", "yaw_rate")  # the (N, 4|5) layout of `fpe batch`'s cars
 
 
+# The syntax `plain_number` accepts: ASCII digits, one optional sign, point and exponent; or the
+# words nan, inf, infinity (any case, signed).
+_PLAIN = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_WORDS = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+
+
+def plain_number(cell: str) -> float:
+    """The float of one cell in plain ASCII number syntax (surrounding blanks allowed).
+
+    Raises ValueError for anything else, `1_0`, non-ASCII digits and `0x10` included.
+    """
+    s = cell.strip(" \t\r\n")
+    if not (_PLAIN.fullmatch(s) or _WORDS.fullmatch(s)):
+        raise ValueError(f"not a plain number: {cell!r}")
+    return float(s)
+
+
+def stamp_ns(cell: str) -> int | None:
+    """A stamp [s] in plain number syntax -> int [ns], exactly (half to even below 1 ns);
+    None for nan/inf. Raises ValueError as `plain_number` does."""
+    s = cell.strip(" \t\r\n")
+    if _WORDS.fullmatch(s):
+        return None
+    if not _PLAIN.fullmatch(s):
+        raise ValueError(f"not a plain number: {cell!r}")
+    whole, _, frac = s.partition(".")
+    if len(frac) <= 9 and "e" not in s and "E" not in s and whole not in ("", "+", "-"):
+        ns = abs(int(whole)) * 1_000_000_000 + int(frac.ljust(9, "0"))
+        return -ns if whole.startswith("-") else ns
+    return int(decimal.Decimal(s).scaleb(9).to_integral_value(decimal.ROUND_HALF_EVEN))
+
+
+def _is_plain(line: str) -> bool:
+    """Whether `float` could only accept plain syntax in this line (the fast common case)."""
+    return line.isascii() and "_" not in line
+
+
 @dataclasses.dataclass(frozen=True)
 class Table:
-    """A parsed table: data (rows, cols) float64, header lower-cased names or None."""
+    """A parsed table: data (rows, cols) float64, header lower-cased names or None.
+
+    t_ns: (rows,) int64 stamps [ns] of the time column (the first header name in `T_NAMES`),
+    parsed exactly from the text, with t_ok (rows,) False where the cell is nan/inf; None
+    without a time column.
+    """
 
     source: Path
     data: np.ndarray
     header: tuple[str, ...] | None
+    t_ns: np.ndarray | None = None
+    t_ok: np.ndarray | None = None
 
     def column(self, names: tuple[str, ...], what: str, required: bool = True) -> np.ndarray | None:
         """The (rows,) column whose header is one of `names`; None (or InputError) if absent."""
@@ -56,7 +105,7 @@ class Table:
 
 def _is_number(cell: str) -> bool:
     try:
-        float(cell)
+        plain_number(cell)
     except ValueError:
         return False
     return True
@@ -110,6 +159,13 @@ def read_table(path) -> Table:
 
     rows = []
     ncols = len(header) if header is not None else len(first)
+    if header is not None:
+        # Names like "x [m]" are common in hand-made files; keep the bare name.
+        header = tuple(re.sub(r"\s*[\[(].*$", "", h).strip() for h in header)
+        if len(set(header)) != len(header):
+            raise InputError(p, f"repeated column names in header {','.join(header)!r}")
+    t_col = next((header.index(n) for n in T_NAMES if n in header), None) if header else None
+    stamps: list[int | None] = []
     for i in range(start, len(lines)):
         s = lines[i].strip()
         if not s or s.startswith("#"):
@@ -120,18 +176,25 @@ def read_table(path) -> Table:
                 p, f"line {i + 1} has {len(cells)} cells", f"{ncols} like the first row"
             )
         try:
-            rows.append([float(c) for c in cells])
-        except ValueError:
-            bad = next(c for c in cells if not _is_number(c))
+            rows.append(
+                [float(c) for c in cells] if _is_plain(s) else [plain_number(c) for c in cells]
+            )
+            if t_col is not None:
+                stamps.append(stamp_ns(cells[t_col]))
+        except (ValueError, decimal.InvalidOperation):
+            bad = next((c for c in cells if not _is_number(c)), cells[t_col or 0])
             raise InputError(p, f"line {i + 1}: non-numeric cell {bad!r}", "numbers") from None
     if not rows:
         raise InputError(p, "has a header but no data rows", "a table of numbers")
-    if header is not None:
-        # Names like "x [m]" are common in hand-made files; keep the bare name.
-        header = tuple(re.sub(r"\s*[\[(].*$", "", h).strip() for h in header)
-        if len(set(header)) != len(header):
-            raise InputError(p, f"repeated column names in header {','.join(header)!r}")
-    return Table(p, np.asarray(rows, dtype=np.float64), header)
+    t_ns = t_ok = None
+    if t_col is not None:
+        t_ok = np.array([v is not None for v in stamps], dtype=bool)
+        t_ns = np.array([0 if v is None else v for v in stamps], dtype=object)
+        # a stamp beyond int64 ns (2.9e11 years) is a unit mistake: the row's t is not finite
+        big = np.array([abs(v) >= 2**62 for v in t_ns], dtype=bool)
+        t_ok &= ~big
+        t_ns = np.where(t_ok, t_ns, 0).astype(np.int64)
+    return Table(p, np.asarray(rows, dtype=np.float64), header, t_ns, t_ok)
 
 
 def _check_npy_header(p: Path) -> None:

@@ -51,7 +51,7 @@ def check_output_path(path, force: bool) -> Path:
         raise InputError(p, f"its folder {str(p.parent)!r} is not writable", "a writable folder")
     # access() grants root everything; only creating a file shows a folder (such as /sys) that
     # refuses files: a hidden probe, created and removed at once
-    probe = p.with_name(f".{p.name[:64]}.{os.getpid()}.{secrets.token_hex(4)}.probe")
+    probe = p.with_name(f".{_short_name(p)}.{os.getpid()}.{secrets.token_hex(4)}.probe")
     try:
         os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
     except OSError as e:
@@ -60,6 +60,12 @@ def check_output_path(path, force: bool) -> Path:
         ) from None
     probe.unlink(missing_ok=True)
     return p
+
+
+def _short_name(p: Path, n_bytes: int = 64) -> str:
+    """The start of p's name, at most n_bytes bytes (whole characters), for temporary names."""
+    name = os.fsencode(p.name)[:n_bytes]
+    return os.fsdecode(name).encode("utf-8", "surrogateescape").decode("utf-8", "ignore") or "out"
 
 
 def check_output_paths(paths, force: bool) -> None:
@@ -76,8 +82,9 @@ def atomic_output(path, force: bool) -> Iterator[Path]:
     write (disk full, permissions) is an InputError naming the target.
     """
     target = check_output_path(path, force)
-    # Our own unique name (not mkstemp) so the file gets the user's umask permissions.
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.part")
+    # Our own unique name (not mkstemp) so the file gets the user's umask permissions; short,
+    # so a target name near the file system's 255-byte limit still has a temporary twin.
+    tmp = target.with_name(f".{_short_name(target)}.{os.getpid()}.{secrets.token_hex(4)}.part")
     try:
         yield tmp
         if target.exists() and not force:  # appeared while we were writing
