@@ -25,6 +25,7 @@ import numpy as np
 
 from fpe_jax import spec
 from fpe_jax.errors import InputError
+from fpe_jax.io.ros_msgs import seconds_to_ns
 
 TABLE_SUFFIXES = (".csv", ".txt")
 
@@ -62,11 +63,33 @@ def stamp_ns(cell: str) -> int | None:
         return None
     if not _PLAIN.fullmatch(s):
         raise ValueError(f"not a plain number: {cell!r}")
+    return _plain_stamp_ns(s)
+
+
+def _plain_stamp_ns(s: str) -> int:
+    """`stamp_ns` of a cell already known to be a plain finite number (no checks)."""
     whole, _, frac = s.partition(".")
-    if len(frac) <= 9 and "e" not in s and "E" not in s and whole not in ("", "+", "-"):
-        ns = abs(int(whole)) * 1_000_000_000 + int(frac.ljust(9, "0"))
+    digits = whole.lstrip("+-")
+    if len(frac) <= 9 and digits.isdigit() and "e" not in frac and "E" not in frac:
+        ns = int(digits) * 1_000_000_000 + (int(frac.ljust(9, "0")) if frac else 0)
         return -ns if whole.startswith("-") else ns
     return int(decimal.Decimal(s).scaleb(9).to_integral_value(decimal.ROUND_HALF_EVEN))
+
+
+EXACT_FROM_S = 2.0**20  # below, float64 seconds round to the same nanosecond as the text
+
+
+def _stamps_ns(t_s: np.ndarray, texts: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(int64 stamps [ns], finite mask) of a time column: from its float64 values where those
+    are exact to the nanosecond (|t| < EXACT_FROM_S), else from the text (epoch stamps)."""
+    ok = np.isfinite(t_s) & (np.abs(t_s) < 9e9)  # beyond int64 ns a stamp is a unit mistake
+    ns = np.zeros(len(t_s), dtype=np.int64)
+    if not np.any(np.abs(t_s[ok]) >= EXACT_FROM_S):
+        ns[ok] = seconds_to_ns(t_s[ok])
+        return ns, ok
+    idx = np.flatnonzero(ok)
+    ns[idx] = [_plain_stamp_ns(texts[k].strip()) for k in idx]
+    return ns, ok
 
 
 def _is_plain(line: str) -> bool:
@@ -165,7 +188,7 @@ def read_table(path) -> Table:
         if len(set(header)) != len(header):
             raise InputError(p, f"repeated column names in header {','.join(header)!r}")
     t_col = next((header.index(n) for n in T_NAMES if n in header), None) if header else None
-    stamps: list[int | None] = []
+    stamps: list[str] = []  # the time column's text, parsed exactly where float64 is not exact
     for i in range(start, len(lines)):
         s = lines[i].strip()
         if not s or s.startswith("#"):
@@ -179,22 +202,18 @@ def read_table(path) -> Table:
             rows.append(
                 [float(c) for c in cells] if _is_plain(s) else [plain_number(c) for c in cells]
             )
-            if t_col is not None:
-                stamps.append(stamp_ns(cells[t_col]))
-        except (ValueError, decimal.InvalidOperation):
-            bad = next((c for c in cells if not _is_number(c)), cells[t_col or 0])
+        except ValueError:
+            bad = next(c for c in cells if not _is_number(c))
             raise InputError(p, f"line {i + 1}: non-numeric cell {bad!r}", "numbers") from None
+        if t_col is not None:
+            stamps.append(cells[t_col])
     if not rows:
         raise InputError(p, "has a header but no data rows", "a table of numbers")
+    data = np.asarray(rows, dtype=np.float64)
     t_ns = t_ok = None
     if t_col is not None:
-        t_ok = np.array([v is not None for v in stamps], dtype=bool)
-        t_ns = np.array([0 if v is None else v for v in stamps], dtype=object)
-        # a stamp beyond int64 ns (2.9e11 years) is a unit mistake: the row's t is not finite
-        big = np.array([abs(v) >= 2**62 for v in t_ns], dtype=bool)
-        t_ok &= ~big
-        t_ns = np.where(t_ok, t_ns, 0).astype(np.int64)
-    return Table(p, np.asarray(rows, dtype=np.float64), header, t_ns, t_ok)
+        t_ns, t_ok = _stamps_ns(data[:, t_col], stamps)
+    return Table(p, data, header, t_ns, t_ok)
 
 
 def _check_npy_header(p: Path) -> None:
