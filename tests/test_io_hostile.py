@@ -215,6 +215,11 @@ def test_epoch_and_zero_based_stamps_predict_the_same(oval, tmp_path):
         (tz, pz), (te, pe) = got["zero", fmt], got["epoch", fmt]
         np.testing.assert_array_equal(te, tz)
         assert np.max(np.abs(pe - pz)) <= 1e-9, (fmt, np.max(np.abs(pe - pz)))
+    # `fpe convert` writes the stamps back exactly
+    drive = io.load_drive(tmp_path / "epoch.csv")
+    io.write_drive_csv(tmp_path / "back.csv", drive)
+    col = [r.split(",")[0] for r in (tmp_path / "back.csv").read_text().splitlines()[1:]]
+    assert col == [_stamp_text(int(n) + EPOCH_NS) for n in t_ns]
     # the MCAP's yaw went through a quaternion: the two formats agree to rounding
     np.testing.assert_allclose(got["zero", "csv"][1], got["zero", "mcap"][1], rtol=0, atol=1e-12)
 

@@ -260,7 +260,7 @@ class TfBuffer:
         if max_gap_s is not None:
             from fpe_jax import spec
 
-            self.max_gap_ns = int(round(spec.check_tf_gap(max_gap_s, "max_gap_s") * 1e9))
+            self.max_gap_ns = int(round(spec.check_tf_gap(max_gap_s, "max_gap_s", "value") * 1e9))
         raw: dict[tuple[str, str, bool], list] = {}
         for parent, child, stamp_ns, t, q, static, topic in transforms:
             key = (parent.lstrip("/"), child.lstrip("/"), bool(static))

@@ -11,6 +11,7 @@ replaced with `force`. `check_output_path` runs the same checks before any slow 
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import secrets
 from collections.abc import Iterator
@@ -328,15 +329,25 @@ def write_drive_csv(path, drive, *, force: bool = False) -> Path:
     what `load_drive` reads back and `fpe run` reads on stdin.
 
     The yaw column is left out when some yaw is unknown (NaN), so every row still reads back.
-    Truth is not written. Returns the path.
+    Truth is not written. A drive read from a file (with integer stamps, `Drive.t_ns`) gets its
+    stamps written exactly, epoch stamps included. Returns the path.
     """
     t = np.asarray(drive.t_s, dtype=np.float64)
     cols, header = [t, drive.xy_m[:, 0], drive.xy_m[:, 1]], "t,x,y"
     if np.isfinite(drive.yaw_rad).all():
         cols.append(drive.yaw_rad)
         header += ",yaw"
+    table = np.column_stack(cols)
     with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
-        np.savetxt(f, np.column_stack(cols), fmt="%.9f", delimiter=",", header=header, comments="")
+        if drive.t_ns is None:
+            np.savetxt(f, table, fmt="%.9f", delimiter=",", header=header, comments="")
+            return Path(path)
+        body = io.StringIO()
+        np.savetxt(body, table[:, 1:], fmt="%.9f", delimiter=",")
+        f.write(header + "\n")
+        for ns, rest in zip(drive.t_ns.tolist(), body.getvalue().splitlines()):
+            sign, a = ("-" if ns < 0 else ""), abs(ns)
+            f.write(f"{sign}{a // 1_000_000_000}.{a % 1_000_000_000:09d},{rest}\n")
     return Path(path)
 
 
