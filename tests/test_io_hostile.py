@@ -127,6 +127,18 @@ def test_detections_across_an_ego_tf_dropout_are_refused_or_dropped(hairpin, tmp
     assert rc == 0, capsys.readouterr().err
     rc = cli.main(["convert", str(path), "--out", str(out), "--max-tf-gap", "-1", "--force"])
     assert rc == 2 and "--max-tf-gap" in capsys.readouterr().err
+    # a recipe's drive takes the limit too
+    from fpe_jax.recipe import load_recipe
+
+    np.savetxt(tmp_path / "wp.csv", hairpin.centerline_xy_m, delimiter=",", header="x,y",
+               comments="")  # fmt: skip
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(f'waypoints = "wp.csv"\n[[drives]]\npath = "{path}"\nmax_tf_gap_s = 4\n')
+    ((d, _, _),) = load_recipe(recipe).drives
+    assert len(d.t_s) == len(t)
+    recipe.write_text(recipe.read_text().replace("= 4", "= -1"))
+    with pytest.raises(InputError, match="max_tf_gap_s"):
+        load_recipe(recipe)
 
 
 # --------------------------------------------------------------------- 4: constant stamps
