@@ -986,8 +986,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _ignore_interrupts(main_thread: bool) -> None:
-    """After the first Ctrl-C, further ones are ignored while the command cleans up and exits
-    (raised into the cleanup they would end in a traceback)."""
+    """After the first Ctrl-C has unwound the command, further ones are ignored while `main`
+    reports it and returns (raised there they would end in a traceback)."""
     if main_thread:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
