@@ -42,7 +42,15 @@ def _add_log_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--drop-outside-tf",
         action="store_true",
-        help="drop detections stamped outside the TF buffer instead of failing",
+        help="drop detections stamped outside the TF buffer (or in a gap longer than "
+        "--max-tf-gap) instead of failing",
+    )
+    p.add_argument(
+        "--max-tf-gap",
+        type=float,
+        metavar="S",
+        help="longest gap [s] between two transforms of a TF edge that a lookup interpolates "
+        "across (default per edge: max(4 x its median period, 0.2 s))",
     )
 
 
@@ -168,12 +176,16 @@ def _log_options(args) -> dict:
 def _load_drive_from_args(args):
     from fpe_jax import io
 
-    return io.load_drive(
+    drive = io.load_drive(
         args.log,
         log_time=args.log_time,
         drop_outside_tf=args.drop_outside_tf,
+        max_tf_gap_s=args.max_tf_gap,
         **_log_options(args),
     )
+    if note := io.dropped_note(drive):
+        print(f"fpe: {note}", file=sys.stderr)
+    return drive
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -922,6 +934,8 @@ LIBRARY_FLAGS = {
     "fmt": "--format",
     "node": "--node",
     "waypoints": "--waypoints",
+    "half-width": "--half-width",
+    "max_gap_s": "--max-tf-gap",
 }
 
 
@@ -932,6 +946,7 @@ def main(argv: list[str] | None = None) -> int:
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _sigterm) if main_thread else None
     previous_hook = sys.unraisablehook
+    previous_int = signal.getsignal(signal.SIGINT) if main_thread else None
     if main_thread:
         sys.unraisablehook = _resend_interrupts
     try:
@@ -947,6 +962,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fpe: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        _ignore_interrupts(main_thread)
         print("fpe: interrupted", file=sys.stderr)
         return 130
     except OSError as e:
@@ -965,13 +981,27 @@ def main(argv: list[str] | None = None) -> int:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)
             sys.unraisablehook = previous_hook
+            if previous_int is not None:
+                signal.signal(signal.SIGINT, previous_int)
+
+
+def _ignore_interrupts(main_thread: bool) -> None:
+    """After the first Ctrl-C has unwound the command, further ones are ignored while `main`
+    reports it and returns (raised there they would end in a traceback)."""
+    if main_thread:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def entry() -> None:
     """The `fpe` console script: `main`, then the process ends without Python's teardown (the
     destructors of JAX's runtime and of the loaded executables, a pause after every command).
-    Every file a command writes is closed when it returns; the streams are flushed here."""
-    rc = main()
+    Every file a command writes is closed when it returns; the streams are flushed here. A
+    Ctrl-C that lands while `main` is already finishing ends the process quietly with 130."""
+    try:
+        rc = main()
+    except KeyboardInterrupt:
+        rc = 130
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # nothing is left to interrupt
     for stream in (sys.stdout, sys.stderr):
         try:
             if stream is not None:

@@ -760,26 +760,24 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
     writing one JSON line to `out` for each: {"stamp": t, "poses": [[x, y, yaw] x H]}, flushed
     at once (a car's process pipes into it).
 
-    A bad line is reported on `err` with its line number and skipped; where the stamps restart
-    the runner starts a new history. Returns 0 at the end of the input. Raises InputError for a
-    stream laid out wrongly as a whole, and at the end if lines came but none was usable.
+    A bad line is reported on `err` with its line number and skipped (the first
+    `spec.STREAM_MESSAGES` in full, then rate-limited, with a closing count: see
+    `fpe_jax.io.stream.SkipReport`); where the stamps restart the runner starts a new history.
+    The runner gets the stamps since the stream's time origin (exact for epoch stamps); the
+    replies carry the stamps as given. Returns 0 at the end of the input. Raises InputError for
+    a stream laid out wrongly as a whole, and at the end if lines came but none was usable.
     """
-    from fpe_jax.io.stream import read_observations
+    from fpe_jax.io.stream import SkipReport, read_observations
 
-    skipped = []
-
-    def warn(msg: str) -> None:
-        skipped.append(msg)
-        print(f"fpe run: {msg}", file=err, flush=True)
-
+    warn = SkipReport(err)
     n_written = 0
     for obs in read_observations(lines, warn, rate_hz):
         if obs.restart:
             runner.reset()
             for o in obs.restart:
-                runner.update(o.t_s, o.x_m, o.y_m, o.yaw_rad)
+                runner.update(o.since_s, o.x_m, o.y_m, o.yaw_rad)
         try:
-            poses = runner.update(obs.t_s, obs.x_m, obs.y_m, obs.yaw_rad)
+            poses = runner.update(obs.since_s, obs.x_m, obs.y_m, obs.yaw_rad)
             reply = json.dumps({"stamp": obs.t_s, "poses": poses.tolist()}, allow_nan=False)
         except (InputError, ValueError) as e:
             warn(f"line {obs.line}: {e}; skipped")
@@ -787,8 +785,10 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
         out.write(reply + "\n")
         out.flush()
         n_written += 1
-    if skipped and not n_written:
-        raise InputError("stdin", f"none of its observations was usable ({len(skipped)} skipped)")
+    if (summary := warn.summary()) is not None:
+        print(summary, file=err, flush=True)
+    if warn.n_skipped and not n_written:
+        raise InputError("stdin", f"none of its observations was usable ({warn.n_skipped} skipped)")
     return 0
 
 

@@ -31,7 +31,7 @@ import numpy as np
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.path import left_normals, nearest_index, wrap_angle
-from fpe_jax.spec import check_simulation
+from fpe_jax.spec import check_half_width, check_simulation
 from fpe_jax.tracks import builtin_track, is_builtin, loop_arclength, loop_curvature, resample_loop
 
 SIM_VERSION = "1.0"
@@ -298,9 +298,7 @@ def _resolve_track(track, raceline, half_width_m):
     else:
         expected = "oval, hairpin, random:SEED or a centerline/waypoint file"
         raise InputError(track, "is neither a built-in track nor an existing file", expected)
-    hw = float(half_width_m) if half_width_m is not None else hw
-    if not (hw > 0 and math.isfinite(hw)):
-        raise InputError("half-width", f"{hw!r} m", "a positive number of metres")
+    hw = check_half_width(half_width_m if half_width_m is not None else hw, "half-width")
     if raceline is None:
         return name, center, hw, center, speeds
     rl = _load_waypoints(raceline)

@@ -12,7 +12,7 @@ poses by `fpe_jax.io.apriltag` (TF math: `fpe_jax.io.tf`).
 Every bad input raises `fpe_jax.errors.InputError`.
 """
 
-from fpe_jax.io.drives import describe_log, load_drive
+from fpe_jax.io.drives import describe_log, dropped_note, load_drive
 from fpe_jax.io.tables import read_cars
 from fpe_jax.io.waypoints import Waypoints, load_waypoints
 from fpe_jax.io.writers import (
@@ -33,6 +33,7 @@ __all__ = [
     "check_output_path",
     "check_output_paths",
     "describe_log",
+    "dropped_note",
     "load_drive",
     "load_waypoints",
     "read_cars",

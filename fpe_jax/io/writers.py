@@ -11,6 +11,7 @@ replaced with `force`. `check_output_path` runs the same checks before any slow 
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import secrets
 from collections.abc import Iterator
@@ -51,7 +52,7 @@ def check_output_path(path, force: bool) -> Path:
         raise InputError(p, f"its folder {str(p.parent)!r} is not writable", "a writable folder")
     # access() grants root everything; only creating a file shows a folder (such as /sys) that
     # refuses files: a hidden probe, created and removed at once
-    probe = p.with_name(f".{p.name[:64]}.{os.getpid()}.{secrets.token_hex(4)}.probe")
+    probe = p.with_name(f".{_short_name(p)}.{os.getpid()}.{secrets.token_hex(4)}.probe")
     try:
         os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
     except OSError as e:
@@ -60,6 +61,12 @@ def check_output_path(path, force: bool) -> Path:
         ) from None
     probe.unlink(missing_ok=True)
     return p
+
+
+def _short_name(p: Path, n_bytes: int = 64) -> str:
+    """The start of p's name, at most n_bytes bytes (whole characters), for temporary names."""
+    name = os.fsencode(p.name)[:n_bytes]
+    return os.fsdecode(name).encode("utf-8", "surrogateescape").decode("utf-8", "ignore") or "out"
 
 
 def check_output_paths(paths, force: bool) -> None:
@@ -76,8 +83,9 @@ def atomic_output(path, force: bool) -> Iterator[Path]:
     write (disk full, permissions) is an InputError naming the target.
     """
     target = check_output_path(path, force)
-    # Our own unique name (not mkstemp) so the file gets the user's umask permissions.
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.part")
+    # Our own unique name (not mkstemp) so the file gets the user's umask permissions; short,
+    # so a target name near the file system's 255-byte limit still has a temporary twin.
+    tmp = target.with_name(f".{_short_name(target)}.{os.getpid()}.{secrets.token_hex(4)}.part")
     try:
         yield tmp
         if target.exists() and not force:  # appeared while we were writing
@@ -321,15 +329,25 @@ def write_drive_csv(path, drive, *, force: bool = False) -> Path:
     what `load_drive` reads back and `fpe run` reads on stdin.
 
     The yaw column is left out when some yaw is unknown (NaN), so every row still reads back.
-    Truth is not written. Returns the path.
+    Truth is not written. A drive read from a file (with integer stamps, `Drive.t_ns`) gets its
+    stamps written exactly, epoch stamps included. Returns the path.
     """
     t = np.asarray(drive.t_s, dtype=np.float64)
     cols, header = [t, drive.xy_m[:, 0], drive.xy_m[:, 1]], "t,x,y"
     if np.isfinite(drive.yaw_rad).all():
         cols.append(drive.yaw_rad)
         header += ",yaw"
+    table = np.column_stack(cols)
     with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
-        np.savetxt(f, np.column_stack(cols), fmt="%.9f", delimiter=",", header=header, comments="")
+        if drive.t_ns is None:
+            np.savetxt(f, table, fmt="%.9f", delimiter=",", header=header, comments="")
+            return Path(path)
+        body = io.StringIO()
+        np.savetxt(body, table[:, 1:], fmt="%.9f", delimiter=",")
+        f.write(header + "\n")
+        for ns, rest in zip(drive.t_ns.tolist(), body.getvalue().splitlines()):
+            sign, a = ("-" if ns < 0 else ""), abs(ns)
+            f.write(f"{sign}{a // 1_000_000_000}.{a % 1_000_000_000:09d},{rest}\n")
     return Path(path)
 
 
