@@ -111,7 +111,7 @@ class PredictionScene:
 
 
 def prediction_scene(
-    stamp_ns: int, poses, cov_xy_m2, step_stamps_ns, valid: bool = True
+    stamp_ns: int | np.integer, poses, cov_xy_m2, step_stamps_ns, valid: bool = True
 ) -> PredictionScene:
     """The drawing of one prediction made at `stamp_ns` [ns].
 
@@ -193,7 +193,7 @@ def _fg_line(xy_m, rgba, width_m: float):
     )
 
 
-def foxglove_track(xy_m, stamp_ns: int, frame_id: str, closed: bool = False):
+def foxglove_track(xy_m, stamp_ns: int | np.integer, frame_id: str, closed: bool = False):
     """`SceneUpdate` with the entity `centre_line`: the track's line (N, 2) [m], closed if asked."""
     import foxglove.messages as fm
 
@@ -207,7 +207,7 @@ def foxglove_track(xy_m, stamp_ns: int, frame_id: str, closed: bool = False):
 
 
 def foxglove_observation(
-    car_id: str, stamp_ns: int, x_m: float, y_m: float, yaw_rad: float, frame_id: str
+    car_id: str, stamp_ns: int | np.integer, x_m: float, y_m: float, yaw_rad: float, frame_id: str
 ):
     """`SceneUpdate` with one entity `car_id`: a sphere at the observed position and, when the
     heading is known, an arrow along it."""
@@ -244,7 +244,9 @@ def foxglove_observation(
     return fm.SceneUpdate(entities=[entity])
 
 
-def foxglove_prediction(car_id: str, stamp_ns: int, scene: PredictionScene, frame_id: str):
+def foxglove_prediction(
+    car_id: str, stamp_ns: int | np.integer, scene: PredictionScene, frame_id: str
+):
     """[(topic, message)] of one prediction: the path (`PosesInFrame`, valid predictions only;
     timestamp = the observation's stamp) and a `SceneUpdate` whose entity `car_id` holds the
     line through the predicted positions and one flat ellipsoid per ellipse."""
@@ -291,7 +293,7 @@ def foxglove_prediction(car_id: str, stamp_ns: int, scene: PredictionScene, fram
 
 
 def ros2_marker(
-    stamp_ns: int,
+    stamp_ns: int | np.integer,
     frame_id: str,
     ns: str,
     ident: int,
@@ -325,7 +327,7 @@ def ros2_marker(
     }
 
 
-def ros2_track(xy_m, stamp_ns: int, frame_id: str, closed: bool = False) -> dict:
+def ros2_track(xy_m, stamp_ns: int | np.integer, frame_id: str, closed: bool = False) -> dict:
     """`visualization_msgs/MarkerArray` dict: the track's line as one LINE_STRIP (ns `track`)."""
     xy = _closed(xy_m, closed)
     scale = (TRACK_WIDTH_M,) * 3
@@ -335,7 +337,7 @@ def ros2_track(xy_m, stamp_ns: int, frame_id: str, closed: bool = False) -> dict
     return {"markers": [marker]}
 
 
-def ros2_prediction(stamp_ns: int, scene: PredictionScene, frame_id: str) -> list:
+def ros2_prediction(stamp_ns: int | np.integer, scene: PredictionScene, frame_id: str) -> list:
     """[(topic, type, message dict)] of one prediction: `nav_msgs/Path` on /future_pose/path
     (valid predictions only; header.stamp = the observation's stamp, each pose stamped with the
     time its step predicts) and a `visualization_msgs/MarkerArray` on /future_pose/ellipses

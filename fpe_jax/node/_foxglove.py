@@ -107,7 +107,7 @@ class SceneSink:
             self._track_due = True
 
     def observation(
-        self, car_id: str, stamp_ns: int, x_m: float, y_m: float, yaw_rad: float
+        self, car_id: str, stamp_ns: int | np.integer, x_m: float, y_m: float, yaw_rad: float
     ) -> None:
         """An observed pose of `car_id` at `stamp_ns` [ns] (yaw NaN: heading unknown)."""
         msg = scene.foxglove_observation(car_id, stamp_ns, x_m, y_m, yaw_rad, self.frame_id)
@@ -116,7 +116,7 @@ class SceneSink:
     def prediction(
         self,
         car_id: str,
-        stamp_ns: int,
+        stamp_ns: int | np.integer,
         poses: np.ndarray,
         cov_xy_m2: np.ndarray,
         step_stamps_ns: np.ndarray,
@@ -170,13 +170,13 @@ class SceneSink:
             ch = self._channels[topic] = kind(topic, context=self._context)
         return ch
 
-    def _send_track(self, stamp_ns: int) -> None:
+    def _send_track(self, stamp_ns: int | np.integer) -> None:
         xy, closed = self._track
         msg = scene.foxglove_track(xy, stamp_ns, self.frame_id, closed)
         self._channel(scene.TRACK_TOPIC, msg).log(msg, log_time=stamp_ns)
         self._track_due = False
 
-    def _log(self, stamp_ns: int, msgs) -> None:
+    def _log(self, stamp_ns: int | np.integer, msgs) -> None:
         with self._lock:
             if self._closed:
                 return
