@@ -14,14 +14,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+from foxglove.websocket import ServerListener
 
 from fpe_jax.errors import InputError
 from fpe_jax.io import scene
 
 
-class _Listener:
-    """foxglove ServerListener: a new subscription to /track asks for the track again (the
-    WebSocket protocol keeps no last message, so a viewer that connects later would not get it)."""
+class _Listener(ServerListener):
+    """A new subscription to /track asks for the track again (the WebSocket protocol keeps no
+    last message, so a viewer that connects later would not get it). The other callbacks are
+    the protocol's no-ops."""
 
     def __init__(self, resend: threading.Event):
         self._resend = resend
