@@ -8,6 +8,7 @@ stamp it carries, so a recording plays back on the drive's own clock. No JAX is 
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
@@ -18,6 +19,8 @@ from foxglove.websocket import ServerListener
 
 from fpe_jax.errors import InputError
 from fpe_jax.io import scene
+
+STOP_TIMEOUT_S = 2.0  # the longest `close` waits for the server to let go of its viewers
 
 
 class _Listener(ServerListener):
@@ -45,7 +48,10 @@ class SceneSink:
         frame_id: the frame of every message (the map frame).
 
     Calls never wait on a viewer: the SDK queues messages per client and drops the oldest when
-    a slow client falls behind. The methods may be called from several threads.
+    a slow client falls behind, and `close` gives up on a viewer that stopped reading after
+    STOP_TIMEOUT_S. Each update does bounded work on the caller's thread (building the
+    messages: ~0.2 ms for an observation plus a 10-step prediction, see
+    experiments/results/foxglove_sink.md). The methods may be called from several threads.
     """
 
     def __init__(
@@ -146,9 +152,18 @@ class SceneSink:
             self._closed = True
             if self._track_due:  # nothing stamped came: the track alone, at the current time
                 self._send_track(time.time_ns())
-        if self._server is not None:
-            self._server.stop()
         self._close_mcap()
+        if self._server is not None:
+            # stop() waits for every client to take its queued messages: a viewer that stopped
+            # reading would hold it (and Ctrl-C of a node) for as long as its connection lives
+            stopper = threading.Thread(target=self._server.stop, daemon=True)
+            stopper.start()
+            stopper.join(STOP_TIMEOUT_S)
+            if stopper.is_alive():
+                logging.getLogger(__name__).warning(
+                    "Foxglove server on port %s: a viewer is not reading; closed without it",
+                    self.port,
+                )
 
     def __enter__(self) -> SceneSink:
         return self
