@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import re
+import signal
 import struct
 import subprocess
 import sys
@@ -516,6 +517,35 @@ def test_fpe_view_serves_the_replay_live(tmp_path):
         assert len(paths) > 10 and all(len(m.poses) == H for m in paths)
         assert proc.wait(timeout=30) == 0
         assert "330 predictions x 10 steps: served on port" in proc.stderr.read()
+    finally:
+        if client is not None:
+            client.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stderr.close()
+
+
+def test_fpe_view_loop_continues_the_clock_and_ends_on_ctrl_c(tmp_path):
+    """`--loop`: the second pass's stamps follow the first's; SIGINT ends it with status 130."""
+    _need("foxglove")
+    cmd = [sys.executable, "-m", "fpe_jax.cli", "view", *_flags(), "--foxglove", "0", "--loop"]
+    proc = subprocess.Popen(
+        [*cmd, "--speed", "30"], stderr=subprocess.PIPE, text=True, cwd=tmp_path
+    )
+    client = None
+    try:
+        port = int(re.search(r":(\d+) ", proc.stderr.readline()).group(1))
+        client = FoxgloveClient(port)
+        stamps, end = [], time.monotonic() + 30
+        last = int(rm.seconds_to_ns(np.array([29.945]))[0])  # the drive's last observation
+        while time.monotonic() < end and not any(s > last for s in stamps):
+            stamps += [ns for topic, ns, _, _ in client.receive(0.2) if topic == "/observations"]
+        assert any(s > last for s in stamps), "no second pass"
+        assert all(b > a for a, b in zip(stamps, stamps[1:]))  # the clock never runs back
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=15) == 130
+        assert "interrupted" in proc.stderr.read()
     finally:
         if client is not None:
             client.close()
