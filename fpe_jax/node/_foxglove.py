@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+import foxglove
 import numpy as np
 from foxglove.websocket import ServerListener
 
@@ -62,8 +63,6 @@ class SceneSink:
         mcap_path: str | os.PathLike | None = None,
         frame_id: str = "map",
     ):
-        import foxglove
-
         if port is None and mcap_path is None:
             raise ValueError("SceneSink: nothing to do (give a port, an mcap_path or both)")
         self.frame_id = frame_id
