@@ -347,6 +347,10 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
+
+    from fpe_jax.node import _view
+
+    _view.add_parser(sub)
     return parser
 
 
@@ -631,7 +635,15 @@ def cmd_predict(args) -> int:
         say(f"writing {args.out}")
         dt_s = params.settings.dt_s
         io.write_predictions(
-            args.out, stamps_s, poses, dt_s, drive=drive, cov_m2=cov, force=args.force
+            args.out,
+            stamps_s,
+            poses,
+            dt_s,
+            drive=drive,
+            cov_m2=cov,
+            track_xy_m=waypoints.xy_m,
+            track_closed=track.closed,
+            force=args.force,
         )
     print(
         f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr

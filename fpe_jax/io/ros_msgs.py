@@ -124,6 +124,7 @@ def known_type(msgtype: str) -> bool:
 
 
 # Marker.type values we write.
+MARKER_SPHERE = 2
 MARKER_LINE_STRIP = 4
 MARKER_SPHERE_LIST = 7
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
+from fpe_jax.io import scene
 
 PREDICTION_TOPIC = "/future_pose"
 OBSERVATION_TOPIC = "/opp/pose"
@@ -242,25 +243,21 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
 
 
 def _marker(ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple) -> dict:
-    r, g, b, a = rgba
-    return {
-        "header": {"stamp": rm.stamp_dict(ns), "frame_id": "map"},
-        "ns": "future_pose",
-        "id": ident,
-        "type": kind,
-        "action": 0,  # ADD (replaces the previous marker with the same ns and id)
-        "pose": {
-            "position": {"x": 0.0, "y": 0.0, "z": 0.0},
-            "orientation": rm.yaw_to_quaternion(0),
-        },
-        "scale": {"x": 0.08, "y": 0.08, "z": 0.08},
-        "color": {"r": r, "g": g, "b": b, "a": a},
-        "points": [{"x": x, "y": y, "z": 0.0} for x, y in points],
-    }
+    return scene.ros2_marker(ns, "map", "future_pose", ident, kind, rgba, points=points)
 
 
 def write_predictions(
-    path, stamps_s, poses, dt_s: float, *, drive=None, cov_m2=None, force: bool = False
+    path,
+    stamps_s,
+    poses,
+    dt_s: float,
+    *,
+    drive=None,
+    cov_m2=None,
+    track_xy_m=None,
+    track_closed: bool = False,
+    valid=None,
+    force: bool = False,
 ) -> Path:
     """Write predicted poses as CSV or ROS 2 MCAP, chosen by the suffix of `path`.
 
@@ -270,15 +267,22 @@ def write_predictions(
         poses: (N, H, 3) predicted x [m], y [m], yaw [rad] at stamps_s + step * dt_s, step 1..H.
         dt_s: prediction step [s].
         drive: the observed `Drive`; its poses are written alongside (MCAP only).
-        cov_m2: optional (N, H, 2, 2) map-frame covariance of each predicted position [m^2];
-            CSV only, as three more columns `cov_xx_m2,cov_xy_m2,cov_yy_m2`.
+        cov_m2: optional (N, H, 2, 2) map-frame covariance of each predicted position [m^2]:
+            in CSV three more columns `cov_xx_m2,cov_xy_m2,cov_yy_m2`; in MCAP the ellipses.
+        track_xy_m: optional (K, 2) track line x [m], y [m] (the waypoints); MCAP only.
+        track_closed: whether the track is a loop (its line is drawn closed).
+        valid: optional (N,) bool; MCAP only: an invalid prediction's path and ellipses are
+            left out and its line is drawn grey (`fpe_jax.io.scene`). Default: all valid.
         force: replace an existing file.
 
     CSV: header `stamp,step,horizon_s,x,y,yaw`, one row per (observation, step), 9 decimals.
     MCAP: one visualization_msgs/msg/MarkerArray per observation on /future_pose (frame `map`,
     stamp = observation stamp): a SPHERE_LIST of the H predicted points and a LINE_STRIP through
-    them; plus the observations as geometry_msgs/msg/PoseStamped on /opp/pose. Markers carry no
-    yaw: use the CSV for predicted headings.
+    them; plus the observations as geometry_msgs/msg/PoseStamped on /opp/pose. The scene of
+    `fpe_jax.io.scene`, in ROS 2 types: nav_msgs/msg/Path on /future_pose/path (header.stamp =
+    observation stamp, pose k stamped stamp + k * dt_s, yaw included), the 1-sigma ellipses as
+    flat SPHERE markers on /future_pose/ellipses (when `cov_m2` is given), and the track as a
+    LINE_STRIP on /track (once, at the first message's time, when `track_xy_m` is given).
     """
     suffix = Path(path).suffix.lower()
     if suffix not in (".csv", ".mcap"):
@@ -308,6 +312,14 @@ def write_predictions(
         return Path(path)
 
     ns = _stamps_ns(path, stamps, "predictions")
+    steps_ns = ns[:, None] + rm.seconds_to_ns(np.arange(1, h + 1) * float(dt_s))
+    cov = np.full((n, h, 2, 2), np.nan) if cov_m2 is None else np.asarray(cov_m2, np.float64)
+    ok = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    if cov.shape != (n, h, 2, 2) or ok.shape != (n,):
+        raise ValueError(
+            f"write_predictions: cov_m2 {cov.shape} or valid {ok.shape} does not match poses"
+            f" {poses.shape} (expected (N, H, 2, 2) and (N,))"
+        )
     events = []
     for k in range(n):
         pts = poses[k, :, :2].tolist()
@@ -318,9 +330,15 @@ def write_predictions(
         events.append(
             (int(ns[k]), PREDICTION_TOPIC, "visualization_msgs/MarkerArray", {"markers": markers})
         )
+        drawn = scene.prediction_scene(int(ns[k]), poses[k], cov[k], steps_ns[k], bool(ok[k]))
+        events += [(int(ns[k]), *e) for e in scene.ros2_prediction(int(ns[k]), drawn, "map")]
     if drive is not None:
         obs = dict(t_s=drive.t_s, xy_m=drive.xy_m, yaw_rad=drive.yaw_rad)
         events += _pose_events(path, obs, OBSERVATION_TOPIC)
+    if track_xy_m is not None and events:
+        first_ns = min(e[0] for e in events)
+        line = scene.ros2_track(track_xy_m, first_ns, "map", track_closed)
+        events.insert(0, (first_ns, scene.TRACK_TOPIC, "visualization_msgs/MarkerArray", line))
     return _write_ros2_mcap(path, events, force)
 
 
