@@ -9,6 +9,13 @@ the cache folder's `aot/`. Within one process every executable is made once. Wit
 (`--no-cache`, or `cache.enable` never called) executables are only kept in memory. JAX's own
 cache must be off while executables are stored (`cache.enable` says why).
 
+An entry cannot be made safe by its format: `serialize_executable` pickles the executable with
+its shardings, and the executable itself is machine code, so whoever can change an entry can run
+code as the user. An entry is loaded only when it is a regular file (no link, FIFO or device) of
+at most MAX_ENTRY_BYTES whose HMAC-SHA256 under the user's own key (`cache.secret_key`, a 0600
+file) is right; anything else gives one warning and a compile, whose result replaces it. Entry
+names are HMACs too, so users who share a folder never read each other's entries.
+
 Arguments follow `equinox.filter_jit`: arrays (NumPy or JAX) and `jax.ShapeDtypeStruct`s are
 traced, every other leaf is static. `executable(f, *args)` with shapes alone compiles ahead of the
 data (fit compiles its solver while the states are estimated).
@@ -16,9 +23,13 @@ data (fit compiles its solver while the states are estimated).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
+import hmac
+import os
 import pickle
+import secrets
 import threading
 import time
 from pathlib import Path
@@ -112,28 +123,46 @@ class Executable:
         return jax.tree.unflatten(self._out, out)
 
 
-def _load(path: Path, traced: list[int]) -> Executable | None:
+# a stored entry: MAGIC, then HMAC-SHA256(user's key, MAGIC + file name + body), then the body
+MAGIC = b"fpe-jax executable 2\n"
+MAX_ENTRY_BYTES = 256 << 20  # the largest executables here are a few MB
+STALE_TEMP_S = 600.0  # a temporary entry this old was left by a killed writer
+
+
+def _mac(secret: bytes, name: str, body: bytes) -> bytes:
+    return hmac.digest(secret, MAGIC + name.encode() + b"\0" + body, "sha256")
+
+
+def _load(path: Path, secret: bytes, traced: list[int]) -> Executable | None:
+    """The executable stored at `path`, or None (absent, or refused with one warning): only a
+    regular file of at most MAX_ENTRY_BYTES whose HMAC under this user's key is right is
+    unpickled, so a damaged entry or one this user's fpe did not write is never run."""
     from jax.experimental import serialize_executable
 
     t0 = time.perf_counter()
     try:
-        blob = path.read_bytes()
+        blob = cache.read_regular(path, MAX_ENTRY_BYTES)
     except FileNotFoundError:
         return None
-    except OSError as e:
-        cache.warn("unreadable", f"{path.name}: {e.strerror or e}")
+    except (OSError, cache.Refused) as e:
+        cache.warn("unreadable", f"{path.name}: {getattr(e, 'strerror', None) or e}")
+        return None
+    n = len(MAGIC)
+    mac, body = blob[n : n + 32], blob[n + 32 :]
+    if blob[:n] != MAGIC or not hmac.compare_digest(mac, _mac(secret, path.name, body)):
+        cache.warn("unreadable", f"{path.name}: not written by fpe for this user, or damaged")
         return None
     try:
-        payload, in_tree, out_tree, skeleton = pickle.loads(blob)
+        payload, in_tree, out_tree, skeleton = pickle.loads(body)
         compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
         seconds = {"load_s": time.perf_counter() - t0}
         return Executable(compiled, jax.tree.structure(skeleton), traced, **seconds)
-    except Exception as e:  # noqa: BLE001 -- any damage to the file means: compile again
+    except Exception as e:  # noqa: BLE001 -- an executable of an incompatible jaxlib: compile
         cache.warn("unreadable", f"{path.name}: {type(e).__name__}: {e}")
         return None
 
 
-def _build(fun, leaves, treedef, traced, path: Path | None) -> Executable:
+def _build(fun, leaves, treedef, traced, store: tuple[Path, bytes] | None) -> Executable:
     out_treedef = []
 
     def flat(*traced_leaves):
@@ -155,8 +184,8 @@ def _build(fun, leaves, treedef, traced, path: Path | None) -> Executable:
     compiled = _compile(lowered, None if fun in FUSION_EMITTERS else CPU_COMPILER_OPTIONS)
     seconds = {"trace_s": t1 - t0, "compile_s": time.perf_counter() - t1}
     exe = Executable(compiled, out_treedef[0], traced, **seconds)
-    if path is not None:
-        _store(path, compiled, out_treedef[0])
+    if store is not None:
+        _store(*store, compiled, out_treedef[0])
     return exe
 
 
@@ -173,23 +202,62 @@ def _compile(lowered, cpu_options: dict | None):
         return lowered.compile()
 
 
-def _store(path: Path, compiled, out_treedef) -> None:
+def _store(path: Path, secret: bytes, compiled, out_treedef) -> None:
+    """Write the executable to `path` whole (a temporary file, renamed), authenticated by
+    `secret`; a failed write leaves no temporary file, and one left by a killed writer goes."""
     from jax.experimental import serialize_executable
 
     try:
         payload, in_tree, out_tree = serialize_executable.serialize(compiled)
         # the output tree as a skeleton of zeros: treedefs of equinox Modules do not pickle
         skeleton = jax.tree.unflatten(out_treedef, [0] * out_treedef.num_leaves)
-        blob = pickle.dumps((payload, in_tree, out_tree, skeleton))
+        body = pickle.dumps((payload, in_tree, out_tree, skeleton))
     except Exception:  # noqa: BLE001 -- not serializable (e.g. constants): kept in memory only
         return
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp{threading.get_ident()}")
-        tmp.write_bytes(blob)
-        tmp.replace(path)  # atomic: a concurrent reader sees the old file or the whole new one
+        path.parent.mkdir(exist_ok=True)
+        _remove_stale_temps(path.parent)
+        fd = os.open(
+            tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o600
+        )
+        with os.fdopen(fd, "wb") as f:
+            f.write(MAGIC + _mac(secret, path.name, body) + body)
+        os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
     except OSError as e:
         cache.warn("unwritable", f"{path.parent}: {e.strerror or e}")
+    finally:
+        tmp.unlink(missing_ok=True)  # only left when the write failed
+
+
+def _remove_stale_temps(folder: Path) -> None:
+    """Remove temporary entries older than STALE_TEMP_S (their writer was killed)."""
+    now = time.time()
+    for entry in os.scandir(folder):
+        if ".exe.tmp-" in entry.name and entry.is_file(follow_symlinks=False):
+            with contextlib.suppress(OSError):
+                if now - entry.stat(follow_symlinks=False).st_mtime > STALE_TEMP_S:
+                    os.unlink(entry.path)
+
+
+def _entry(key: str) -> tuple[Path, bytes] | None:
+    """Where the executable of `key` is stored and this user's key that authenticates it; None
+    when the cache is off or the key is refused (one warning: executables stay in memory)."""
+    folder = cache.active_dir()
+    if folder is None:
+        return None
+    try:
+        secret = _secret(cache.root_dir())
+    except (OSError, cache.Refused) as e:
+        cache.warn("unreadable", f"key: {getattr(e, 'strerror', None) or e}")
+        return None
+    name = hmac.digest(secret, key.encode(), "sha256").hex()
+    return folder / "aot" / f"{name}.exe", secret
+
+
+@functools.cache
+def _secret(root: Path) -> bytes:
+    return cache.secret_key()
 
 
 def executable(fun, *args, **kwargs) -> Executable:
@@ -200,10 +268,9 @@ def executable(fun, *args, **kwargs) -> Executable:
         exe = _MEMO.get(key)
     if exe is not None:  # made earlier in this process: it cost this call nothing
         return Executable(exe._compiled, exe._out, exe._traced)
-    folder = cache.active_dir()
-    path = None if folder is None else folder / "aot" / f"{key}.exe"
-    exe = (_load(path, traced) if path is not None else None) or _build(
-        fun, leaves, treedef, traced, path
+    store = _entry(key)
+    exe = (_load(*store, traced) if store is not None else None) or _build(
+        fun, leaves, treedef, traced, store
     )
     with _LOCK:
         return _MEMO.setdefault(key, exe)
