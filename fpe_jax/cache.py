@@ -93,7 +93,7 @@ def cpu_features() -> str:
     fields = ("vendor_id", "model name", "flags", "cpu implementer", "cpu part", "features", "isa")
     found = {}
     try:
-        with open("/proc/cpuinfo", "rb") as f:
+        with open("/proc/cpuinfo", "rb", buffering=0) as f:
             block = f.read(1 << 16).decode("utf-8", "replace").split("\n\n", 1)[0]
         for line in block.splitlines():
             name, _, value = line.partition(":")
@@ -101,9 +101,7 @@ def cpu_features() -> str:
                 found[name.strip().lower()] = " ".join(value.split())
     except OSError:
         pass
-    return ";".join(
-        [platform.machine(), platform.processor()] + sorted(f"{k}={v}" for k, v in found.items())
-    )
+    return ";".join([platform.machine()] + sorted(f"{k}={v}" for k, v in found.items()))
 
 
 def subfolder_name(
