@@ -2,7 +2,9 @@
 
 Runs `fpe predict` and `fpe evaluate` on the sample drive (data/samples) once to fill a fresh
 cache folder, then `--runs` more times each, and prints the median wall and CPU time (user +
-system of the child) [s] of the warm runs as one JSON line.
+system of the child) [s] of the warm runs as one JSON line; then, in this process, the median
+time [ms] of loading each stored executable (`aot._load`: checks, unpickling, XLA's loading) and
+of its checks alone (reading it as a bounded regular file and its HMAC), over 20 loads.
 
     .venv/bin/python experiments/cache/warm_times.py --runs 5
 """
@@ -36,6 +38,42 @@ def timed(argv: list[str], env: dict) -> tuple[float, float]:
     return wall, after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
 
 
+def load_times_ms(cache_dir: Path, n: int = 20) -> list[dict]:
+    """Per stored executable: its size, the median full load and the median of its checks [ms]."""
+    import hmac
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    os.environ["FPE_CACHE_DIR"] = str(cache_dir)
+    from fpe_jax import aot, cache
+
+    secret = cache.secret_key()
+    rows = []
+    for path in sorted(cache_dir.rglob("aot/*.exe")):
+        full, checks = [], []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            blob = cache.read_regular(path, aot.MAX_ENTRY_BYTES)
+            k = len(aot.MAGIC)
+            assert hmac.compare_digest(
+                blob[k : k + 32], aot._mac(secret, path.name, blob[k + 32 :])
+            )
+            t1 = time.perf_counter()
+            assert aot._load(path, secret, []) is not None
+            t2 = time.perf_counter()
+            checks.append(t1 - t0)
+            full.append(t2 - t1)
+        rows.append(
+            {
+                "bytes": path.stat().st_size,
+                "load_ms": round(1e3 * float(np.median(full)), 2),
+                "checks_ms": round(1e3 * float(np.median(checks)), 3),
+            }
+        )
+    return rows
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
@@ -58,6 +96,7 @@ def main() -> int:
             "warm_cpu_s": round(float(np.median([c for _, c in times])), 3),
             "wall_runs_s": [round(w, 3) for w, _ in times],
         }
+    result["loads_ms"] = load_times_ms(tmp / "cache")
     result["load_average"] = os.getloadavg()[0]
     print(json.dumps(result))
     return 0
