@@ -11,10 +11,9 @@ cache must be off while executables are stored (`cache.enable` says why).
 
 An entry cannot be made safe by its format: `serialize_executable` pickles the executable with
 its shardings, and the executable itself is machine code, so whoever can change an entry can run
-code as the user. An entry is loaded only when it is a regular file (no link, FIFO or device) of
-at most MAX_ENTRY_BYTES whose HMAC-SHA256 under the user's own key (`cache.secret_key`, a 0600
-file) is right; anything else gives one warning and a compile, whose result replaces it. Entry
-names are HMACs too, so users who share a folder never read each other's entries.
+code as the user. An entry is unpickled only when `cache.load_signed` accepts it (a regular file
+of bounded size, authenticated with the user's own key); anything else gives one warning and a
+compile, whose result replaces it.
 
 Arguments follow `equinox.filter_jit`: arrays (NumPy or JAX) and `jax.ShapeDtypeStruct`s are
 traced, every other leaf is static. `executable(f, *args)` with shapes alone compiles ahead of the
@@ -23,13 +22,9 @@ data (fit compiles its solver while the states are estimated).
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
-import hmac
-import os
 import pickle
-import secrets
 import threading
 import time
 from pathlib import Path
@@ -123,34 +118,14 @@ class Executable:
         return jax.tree.unflatten(self._out, out)
 
 
-# a stored entry: MAGIC, then HMAC-SHA256(user's key, MAGIC + file name + body), then the body
-MAGIC = b"fpe-jax executable 2\n"
-MAX_ENTRY_BYTES = 256 << 20  # the largest executables here are a few MB
-STALE_TEMP_S = 600.0  # a temporary entry this old was left by a killed writer
-
-
-def _mac(secret: bytes, name: str, body: bytes) -> bytes:
-    return hmac.digest(secret, MAGIC + name.encode() + b"\0" + body, "sha256")
-
-
 def _load(path: Path, secret: bytes, traced: list[int]) -> Executable | None:
-    """The executable stored at `path`, or None (absent, or refused with one warning): only a
-    regular file of at most MAX_ENTRY_BYTES whose HMAC under this user's key is right is
-    unpickled, so a damaged entry or one this user's fpe did not write is never run."""
+    """The executable stored at `path`, or None (absent, or refused with one warning): only an
+    authenticated entry (`cache.load_signed`) is unpickled."""
     from jax.experimental import serialize_executable
 
     t0 = time.perf_counter()
-    try:
-        blob = cache.read_regular(path, MAX_ENTRY_BYTES)
-    except FileNotFoundError:
-        return None
-    except (OSError, cache.Refused) as e:
-        cache.warn("unreadable", f"{path.name}: {getattr(e, 'strerror', None) or e}")
-        return None
-    n = len(MAGIC)
-    mac, body = blob[n : n + 32], blob[n + 32 :]
-    if blob[:n] != MAGIC or not hmac.compare_digest(mac, _mac(secret, path.name, body)):
-        cache.warn("unreadable", f"{path.name}: not written by fpe for this user, or damaged")
+    body = cache.load_signed(path, secret)
+    if body is None:
         return None
     try:
         payload, in_tree, out_tree, skeleton = pickle.loads(body)
@@ -203,8 +178,7 @@ def _compile(lowered, cpu_options: dict | None):
 
 
 def _store(path: Path, secret: bytes, compiled, out_treedef) -> None:
-    """Write the executable to `path` whole (a temporary file, renamed), authenticated by
-    `secret`; a failed write leaves no temporary file, and one left by a killed writer goes."""
+    """Store the executable at `path`, authenticated by `secret` (`cache.store_signed`)."""
     from jax.experimental import serialize_executable
 
     try:
@@ -214,30 +188,7 @@ def _store(path: Path, secret: bytes, compiled, out_treedef) -> None:
         body = pickle.dumps((payload, in_tree, out_tree, skeleton))
     except Exception:  # noqa: BLE001 -- not serializable (e.g. constants): kept in memory only
         return
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
-    try:
-        path.parent.mkdir(exist_ok=True)
-        _remove_stale_temps(path.parent)
-        fd = os.open(
-            tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o600
-        )
-        with os.fdopen(fd, "wb") as f:
-            f.write(MAGIC + _mac(secret, path.name, body) + body)
-        os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
-    except OSError as e:
-        cache.warn("unwritable", f"{path.parent}: {e.strerror or e}")
-    finally:
-        tmp.unlink(missing_ok=True)  # only left when the write failed
-
-
-def _remove_stale_temps(folder: Path) -> None:
-    """Remove temporary entries older than STALE_TEMP_S (their writer was killed)."""
-    now = time.time()
-    for entry in os.scandir(folder):
-        if ".exe.tmp-" in entry.name and entry.is_file(follow_symlinks=False):
-            with contextlib.suppress(OSError):
-                if now - entry.stat(follow_symlinks=False).st_mtime > STALE_TEMP_S:
-                    os.unlink(entry.path)
+    cache.store_signed(path, secret, body)
 
 
 def _entry(key: str) -> tuple[Path, bytes] | None:
@@ -246,18 +197,10 @@ def _entry(key: str) -> tuple[Path, bytes] | None:
     folder = cache.active_dir()
     if folder is None:
         return None
-    try:
-        secret = _secret(cache.root_dir())
-    except (OSError, cache.Refused) as e:
-        cache.warn("unreadable", f"key: {getattr(e, 'strerror', None) or e}")
+    secret = cache.user_key()
+    if secret is None:
         return None
-    name = hmac.digest(secret, key.encode(), "sha256").hex()
-    return folder / "aot" / f"{name}.exe", secret
-
-
-@functools.cache
-def _secret(root: Path) -> bytes:
-    return cache.secret_key()
+    return folder / "aot" / f"{cache.entry_name(secret, key)}.exe", secret
 
 
 def executable(fun, *args, **kwargs) -> Executable:

@@ -12,13 +12,17 @@ See docs/cache.md for what a stored entry must pass before it is loaded (`aot`).
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import hashlib
+import hmac
 import os
 import platform
 import re
 import secrets
 import stat
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -32,8 +36,11 @@ _MARKER_TEXT = b"compilation cache of fpe-jax: `fpe cache clear` empties this fo
 # folders of versions that wrote no marker: jax-<version>_jaxlib-<version>_<backend>_x64|x32
 _LEGACY_NAME = re.compile(r"jax-[0-9][0-9a-z.+]*_jaxlib-[0-9][0-9a-z.+]*_[a-z]+_x(32|64)")
 # the files `aot` and JAX write in a subfolder: aot/<64 hex>.exe and its temporary
-# <name>.exe.tmp-* (older versions: <64 hex>.tmp<digits>), JAX's <key>-cache and <key>-atime
-_ENTRY = re.compile(r"aot/[0-9a-f]{64}(\.exe(\.tmp-[0-9a-z-]+)?|\.tmp[0-9]+)|[\w.-]+-(cache|atime)")
+# <name>.exe.tmp-* (older versions: <64 hex>.tmp<digits>), JAX's <key>-cache (ours: <64 hex>-cache
+# and <name>.tmp-*) and <key>-atime
+_ENTRY = re.compile(
+    r"aot/[0-9a-f]{64}(\.exe(\.tmp-[0-9a-z-]+)?|\.tmp[0-9]+)|[\w.-]+-(cache|atime)(\.tmp-[0-9a-z-]+)?"
+)
 
 _ACTIVE: list[Path] = []  # the folder `enable` turned on in this process (none: off)
 _JAX_CACHE_ON: list[Path] = []  # where JAX's own cache was turned on in this process
@@ -77,7 +84,7 @@ def warn(kind: str, detail: str, stream=None) -> None:
         return
     _SHOWN.add(kind)
     print(
-        f"fpe: warning: {kind} compilation cache entry in {root_dir()} ({detail[:80]}); "
+        f"fpe: warning: {kind} compilation cache entry in {root_dir()} ({detail[:160]}); "
         + ("compiling instead" if kind == "unreadable" else "not stored"),
         file=stream or sys.stderr,
     )
@@ -198,11 +205,43 @@ def enable(executables: bool = True) -> Path | None:
     jax.config.update("jax_raise_persistent_cache_errors", False)
     _one_line_warnings()
     if not executables:
+        if not _sign_jax_cache(path):
+            jax.config.update("jax_enable_compilation_cache", False)
+            return None
         _JAX_CACHE_ON.append(path)
         _ACTIVE.clear()
     elif not _JAX_CACHE_ON:  # after JAX's cache, even once, executables stay in memory only
         _ACTIVE.append(path)
     return path
+
+
+def _sign_jax_cache(path: Path) -> bool:
+    """Make JAX's persistent cache read and write its entries in `path` as `aot`'s: signed
+    (`store_signed`) and checked before use (`load_signed`); False (one warning) when this JAX
+    has no cache object to replace, or the user's key is refused."""
+    secret = user_key()
+    if secret is None:
+        return False
+    try:  # JAX's cache object is internal: a version without it gets no disk cache
+        from jax._src import compilation_cache as jax_cache
+        from jax._src.compilation_cache_interface import CacheInterface
+
+        class Signed(CacheInterface):
+            def __init__(self):
+                self._path = path
+
+            def get(self, key: str) -> bytes | None:
+                return load_signed(path / f"{entry_name(secret, key)}-cache", secret)
+
+            def put(self, key: str, value: bytes) -> None:
+                store_signed(path / f"{entry_name(secret, key)}-cache", secret, value)
+
+        with jax_cache._cache_initialized_mutex:
+            jax_cache._cache, jax_cache._cache_initialized = Signed(), True
+    except (ImportError, AttributeError) as e:
+        print(f"fpe: warning: no compilation cache (this JAX's cache: {e})", file=sys.stderr)
+        return False
+    return True
 
 
 def disable() -> None:
@@ -272,6 +311,83 @@ def secret_key() -> bytes:
     if len(key) != 32:
         raise Refused(f"{len(key)} bytes, not 32")
     return key
+
+
+# a signed entry: MAGIC, then HMAC-SHA256(user's key, MAGIC + file name + body), then the body
+MAGIC = b"fpe-jax executable 2\n"
+MAX_ENTRY_BYTES = 256 << 20  # the largest executables here are a few MB
+STALE_TEMP_S = 600.0  # a temporary entry this old was left by a killed writer
+
+
+def _mac(secret: bytes, name: str, body: bytes) -> bytes:
+    return hmac.digest(secret, MAGIC + name.encode() + b"\0" + body, "sha256")
+
+
+def entry_name(secret: bytes, key: str) -> str:
+    """The file name (64 hex digits) of the entry of `key` under this user's key: users who
+    share a folder never read each other's entries."""
+    return hmac.digest(secret, key.encode(), "sha256").hex()
+
+
+@functools.cache
+def _key_of(root: Path) -> bytes | None:
+    try:
+        return secret_key()
+    except (OSError, Refused) as e:
+        warn("unreadable", f"key: {getattr(e, 'strerror', None) or e}")
+        return None
+
+
+def user_key() -> bytes | None:
+    """`secret_key()`, read once per process and cache folder; None (one warning) when it is
+    refused: executables then stay in memory."""
+    return _key_of(root_dir())
+
+
+def load_signed(path: Path, secret: bytes) -> bytes | None:
+    """The body of the entry at `path`; None when there is none, or (one warning) when it is not
+    a regular file of at most MAX_ENTRY_BYTES (`read_regular`) whose HMAC under `secret` is
+    right: a damaged entry, or one this user's fpe did not write, is never used."""
+    try:
+        blob = read_regular(path, MAX_ENTRY_BYTES)
+    except FileNotFoundError:
+        return None
+    except (OSError, Refused) as e:
+        warn("unreadable", f"{path.name}: {getattr(e, 'strerror', None) or e}")
+        return None
+    n = len(MAGIC)
+    mac, body = blob[n : n + 32], blob[n + 32 :]
+    if blob[:n] != MAGIC or not hmac.compare_digest(mac, _mac(secret, path.name, body)):
+        warn("unreadable", f"{path.name}: not written by fpe for this user, or damaged")
+        return None
+    return body
+
+
+def store_signed(path: Path, secret: bytes, body: bytes) -> None:
+    """Write the entry at `path` whole (a temporary file of mode 0600, renamed over whatever is
+    there); a failed write leaves no temporary file (one warning), and temporary files of a
+    killed writer (older than STALE_TEMP_S) go."""
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
+    try:
+        path.parent.mkdir(exist_ok=True)
+        _remove_stale_temps(path.parent)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+        with os.fdopen(os.open(tmp, flags, 0o600), "wb") as f:
+            f.write(MAGIC + _mac(secret, path.name, body) + body)
+        os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
+    except OSError as e:
+        warn("unwritable", f"{path.parent}: {e.strerror or e}")
+    finally:
+        tmp.unlink(missing_ok=True)  # only left when the write failed
+
+
+def _remove_stale_temps(folder: Path) -> None:
+    now = time.time()
+    for entry in os.scandir(folder):
+        if ".tmp-" in entry.name and entry.is_file(follow_symlinks=False):
+            with contextlib.suppress(OSError):
+                if now - entry.stat(follow_symlinks=False).st_mtime > STALE_TEMP_S:
+                    os.unlink(entry.path)
 
 
 def _walk(folder: Path):

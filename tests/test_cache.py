@@ -106,7 +106,8 @@ def test_a_crafted_pickle_entry_is_never_unpickled(filled, tmp_path):
 
     crafted = pickle.dumps(Touch())
     # a bare pickle, and one behind the entry's header with a MAC made without the user's key
-    for blob in (crafted, aot.MAGIC + bytes(32) + crafted, aot.MAGIC + entry.read_bytes()[-32:]):
+    header = cache.MAGIC + bytes(32)
+    for blob in (crafted, header + crafted, cache.MAGIC + entry.read_bytes()[-32:]):
         entry.write_bytes(blob)
         assert_one_warning_and_recompiled(child(cache_dir), fresh)
         assert not touched.exists()
@@ -309,3 +310,42 @@ def test_a_flipped_bit_in_a_predict_entry_changes_no_number(tmp_path):
     lines = again.stderr.strip().splitlines()
     assert len(lines) == 2 and lines[0].startswith("fpe: warning: unreadable"), again.stderr
     assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+
+
+def test_batch_entries_of_jax_own_cache_are_checked_too(tmp_path):
+    """`fpe batch` keeps JAX's own cache of XLA executables: its entries pass the same checks
+    (a flipped bit, then a FIFO: one warning each, the same cars, no hang)."""
+
+    def batch(out: str) -> subprocess.CompletedProcess:
+        argv = [
+            "batch",
+            str(SAMPLE / "cars.csv"),
+            "--waypoints",
+            str(ROOT / "data/tracks/oval.csv"),
+        ]
+        return subprocess.run(
+            [sys.executable, "-m", "fpe_jax.cli", *argv, "--preset", "default", "--quiet"]
+            + ["--out", str(tmp_path / out)],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, "FPE_CACHE_DIR": str(tmp_path / "cache")},
+            timeout=120,
+        )
+
+    assert batch("a.npy").returncode == 0
+    stored = sorted(p for p in (tmp_path / "cache").glob("jax-*/*-cache") if p.name != cache.MARKER)
+    assert stored and all(len(p.name) == len("-cache") + 64 for p in stored)
+    for p in stored:
+        blob = bytearray(p.read_bytes())
+        blob[len(blob) * 9 // 10] ^= 0x04
+        p.write_bytes(bytes(blob))
+    stored[0].unlink()
+    os.mkfifo(stored[0])
+    for out in ("b.npy", "c.npy"):  # damaged, then healed by the recompile
+        r = batch(out)
+        assert r.returncode == 0, r.stderr
+        lines = r.stderr.strip().splitlines()
+        warned = [line for line in lines if line.startswith("fpe: warning: unreadable")]
+        assert len(warned) == (1 if out == "b.npy" else 0) and len(lines) == 1 + len(warned)
+        np.testing.assert_array_equal(np.load(tmp_path / out), np.load(tmp_path / "a.npy"))
