@@ -174,7 +174,8 @@ def enable(executables: bool = True) -> Path | None:
     executables there and JAX's own cache stays off: an executable compiled in a process that
     had read entries of JAX's cache ran elsewhere as "NOT_FOUND: Function ... fusion not found"
     (XLA on the CPU, jax 0.10.2), so the two must not mix. False (batch, whose chunk function is
-    a plain jit): JAX's persistent cache of XLA executables.
+    a plain jit): JAX's persistent cache of XLA executables, whose entries go through the same
+    checks as `aot`'s (`_sign_jax_cache`).
     Call after the command has set x64 mode and before its first compilation.
     """
     if disabled():

@@ -1,10 +1,11 @@
 """Warm command times with the compilation cache: the cache is read on every warm command's path.
 
-Runs `fpe predict` and `fpe evaluate` on the sample drive (data/samples) once to fill a fresh
-cache folder, then `--runs` more times each, and prints the median wall and CPU time (user +
-system of the child) [s] of the warm runs as one JSON line; then, in this process, the median
-time [ms] of loading each stored executable (`aot._load`: checks, unpickling, XLA's loading) and
-of its checks alone (reading it as a bounded regular file and its HMAC), over 20 loads.
+Runs `fpe predict` and `fpe evaluate` on the sample drive and `fpe batch` on the sample cars
+(data/samples) once to fill a fresh cache folder, then `--runs` more times each, and prints the
+median wall and CPU time (user + system of the child) [s] of the warm runs as one JSON line;
+then (unless --no-loads), in this process, the median time [ms] of loading each stored
+executable (`aot._load`: checks, unpickling, XLA's loading) and of its checks alone (reading it
+as a bounded regular file and its HMAC), over 20 loads.
 
     .venv/bin/python experiments/cache/warm_times.py --runs 5
 """
@@ -77,6 +78,7 @@ def load_times_ms(cache_dir: Path, n: int = 20) -> list[dict]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--no-loads", action="store_true", help="only the commands' times")
     args = ap.parse_args()
     fpe = str(Path(sys.executable).parent / "fpe")
     tmp = Path(tempfile.mkdtemp(prefix="fpe-warm-"))
@@ -86,6 +88,17 @@ def main() -> int:
     commands = {
         "predict": [fpe, "predict", *log, "--out", str(tmp / "p.csv"), "--force"],
         "evaluate": [fpe, "evaluate", *log, "--preset", "default"],
+        "batch": [
+            fpe,
+            "batch",
+            str(SAMPLE.parent / "cars.csv"),
+            *log[1:],
+            "--preset",
+            "default",
+            "--out",
+            str(tmp / "b.npy"),
+            "--force",
+        ],  # fmt: skip
     }
     result = {"runs": args.runs}
     for name, argv in commands.items():
@@ -96,7 +109,8 @@ def main() -> int:
             "warm_cpu_s": round(float(np.median([c for _, c in times])), 3),
             "wall_runs_s": [round(w, 3) for w, _ in times],
         }
-    result["loads_ms"] = load_times_ms(tmp / "cache")
+    if not args.no_loads:
+        result["loads_ms"] = load_times_ms(tmp / "cache")
     result["load_average"] = os.getloadavg()[0]
     print(json.dumps(result))
     return 0
