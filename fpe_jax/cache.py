@@ -7,7 +7,7 @@ own key covers the program itself). Each subfolder this module makes holds a mar
 (`MARKER`); `clear` and `info` touch only such folders (and the folders of older versions, whose
 names and entries they recognise), and follow no symbolic link. `--no-cache` or `FPE_NO_CACHE=1`
 turns the cache off. Everything but `enable` is JAX-free (`fpe cache info|clear`).
-See docs/cache.md for what a stored entry must pass before it is loaded (`aot`).
+See docs/cache.md for what a stored entry must pass before it is used (`load_signed`).
 """
 
 from __future__ import annotations

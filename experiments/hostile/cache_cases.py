@@ -1,7 +1,7 @@
 """The hostile study's cases against the compilation cache: damaged, crafted or foreign entries
 (a flipped bit, a pickle that runs a command, a FIFO, a link to /dev/zero, a key others can read,
-a killed writer's temporary file) and `fpe cache clear|info` beside a user's own `jax-*` folder
-and a `jax-*` link to /usr.
+a killed writer's temporary file), the same for `fpe batch`'s entries of JAX's own cache, and
+`fpe cache clear|info` beside a user's own `jax-*` folder and a `jax-*` link to /usr.
 
 A predict case passes when `fpe predict` of the sample drive exits 0 within its time limit, with
 at most one warning line, and writes the same predictions as a cold run; a clear/info case when
@@ -41,9 +41,13 @@ def run_cases(work: Path, fpe) -> list[dict]:
     """The cache's cases as rows of run.py's table; `fpe` is run.py's runner."""
     base = work / "cache_cases"
     base.mkdir()
-    for src in (DATA / "samples" / "drive.mcap", DATA / "tracks" / "oval.csv"):
+    for src in (
+        DATA / "samples" / "drive.mcap",
+        DATA / "samples" / "cars.csv",
+        DATA / "tracks" / "oval.csv",
+    ):
         shutil.copy(src, base)
-    inputs = {name: _sha(base / name) for name in ("drive.mcap", "oval.csv")}
+    inputs = {name: _sha(base / name) for name in ("drive.mcap", "cars.csv", "oval.csv")}
     cache_dir = base / "cache"
     saved = os.environ.get("FPE_CACHE_DIR")
     os.environ["FPE_CACHE_DIR"] = str(cache_dir)
@@ -181,6 +185,31 @@ def _cases(base: Path, cache_dir: Path, inputs: dict, fpe) -> list[dict]:
     row("34.2", "a killed writer's temporary entry (an hour old)", r, ok,
         f"removed: {not stale.exists()}", kept)  # fmt: skip
 
+    # fpe batch keeps JAX's own cache: its entries pass the same checks
+    def batch(out: str) -> tuple[dict, bytes | None, bool]:
+        argv = ["batch", "cars.csv", "--waypoints", "oval.csv", "--preset", "default"]
+        r = fpe(base, *argv, "--out", out, "--quiet", timeout_s=TIMEOUT_S)
+        kept = all(_sha(base / n) == h for n, h in inputs.items())
+        return r, ((base / out).read_bytes() if r["rc"] == 0 else None), kept
+
+    r, cars, kept = batch("b0.npy")
+    jax_entries = [p for p in cache_dir.glob("jax-*_x32/*-cache") if p.name != MARKER]
+    row("34.2", "batch, cold (fills JAX's cache)", r, r["rc"] == 0 and bool(jax_entries),
+        f"{len(jax_entries)} executables stored", kept)  # fmt: skip
+    for p in jax_entries[1:]:
+        blob = bytearray(p.read_bytes())
+        bit = int(rng.integers(8 * len(blob)))
+        blob[bit // 8] ^= 1 << (bit % 8)
+        p.write_bytes(bytes(blob))
+    jax_entries[0].unlink()
+    os.mkfifo(jax_entries[0])
+    r, out, kept = batch("b1.npy")
+    row("34.2", "batch: a bit flipped in every JAX cache entry but one, that one a FIFO", r,
+        r["rc"] == 0 and warned(r) and out == cars, f"same cars: {out == cars}", kept)  # fmt: skip
+    r, out, kept = batch("b2.npy")
+    row("34.2", "batch again (the entries recompiled)", r,
+        r["rc"] == 0 and clean(r) and out == cars, f"same cars: {out == cars}", kept)  # fmt: skip
+
     # 34.9: a user's folder named like the cache's, and a jax-* link out of the cache
     users = cache_dir / "jax-foo"
     (users / "aot").mkdir(parents=True)
@@ -197,7 +226,7 @@ def _cases(base: Path, cache_dir: Path, inputs: dict, fpe) -> list[dict]:
     r = fpe(base, "cache", "info", "--json", timeout_s=60.0)
     summary = json.loads(r["out"]) if r["rc"] == 0 else {}
     subs = list(summary.get("subfolders", {}))
-    ok = r["rc"] == 0 and r["wall_s"] < 10 and len(subs) == 1 and subs[0].startswith("jax-0.")
+    ok = r["rc"] == 0 and r["wall_s"] < 10 and len(subs) == 2 and link.name not in subs
     row("34.9", "cache info beside a jax-* link to /usr and a user's jax-foo", r, ok,
         f"{summary.get('entries')} entries, {summary.get('bytes', 0) / 1e6:.1f} MB in "
         f"{len(subs)} folder(s)", untouched())  # fmt: skip
