@@ -29,17 +29,28 @@ SHARED = HERE.parents[2] / "shared" / "data"
 Q_S, Q_M = 2.0**-16, 2.0**-8  # stamps, positions on grids that survive the offsets exactly
 
 
-def fpe(work: Path, *argv: str, stdin: bytes | None = None) -> dict:
-    """Run `fpe ARGV` in `work`; exit status, stderr, wall time and peak RSS [MB]."""
+def fpe(work: Path, *argv: str, stdin: bytes | None = None, timeout_s: float | None = None) -> dict:
+    """Run `fpe ARGV` in `work`; exit status (None: killed after timeout_s), stderr, wall time
+    and peak RSS [MB]."""
     code = (
         "import resource, sys; from fpe_jax.cli import main; rc = main(sys.argv[1:]); "
         "sys.stderr.write('\\n@@rss %d' % resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); "
         "sys.exit(rc)"
     )
     t0 = time.perf_counter()
-    p = subprocess.run(
-        [sys.executable, "-c", code, *argv], cwd=work, input=stdin, capture_output=True
-    )
+    try:
+        p = subprocess.run(
+            [sys.executable, "-c", code, *argv],
+            cwd=work,
+            input=stdin,
+            capture_output=True,
+            timeout=timeout_s,
+        )
+    except subprocess.TimeoutExpired:
+        wall_s = time.perf_counter() - t0
+        return dict(
+            rc=None, err=f"hung: killed after {timeout_s} s", out=b"", wall_s=wall_s, rss_mb=0.0
+        )
     err = p.stderr.decode(errors="replace")
     rss = 0.0
     if "\n@@rss " in err:
@@ -764,6 +775,9 @@ def main() -> int:
         work.mkdir()
         setup(work)
         rows = run_cases(work)
+        import cache_cases  # beside this file: the compilation cache's cases
+
+        rows += cache_cases.run_cases(work, fpe)
     write_markdown(rows, HERE / "results.md", time.perf_counter() - t0)
     print(f"wrote {HERE / 'results.md'}: {sum(r['ok'] for r in rows)}/{len(rows)} pass")
     return 0 if all(r["ok"] for r in rows) else 1
