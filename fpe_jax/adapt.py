@@ -40,7 +40,7 @@ from fpe_jax.config import check_waypoints, read_config
 from fpe_jax.errors import InputError
 from fpe_jax.path import build_path, waypoints_sha256
 from fpe_jax.runner import Runner, load_waypoints_xy
-from fpe_jax.spec import FILTER_DEFAULTS, LINE_KEYS, SCHEMA_VERSION, check_config
+from fpe_jax.spec import LINE_KEYS, SCHEMA_VERSION, check_config
 
 PROFILE_DS_M = 0.5  # fpe_jax.line's profile spacing [m] (a config's own P is kept)
 PROFILE_SMOOTH_M = 1.0  # fpe_jax.line's kernel standard deviation [m]
@@ -50,18 +50,24 @@ MIN_SAMPLES = 0.5
 LAP_DECAY = 0.25  # weight of the samples of one lap before the newest, per lap
 MAX_SAMPLE_SPEED_MPS = 100.0  # a track-frame speed above this is a filter transient: no sample
 
-# Without a config: the line model with the Kalman estimator, its noise at the defaults, the
-# offset and speed profile blended in over about a second, no detection delay.
+# Without a config: the line model with the Kalman estimator, no detection delay (give the ego
+# sensor's own), and the time constants and filter noise `fpe fit` typically finds on the
+# simulated 1:10 tracks (experiments/results/approaches.md: offset decay 0.1-0.4 s, speed-profile
+# blend 0.05-0.4 s, position smoothing 0.7-0.8, filter 1 / 1 m/s^2, 0.25 m, gate 3-4 sigma): a
+# learned line is trusted within a fraction of a second.
 DEFAULT_PARAMS = {
     "lookahead_m": 1.0,
     "lookahead_gain_s": 0.2,
     "delay_s": 0.0,
     "speed_weight": 1.0,
     "speed_mps": 2.0,
-    "offset_tau_s": 1.0,
-    "speed_tau_s": 0.5,
-    "position_smoothing": 0.5,
-    **FILTER_DEFAULTS,
+    "offset_tau_s": 0.2,
+    "speed_tau_s": 0.1,
+    "position_smoothing": 0.7,
+    "filter_accel_mps2": 1.0,
+    "filter_lat_accel_mps2": 1.0,
+    "filter_obs_m": 0.25,
+    "filter_gate_sigma": 3.5,
 }
 DEFAULT_SETTINGS = {
     "dt_s": 0.1,
@@ -221,15 +227,18 @@ class AdaptiveRunner(Runner):
         poses = super().update(stamp_s, x_m, y_m, yaw_rad)
         fresh = self._history and self._history[-1] is not n_before
         if fresh and self._frame is not None:
-            s_m, sdot_mps, d_m, _ = self._frame
-            self.learn(s_m, d_m, sdot_mps)
+            s_m, sdot_mps, d_m, age_s = self._frame
+            self.learn(s_m, d_m, sdot_mps, age_s)
         return poses
 
     # ---- learning -----------------------------------------------------------------------------
 
-    def learn(self, s_m: float, d_m: float, v_mps: float) -> None:
-        """Add one sample: the car at arc length s_m [m] (any lap), offset d_m [m], along-track
-        speed v_mps [m/s] (not finite or implausible: no speed sample)."""
+    def learn(self, s_m: float, d_m: float, v_mps: float, v_age_s: float = 0.0) -> None:
+        """Add one sample: the car at arc length s_m [m] (any lap) with offset d_m [m], and its
+        along-track speed v_mps [m/s] (not finite or implausible: no speed sample) as it was
+        v_age_s [s] before (a window's speed estimate describes its middle: the speed sample
+        goes where the car was then, s_m - v_mps v_age_s, as the rollout reads it)."""
+        has_v = math.isfinite(v_mps) and abs(v_mps) <= MAX_SAMPLE_SPEED_MPS
         length = self.path.length_m
         if self.path.closed:
             s_mod = s_m % length
@@ -238,34 +247,35 @@ class AdaptiveRunner(Runner):
             else:
                 step = (s_mod - self._s_unwrapped % length + 0.5 * length) % length - 0.5 * length
                 self._s_unwrapped += step
-            lap = max(math.floor(self._s_unwrapped / length), 0)  # backing up before the start
-            self.laps = max(self.laps, lap)
-            u = s_mod / self._spacing
-        else:
-            lap = 0
-            u = min(max(s_m, 0.0), length) / self._spacing
-        has_v = math.isfinite(v_mps) and abs(v_mps) <= MAX_SAMPLE_SPEED_MPS
-        i = math.floor(u)
-        f = u - i
-        touched = []
-        for idx, w in ((i, 1.0 - f), (i + 1, f)):
-            idx = idx % self._n if self.path.closed else min(max(idx, 0), self._n - 1)
-            self._deposit(idx, lap, w, d_m, v_mps if has_v else None)
-            touched.append(idx)
+            # never backwards (a car backing up, or jitter at the line): a point's laps only grow
+            self.laps = max(self.laps, math.floor(self._s_unwrapped / length))
+        touched = set()
+        for kind, at_m in ((0, s_m), (1, s_m - v_mps * v_age_s if has_v else None)):
+            if at_m is None:
+                continue
+            if self.path.closed:
+                u = (at_m % length) / self._spacing
+            else:
+                u = min(max(at_m, 0.0), length) / self._spacing
+            i = math.floor(u)
+            f = u - i
+            for idx, w in ((i, 1.0 - f), (i + 1, f)):
+                idx = idx % self._n if self.path.closed else min(max(idx, 0), self._n - 1)
+                self._deposit(idx, w, kind, d_m if kind == 0 else v_mps)
+                touched.add(idx)
         self.samples += 1
-        self._refresh(touched)
+        self._refresh(sorted(touched))
 
-    def _deposit(self, idx: int, lap: int, w: float, d_m: float, v_mps: float | None) -> None:
+    def _deposit(self, idx: int, w: float, kind: int, value: float) -> None:
+        """Add weight w of an offset (kind 0) or speed (kind 1) sample at point idx, first
+        decaying the point's sums by lap_decay per lap since it was last given one."""
         sums = self._sums
-        behind = lap - self._lap_of_point[idx]
+        behind = self.laps - self._lap_of_point[idx]
         if behind > 0:
             sums[:, idx] *= self.lap_decay**behind
-            self._lap_of_point[idx] = lap
-        sums[0, idx] += w
-        sums[1, idx] += w * d_m
-        if v_mps is not None:
-            sums[2, idx] += w
-            sums[3, idx] += w * v_mps
+            self._lap_of_point[idx] = self.laps
+        sums[2 * kind, idx] += w
+        sums[2 * kind + 1, idx] += w * value
 
     def _refresh(self, touched: list[int]) -> None:
         """Re-smooth and re-blend the points within the kernel's reach of the touched ones."""
@@ -295,9 +305,16 @@ class AdaptiveRunner(Runner):
         if c <= 0.0:
             offset, speed = 0.0, 0.0
         po, ps, pc = self._prior_offset[j], self._prior_speed[j], self._prior_coverage[j]
+        known = c + (1.0 - c) * pc
         self._profile[0][j] = c * offset + (1.0 - c) * po
-        self._profile[1][j] = c * speed + (1.0 - c) * ps
-        self._profile[2][j] = c + (1.0 - c) * pc
+        # the speed is read without its coverage (fpe_jax.rollout's ratio to the speed where the
+        # car is): weighted by what is known, so that where the prior knows nothing a partly
+        # seen point holds the speed seen there, not a mix with the prior's zero
+        if known > 0.0:
+            self._profile[1][j] = (c * speed + (1.0 - c) * pc * ps) / known
+        else:
+            self._profile[1][j] = ps
+        self._profile[2][j] = known
 
     # ---- state --------------------------------------------------------------------------------
 

@@ -20,50 +20,65 @@ TOL = 1e-6
 
 
 class Recording(AdaptiveRunner):
-    """Keeps every sample it learns from: (s [m], d [m], v [m/s])."""
+    """Keeps every sample it learns from: (s [m], d [m], v [m/s], the speed's age [s])."""
 
-    def learn(self, s_m, d_m, v_mps):
-        self.seen = [*getattr(self, "seen", []), (s_m, d_m, v_mps)]
-        super().learn(s_m, d_m, v_mps)
+    def learn(self, s_m, d_m, v_mps, v_age_s=0.0):
+        self.seen = [*getattr(self, "seen", []), (s_m, d_m, v_mps, v_age_s)]
+        super().learn(s_m, d_m, v_mps, v_age_s)
+
+
+def _spread(at_m, n, spacing):
+    """Each position's two profile points (2, M) and linear weights (2, M) on a loop."""
+    u = at_m / spacing
+    i = jnp.floor(u)
+    f = u - i
+    return jnp.stack([i % n, (i + 1) % n]).astype(jnp.int32), jnp.stack([1.0 - f, f])
 
 
 @jax.jit
-def profile_jax(s_m, d_m, v_mps, prior, length_m, kern, decay, min_samples):
+def profile_jax(s_m, d_m, v_mps, age_s, prior, length_m, kern, decay, min_samples):
     """The profile (3, P) offset [m], speed [m/s], coverage learned from samples (M,) on a loop
-    of length_m, all at once: each sample's weight is decay ** (laps between it and the newest
-    sample at its point), spread to its two points, summed, smoothed circularly, blended with the
-    prior (3, P) by coverage."""
+    of length_m, all at once: the offset at s, the speed at s - v age; each weighs
+    decay ** (laps between it and the point's newest sample of either kind), is spread to its
+    two points, summed, smoothed circularly and blended with the prior (3, P) by coverage."""
     n = prior.shape[1]
     spacing = length_m / n
     step = jnp.diff(s_m)
     step = (step + 0.5 * length_m) % length_m - 0.5 * length_m
     s0 = s_m[0] % length_m
     unwrapped = jnp.concatenate([jnp.array([s0]), s0 + jnp.cumsum(step)])
-    lap = jnp.maximum(jnp.floor(unwrapped / length_m), 0.0)
-    u = (s_m % length_m) / spacing
-    i = jnp.floor(u)
-    f = u - i
-    idx = jnp.stack([i % n, (i + 1) % n]).astype(jnp.int32)  # (2, M)
-    w = jnp.stack([1.0 - f, f])
-    newest = jnp.zeros(n).at[idx.ravel()].max(jnp.tile(lap, 2))
-    w = w * decay ** (newest[idx] - lap[None, :])
+    lap = jnp.maximum(jax.lax.cummax(jnp.floor(unwrapped / length_m)), 0.0)
     has_v = jnp.isfinite(v_mps)
     v = jnp.where(has_v, v_mps, 0.0)
-    wv = jnp.where(has_v[None, :], w, 0.0)
-    sums = jnp.stack([w, w * d_m[None, :], wv, wv * v[None, :]])  # (4, 2, M)
-    raw = jax.vmap(lambda c: jnp.zeros(n).at[idx.ravel()].add(c.ravel()))(sums)
+    idx_d, w_d = _spread(s_m % length_m, n, spacing)
+    idx_v, w_v = _spread((s_m - v * age_s) % length_m, n, spacing)
+    w_v = jnp.where(has_v[None, :], w_v, 0.0)
+    lap2 = jnp.tile(lap, 2)
+    newest = jnp.zeros(n).at[idx_d.ravel()].max(lap2).at[idx_v.ravel()].max(lap2)
+    w_d = w_d * decay ** (newest[idx_d] - lap[None, :])
+    w_v = w_v * decay ** (newest[idx_v] - lap[None, :])
+
+    def add(idx, c):
+        return jnp.zeros(n).at[idx.ravel()].add(c.ravel())
+
+    raw = jnp.stack(
+        [
+            add(idx_d, w_d),
+            add(idx_d, w_d * d_m[None, :]),
+            add(idx_v, w_v),
+            add(idx_v, w_v * v[None, :]),
+        ]
+    )
     half = (kern.shape[0] - 1) // 2
     padded = jnp.concatenate([raw[:, -half:], raw, raw[:, :half]], axis=1)
     sm = jax.vmap(lambda r: jnp.convolve(r, kern, mode="valid"))(padded)
     c = jnp.clip(jnp.minimum(sm[0], sm[2]) / min_samples, 0.0, 1.0)
     offset = jnp.where((sm[0] > 1e-9) & (c > 0), sm[1] / jnp.maximum(sm[0], 1e-9), 0.0)
     speed = jnp.where((sm[2] > 1e-9) & (c > 0), sm[3] / jnp.maximum(sm[2], 1e-9), 0.0)
+    known = c + (1 - c) * prior[2]
+    v_known = (c * speed + (1 - c) * prior[2] * prior[1]) / jnp.where(known > 0, known, 1.0)
     return jnp.stack(
-        [
-            c * offset + (1 - c) * prior[0],
-            c * speed + (1 - c) * prior[1],
-            c + (1 - c) * prior[2],
-        ]
+        [c * offset + (1 - c) * prior[0], jnp.where(known > 0, v_known, prior[1]), known]
     )
 
 
@@ -123,12 +138,19 @@ def test_jax_profile_under_jit_and_vmap_equals_one_call(laps):
 
 
 def test_with_no_decay_and_no_prior_the_profile_is_fpe_line_on_the_same_samples(laps):
-    """lap_decay 1, min_samples 1: the profile is fpe_jax.line.line_from_samples of the
-    runner's own samples, before its prior (all of the loop covered)."""
+    """lap_decay 1, min_samples 1, speeds taken where they were measured: the profile is
+    fpe_jax.line.line_from_samples of the runner's own samples, before its prior (all of the
+    loop covered)."""
     from fpe_jax.line import LineSamples, line_from_samples
 
     wp, drive = laps
-    r = Recording(None, wp, lap_decay=1.0, min_samples=1.0)
+
+    class Now(AdaptiveRunner):  # the speed sample at the newest position (age 0)
+        def learn(self, s_m, d_m, v_mps, v_age_s=0.0):
+            self.seen = [*getattr(self, "seen", []), (s_m, d_m, v_mps)]
+            super().learn(s_m, d_m, v_mps, 0.0)
+
+    r = Now(None, wp, lap_decay=1.0, min_samples=1.0)
     for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad):
         r.update(t, x, y, yaw)
     s, d, v = np.array(r.seen).T
