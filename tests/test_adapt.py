@@ -303,3 +303,32 @@ def test_fpe_run_adapt_without_a_config(logs, tmp_path):
     np.testing.assert_allclose(got, want, atol=1e-9)
     proc = subprocess.run(cmd, input="", capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "--config" in proc.stderr
+
+
+def test_the_adaptive_runner_works_where_jax_cannot_be_imported(laps, tmp_path):
+    import subprocess
+    import sys
+
+    wp, drive = laps
+    np.save(tmp_path / "wp.npy", wp)
+    np.save(tmp_path / "obs.npy", np.column_stack([drive.t_s, drive.xy_m])[:200])
+    code = f"""
+import sys
+class NoJax:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("jax", "jaxlib", "equinox", "optimistix"):
+            raise ImportError(name + " is blocked: this process has no JAX")
+sys.meta_path.insert(0, NoJax())
+import numpy as np
+from fpe_jax.adapt import AdaptiveRunner
+r = AdaptiveRunner(None, np.load({str(tmp_path / "wp.npy")!r}))
+for t, x, y in np.load({str(tmp_path / "obs.npy")!r}).tolist():
+    r.update(t, x, y)
+r.state_config()
+leaked = [m for m in ("jax", "jaxlib", "equinox", "optimistix") if m in sys.modules]
+assert not leaked, leaked
+print(r.samples)
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert int(proc.stdout) > 100

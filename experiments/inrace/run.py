@@ -45,7 +45,9 @@ RACE_LAPS = 6  # (a): laps of the race scored
 OLD_LAPS, NEW_LAPS = 3, 5  # (b): laps before and after the change
 INSIDE_M = 0.6  # (b): the defensive line's shift toward the inside [m]
 NEW_DRIVER = dict(lat_accel_mps2=3.0, v_max_mps=6.0)  # (b): slower corners, lower pace
-SEEDS = dict(fit_old=1, race=3, fit_new=11, race_new=12)
+FIT_SEEDS = (1, 11)  # the offline fits' drives: old and new behaviour
+RACE_SEEDS = (3, 43, 53)  # (a): three races, the first shown in full
+CHANGE_SEEDS = ((2, 12), (41, 42), (51, 52))  # (b): three races (before, after the change)
 
 
 def defensive_line(center_xy_m: np.ndarray, inside_m: float) -> np.ndarray:
@@ -100,45 +102,30 @@ def per_lap(err: np.ndarray, lap: np.ndarray, laps) -> list[float]:
     ]
 
 
-def run_track(name: str, say) -> dict:
-    old = simulate(name, duration_s=1.0)
-    wp, hw = old.centerline_xy_m, old.half_width_m
+def part_a(name: str, wp, cfg_old: dict, seed: int) -> dict:
+    """(a) FDE per lap on one race (seed) of the opponent's normal behaviour."""
     path = RunnerPath(wp)
     lap_s = path.length_m / 5.0  # a generous lap time at the default pace
-    # (a) the opponent's race and a separate fit drive of it
-    race = simulate(name, duration_s=(RACE_LAPS + 0.5) * lap_s, seed=SEEDS["race"])
-    fit_old = simulate(name, duration_s=FIT_S, seed=SEEDS["fit_old"]).drive
-    say(f"{name}: fitting the old behaviour offline")
-    cfg_old = fitted_config(fit_old, wp, say)
-    lap = lap_of(path, race.drive.t_s, race.drive)
+    race = simulate(name, duration_s=(RACE_LAPS + 0.5) * lap_s, seed=seed).drive
+    lap = lap_of(path, race.t_s, race)
     laps = (1, 2, 3, 5)
-    a = {
-        "offline fit (separate drive)": per_lap(
-            errors_at(Runner(cfg_old, wp), race.drive), lap, laps
-        ),
-        "adapting, from the waypoints alone": per_lap(
-            errors_at(AdaptiveRunner(None, wp, delay_s=LATENCY_S), race.drive), lap, laps
-        ),
-        "adapting, from the offline fit": per_lap(
-            errors_at(AdaptiveRunner(cfg_old, wp), race.drive), lap, laps
-        ),
+    runners = {
+        "offline fit (separate drive)": Runner(cfg_old, wp),
+        "adapting, from the waypoints alone": AdaptiveRunner(None, wp, delay_s=LATENCY_S),
+        "adapting, from the offline fit": AdaptiveRunner(cfg_old, wp),
     }
-    # (b) the change: a defensive line, slower corners, lower pace
-    with tempfile.TemporaryDirectory() as tmp:
-        line = Path(tmp) / "defensive.csv"
-        np.savetxt(line, defensive_line(wp, INSIDE_M), delimiter=",", header="x,y", comments="")
-        driver = dataclasses.replace(Driver(), **NEW_DRIVER)
-        kw = dict(raceline=str(line), half_width_m=hw, driver=driver)
-        fit_new = simulate(name, duration_s=FIT_S, seed=SEEDS["fit_new"], **kw).drive
-        new_lap_s = path.length_m / 3.5
-        after = simulate(
-            name, duration_s=(NEW_LAPS + 0.5) * new_lap_s, seed=SEEDS["race_new"], **kw
-        )
-    say(f"{name}: fitting the new behaviour offline")
-    cfg_new = fitted_config(fit_new, wp, say)
-    before = simulate(name, duration_s=OLD_LAPS * lap_s, seed=SEEDS["race"]).drive
-    new_laps = tuple(range(1, NEW_LAPS + 1))
-    lap_new = lap_of(path, after.drive.t_s, after.drive)
+    return {label: per_lap(errors_at(r, race), lap, laps) for label, r in runners.items()}
+
+
+def part_b(name: str, wp, cfg_old: dict, cfg_new: dict, kw: dict, seeds) -> dict:
+    """(b) FDE per lap after the change, on one race: OLD_LAPS laps of the normal behaviour
+    (seeds[0]), then NEW_LAPS of the new one (seeds[1])."""
+    path = RunnerPath(wp)
+    before = simulate(name, duration_s=OLD_LAPS * path.length_m / 5.0, seed=seeds[0]).drive
+    after = simulate(
+        name, duration_s=(NEW_LAPS + 0.5) * path.length_m / 3.5, seed=seeds[1], **kw
+    ).drive
+    lap_new = lap_of(path, after.t_s, after)
     runners = {
         "static (fitted on the old behaviour)": Runner(cfg_old, wp),
         "adapting (from the same config)": AdaptiveRunner(cfg_old, wp),
@@ -148,17 +135,30 @@ def run_track(name: str, say) -> dict:
     for label, r in runners.items():
         errors_at(r, before)  # the race before the change: the adapting runner learns the old line
         r.reset()  # the car out of sight for a moment as it changes (the history restarts)
-        b[label] = per_lap(errors_at(r, after.drive), lap_new, new_laps)
-    adapt = runners["adapting (from the same config)"]
+        b[label] = per_lap(errors_at(r, after), lap_new, range(1, NEW_LAPS + 1))
+    return b
+
+
+def run_track(name: str, say) -> dict:
+    old = simulate(name, duration_s=1.0)
+    wp, hw = old.centerline_xy_m, old.half_width_m
+    say(f"{name}: fitting the old behaviour offline")
+    cfg_old = fitted_config(simulate(name, duration_s=FIT_S, seed=FIT_SEEDS[0]).drive, wp, say)
+    with tempfile.TemporaryDirectory() as tmp:
+        line = Path(tmp) / "defensive.csv"
+        np.savetxt(line, defensive_line(wp, INSIDE_M), delimiter=",", header="x,y", comments="")
+        driver = dataclasses.replace(Driver(), **NEW_DRIVER)
+        kw = dict(raceline=str(line), half_width_m=hw, driver=driver)
+        fit_new = simulate(name, duration_s=FIT_S, seed=FIT_SEEDS[1], **kw).drive
+        say(f"{name}: fitting the new behaviour offline")
+        cfg_new = fitted_config(fit_new, wp, say)
+        say(f"{name}: the races")
+        b = [part_b(name, wp, cfg_old, cfg_new, kw, seeds) for seeds in CHANGE_SEEDS]
+    a = [part_a(name, wp, cfg_old, seed) for seed in RACE_SEEDS]
     return dict(
-        a=a,
-        b=b,
-        laps=laps,
-        new_laps=new_laps,
-        length_m=path.length_m,
-        adapt_laps=adapt.laps,
-        samples=adapt.samples,
-    )
+        a=a, b=b, laps=(1, 2, 3, 5), new_laps=tuple(range(1, NEW_LAPS + 1)),
+        length_m=RunnerPath(wp).length_m,
+    )  # fmt: skip
 
 
 def main() -> None:
@@ -203,16 +203,27 @@ def markdown(out: dict, wall_s: float) -> str:
         "",
     ]
     for name, r in out.items():
-        ref = r["a"]["offline fit (separate drive)"]
+        first = r["a"][0]
+        ref = first["offline fit (separate drive)"]
         lines += [
-            f"### {name} ({r['length_m']:.0f} m loop)",
+            f"### {name} ({r['length_m']:.0f} m loop), race seed {RACE_SEEDS[0]}",
             "",
             "| runner | " + " | ".join(f"lap {n}" for n in r["laps"]) + " |",
             "|---" * (len(r["laps"]) + 1) + "|",
         ]
-        for label, v in r["a"].items():
+        for label, v in first.items():
             lines.append(f"| {label} | {_cells(v, None if v is ref else ref)} |")
-        lines.append("")
+        ratios = [
+            a["adapting, from the waypoints alone"][1] / a["offline fit (separate drive)"][1]
+            for a in r["a"]
+        ]
+        lines += [
+            "",
+            "Lap 2, adapting from the waypoints alone / offline fit, on races with seeds "
+            + ", ".join(f"{sd}: {x:.2f}x" for sd, x in zip(RACE_SEEDS, ratios))
+            + ".",
+            "",
+        ]
     lines += [
         "## (b) The opponent changes its line, cornering and pace",
         "",
@@ -223,24 +234,26 @@ def markdown(out: dict, wall_s: float) -> str:
         "",
     ]
     for name, r in out.items():
-        ref = r["b"]["offline fit on the new behaviour"]
-        static = r["b"]["static (fitted on the old behaviour)"]
-        adapt = r["b"]["adapting (from the same config)"]
+        first = r["b"][0]
+        ref = first["offline fit on the new behaviour"]
         lines += [
-            f"### {name}",
+            f"### {name}, race seeds {CHANGE_SEEDS[0][0]} / {CHANGE_SEEDS[0][1]}",
             "",
             "| runner | " + " | ".join(f"lap {n}" for n in r["new_laps"]) + " |",
             "|---" * (len(r["new_laps"]) + 1) + "|",
         ]
-        for label, v in r["b"].items():
+        for label, v in first.items():
             lines.append(f"| {label} | {_cells(v, None if v is ref else ref)} |")
-        gain = 1.0 - adapt[1] / static[1]
-        lines += [
-            "",
-            f"Lap 2 after the change: adapting {adapt[1]:.3f} m = {adapt[1] / ref[1]:.2f}x the "
-            f"new-behaviour fit, {gain:.0%} better than static.",
-            "",
-        ]
+        lines += ["", "Lap 2 after the change, adapting, on races with seeds:", ""]
+        for seeds, b in zip(CHANGE_SEEDS, r["b"]):
+            adapt = b["adapting (from the same config)"][1]
+            new_fit = b["offline fit on the new behaviour"][1]
+            static = b["static (fitted on the old behaviour)"][1]
+            lines.append(
+                f"- {seeds[0]} / {seeds[1]}: {adapt:.3f} m = {adapt / new_fit:.2f}x the "
+                f"new-behaviour fit, {1.0 - adapt / static:.0%} better than static"
+            )
+        lines.append("")
     return "\n".join(lines)
 
 
