@@ -13,8 +13,9 @@ prediction itself uses) is spread onto the profile's two nearest points with lin
   and the one before).
 - Where the car has not been seen the prior holds: the starting config's profile, or with none
   the line model's uncovered fallback (the car's own offset kept, its speed held).
-- Bounded work: an update touches only the points within the smoothing kernel's reach of the new
-  sample (2 x (2 x 4 sigma + 1) points), so an update costs the same on any track and any lap.
+- Bounded work: an update touches only the points within the smoothing kernel's reach of the
+  new offset and speed samples (at most 4 x (2 x 4 sigma + 1) = 68 points with the 0.5 m
+  spacing and 1 m kernel), so an update costs the same on any track and any lap.
 - Delay, time constants and filter noise stay as the starting config has them (or
   `DEFAULT_PARAMS` without one): they are properties of the ego car's sensor and of the
   opponent's driving that a lap of detections does not identify.
