@@ -80,6 +80,27 @@ def _add_settings_flags(p: argparse.ArgumentParser, when: str) -> None:
     g.add_argument("--horizon", type=int, metavar="N", help="number of steps (10)")
 
 
+def _add_adapt_flags(p: argparse.ArgumentParser, save: bool) -> None:
+    p.add_argument(
+        "--adapt",
+        action="store_true",
+        help="learn the car's line and speed profile while predicting, lap by lap (from "
+        "--config, or without one from the waypoints alone)",
+    )
+    p.add_argument(
+        "--delay",
+        type=float,
+        metavar="S",
+        help="with --adapt and no --config: your sensor's detection delay [s] (default 0)",
+    )
+    if save:
+        p.add_argument(
+            "--save-state",
+            metavar="OUT.json",
+            help="with --adapt: write what it learned as a config",
+        )
+
+
 def _settings_from_args(args) -> dict:
     """{flag: (Settings field, value)} of the settings flags given (None where omitted)."""
     return {f: (k, getattr(args, f[2:].replace("-", "_"))) for f, k in SETTINGS_FLAGS.items()}
@@ -205,6 +226,7 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_predictor_flags(p, required=False)
     p.add_argument("--out", required=True, help="PRED.csv or PRED.mcap")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    _add_adapt_flags(p, save=True)
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
@@ -326,7 +348,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite existing files")
 
     p = command("run", "stream predictions: observations on stdin, JSON lines out")
-    p.add_argument("--config", required=True, help="a tuned config JSON")
+    p.add_argument("--config", help="a tuned config JSON (required without --adapt)")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     p.add_argument(
         "--rate",
@@ -334,6 +356,7 @@ def _build_parser() -> argparse.ArgumentParser:
         metavar="HZ",
         help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
     )
+    _add_adapt_flags(p, save=False)
 
     p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
@@ -378,7 +401,14 @@ def cmd_run(args) -> int:
         raise InputError("stdin", "is closed", "observation lines on stdin")
     if sys.stdout is None:  # started with stdout closed: fail before the work, as a write would
         raise OSError(errno.EBADF, os.strerror(errno.EBADF))
-    runner = Runner.from_config(args.config, args.waypoints)
+    if args.adapt:
+        from fpe_jax.adapt import AdaptiveRunner
+
+        runner = AdaptiveRunner.from_files(args.config, args.waypoints, delay_s=args.delay)
+    elif args.config is None:
+        raise InputError("--config", "missing", "a tuned config JSON (or --adapt)")
+    else:
+        runner = Runner.from_config(args.config, args.waypoints)
     return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr, rate_hz)
 
 
@@ -607,6 +637,8 @@ def cmd_predict(args) -> int:
     io.check_output_path(args.out, args.force)
     if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
         raise InputError(args.out, "unknown output format", ".csv or .mcap")
+    if args.adapt or args.save_state or args.delay is not None:
+        return _predict_adaptive(args)
     with _progress(args) as say:
         _start_jax(args, say)
         from fpe_jax.drive import local_frame
@@ -648,6 +680,39 @@ def cmd_predict(args) -> int:
     print(
         f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr
     )
+    return 0
+
+
+def _predict_adaptive(args) -> int:
+    """`fpe predict --adapt`: the learning runner over the drive in stream order (no JAX)."""
+    from fpe_jax import io
+    from fpe_jax.adapt import predict_drive_adaptive
+    from fpe_jax.config import check_waypoints, read_config, write_config
+    from fpe_jax.path import build_path
+
+    if not args.adapt:
+        flag = "--save-state" if args.save_state else "--delay"
+        raise InputError(flag, "given without --adapt", f"--adapt {flag} ...")
+    if args.preset:
+        raise InputError("--preset", "given with --adapt", "--config, or neither")
+    if args.save_state:
+        io.check_output_path(args.save_state, args.force)
+    wp = io.load_waypoints(args.waypoints).xy_m
+    cfg = None
+    if args.config:
+        cfg = read_config(args.config)
+        check_waypoints(cfg, args.config, wp, args.waypoints)
+    settings = {k: v for k, v in _settings_from_args(args).values() if v is not None}
+    drive = _load_drive_from_args(args)
+    _check_on_track(args, drive, build_path(wp), args.waypoints, args.log)
+    kw = dict(settings=settings or None, delay_s=args.delay)
+    runner, poses = predict_drive_adaptive(drive, wp, cfg, **kw)
+    io.write_predictions(args.out, drive.t_s, poses, runner.dt_s, drive=drive, force=args.force)
+    print(f"wrote {len(poses)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr)
+    if args.save_state:
+        prov = {"drives": [str(args.log)], "started_from": str(args.config or "waypoints")}
+        write_config(args.save_state, runner.state_config(prov), force=args.force)
+        print(f"wrote {args.save_state} ({runner.laps} laps learned)", file=sys.stderr)
     return 0
 
 

@@ -256,19 +256,36 @@ def nearest_vertex(points_m, vertices_m, radius_m: float) -> tuple[np.ndarray, n
     return best_i, np.sqrt(best_d2)
 
 
-# A drive on its own track: its observations lie within ON_TRACK_M of the waypoints' line
-# (race tracks are 1-2 m wide each side, and a raceline, detection noise and the odd outlier add
-# to that), and where it moves it goes the way the waypoints run.
+# A drive on its own track: its observations lie near the waypoints' line, and where it moves it
+# goes the way the waypoints run. "Near" scales with the track: 1:10 tracks are 1-2 m wide each
+# side (a raceline, detection noise and the odd outlier add to that: ON_TRACK_M), full-size ones
+# 6-8 m, where a racing line runs 3-6 m from the centre line. A track's width grows with its size
+# (about 1 % of its extent on full-size circuits and speedways), so the bound is the larger of
+# ON_TRACK_M and ON_TRACK_EXTENT times the path's extent (its bounding box's diagonal): 3 m on
+# every 1:10 track, 10-20 m on a circuit or speedway 1-2 km across, still far below the offset of
+# another map frame or another track.
 ON_TRACK_M = 3.0
+ON_TRACK_EXTENT = 0.01
 MIN_ON_TRACK_SHARE = 0.8  # of the observations, within ON_TRACK_M
 MIN_ALONG_SHARE = 0.5  # of the moves, starting near the waypoints and going their way
 _MOVE_M = 2.0  # direction of motion judged over about this distance driven
 _MAX_CHECKED = 200_000  # observations sampled for the share (its error is then < 0.3 %)
 
 
-def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON_TRACK_M) -> dict:
+def on_track_m(path_xy_m) -> float:
+    """The distance [m] within which an observation counts as on the path (M, 2) [m]: the larger
+    of ON_TRACK_M and ON_TRACK_EXTENT times the path's extent (its bounding box's diagonal)."""
+    xy = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    extent = float(np.hypot(*np.ptp(xy, axis=0))) if len(xy) else 0.0
+    return max(ON_TRACK_M, ON_TRACK_EXTENT * extent)
+
+
+def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float | None = None) -> dict:
     """How well a drive's observations (N, 2) [m] sit on a resampled path (M, 2) [m] with its
     headings (M,) [rad] (`build_path`'s, or a Track's, in the same frame).
+
+    near_m: the distance [m] that counts as near (default `on_track_m` of the path).
 
     Returns dict: share_near (share of observations within `near_m` of the path), share_along
     (of the drive's moves of about 2 m, the share that start near the path and go its way; NaN
@@ -280,6 +297,7 @@ def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON
     obs = obs[np.all(np.isfinite(obs), axis=1)]
     xy = np.asarray(path_xy_m, dtype=np.float64)
     heading = np.asarray(path_heading_rad, dtype=np.float64)
+    near_m = on_track_m(xy) if near_m is None else float(near_m)
     # every few points of the path: a nearest-vertex distance within 0.15 m of the true one
     spacing = float(np.median(np.hypot(*np.diff(xy, axis=0).T))) if len(xy) > 1 else 1.0
     k = max(1, int(0.3 / max(spacing, 1e-9)))
@@ -307,6 +325,7 @@ def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON
         share_backward=float(np.sum(forward < 0) / n),
         n_moves=len(step),
         drive_to_path_m=gap,
+        near_m=near_m,
     )
 
 
@@ -323,7 +342,7 @@ def check_on_track(
         raise InputError(
             source,
             f"only {a['share_near']:.0%} of the observations of {drive} lie within "
-            f"{ON_TRACK_M:g} m of these waypoints (the drive's centre is "
+            f"{a['near_m']:.3g} m of these waypoints (the drive's centre is "
             f"{a['drive_to_path_m']:.0f} m from theirs): likely the wrong waypoints file or a "
             f"different map frame; {hint}",
             f"at least {MIN_ON_TRACK_SHARE:.0%}",

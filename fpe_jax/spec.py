@@ -92,6 +92,9 @@ FIT_MODELS = ("auto", "line", "blend")
 # Settings a user may change on a predictor (flags --wheelbase, --max-steer, --dt, --horizon and
 # a recipe's [settings] table): the car and the prediction grid, never the model's form.
 USER_SETTINGS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")
+# the longest prediction a config, a flag or a recipe may ask for [steps]: planners read 3-5 s
+# ahead (50 steps of 0.1 s); beyond this a rollout no longer predicts a car's near future
+MAX_HORIZON = 1000
 
 
 def is_number(v) -> bool:
@@ -168,7 +171,7 @@ LINE_RULES = (
 )
 SETTING_RULES = (
     Rule("dt_s", lo=0.0, hi=10.0, lo_open=True, unit="s"),
-    Rule("horizon", "int", lo=1, hi=10_000),
+    Rule("horizon", "int", lo=1, hi=MAX_HORIZON),
     Rule("wheelbase_m", lo=0.0, hi=100.0, lo_open=True, unit="m"),
     # >= pi/2 makes tan(steer) flip sign
     Rule("max_steer_rad", lo=0.0, hi=0.5 * math.pi, lo_open=True, hi_open=True, unit="rad"),
