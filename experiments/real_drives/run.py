@@ -192,7 +192,7 @@ def run_case(case) -> dict:
     track = case.track()
     try:
         check_on_track(
-            case.fit_drive.xy_m,
+            np.concatenate([case.fit_drive.xy_m, case.test_drive.xy_m]),
             np.asarray(track.xy_m),
             np.asarray(track.heading_rad),
             source="waypoints",
@@ -218,7 +218,9 @@ def run_case(case) -> dict:
             for n, p in held.pred_xy_m.items()
         }
     rep = res.report["fitted"]
+    speed = [float(np.median(d.truth_v_mps)) for d in (case.fit_drive, case.test_drive)]
     return dict(
+        speed_mps=speed,
         fde=fde,
         cov1=rep.get("coverage_1sigma", float("nan")),
         cov2=rep.get("coverage_2sigma", float("nan")),
@@ -243,7 +245,17 @@ def markdown(rows, skipped, wall_s: float, peak_mib: float, png: str | None) -> 
         f"delay; seed 0). Fit on the first {1 - HOLDOUT:.0%} of each drive's duration, scored "
         f"on the last {HOLDOUT:.0%} against the recorded poses. One fit per drive with a "
         f"{HORIZON}-step (3 s) horizon; '1 s' is step 10 of the same predictions. FDE = median "
-        "over predictions of the final-step error. Ratio = fitted / best baseline on that drive.",
+        "over predictions of the final-step error. Ratio = fitted / best baseline on that drive. "
+        "On track = `fpe_jax.path.check_on_track` passes on every detection of the drive without "
+        "`--allow-off-track`.",
+        "",
+        "What the sources are and are not: skid-pad runs (constant commanded speed and steering "
+        "on a circle, several laps, about 15 s each) of a 1:10 car under motion capture, not "
+        "race laps; their files hold no stamps, so the poses are taken at the 60 Hz their "
+        "folder names (a different true rate would scale every speed alike). The waypoints are "
+        "the circle fitted to the fit part's recorded positions. The repository states no "
+        "licence: the data are read from its mirror at run time and nothing of them is copied "
+        "here.",
         "",
         "## Sources",
         "",
@@ -263,9 +275,9 @@ def markdown(rows, skipped, wall_s: float, peak_mib: float, png: str | None) -> 
         lines += ["", f"## Median FDE at {label} [m]", ""]
         lines.append(
             "| drive | " + " | ".join(names) + " | best baseline | ratio | on track "
-            "(no flag) | fit s |"
+            "(no flag) | median speed fit / test m/s | fit s |"
         )
-        lines.append("|---" * (len(names) + 5) + "|")
+        lines.append("|---" * (len(names) + 6) + "|")
         ratios = []
         for src, r in rows:
             f = r["fde"][label]
@@ -275,7 +287,8 @@ def markdown(rows, skipped, wall_s: float, peak_mib: float, png: str | None) -> 
             cells = " | ".join(f"{f[n]:.3f}" for n in names)
             lines.append(
                 f"| {src.name} | {cells} | {best} | {ratio:.2f} | "
-                f"{r['on_track'][:3]} | {r['fit_s']:.0f} |"
+                f"{r['on_track'][:3]} | {r['speed_mps'][0]:.2f} / {r['speed_mps'][1]:.2f} | "
+                f"{r['fit_s']:.0f} |"
             )
         worse = sum(x >= 1 for x in ratios)
         lines += [
