@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fpe_jax.spec import ESTIMATORS
+
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "experiments" / "results"
 HOLDOUT = 0.4
@@ -180,9 +182,10 @@ def make_case(src: Source, poses: dict, seed: int):
     )
 
 
-def run_case(case) -> dict:
-    """Fit (3 s horizon) on the case's fit drive; median final errors at 1 s and 3 s of the
-    fitted predictor and every baseline on its test drive, coverage and the on-track check."""
+def run_case(case, estimator: str | None = None) -> dict:
+    """Fit (3 s horizon; the line model's state `estimator`, None: the fit's default) on the
+    case's fit drive; median final errors at 1 s and 3 s of the fitted predictor and every
+    baseline on its test drive, coverage and the on-track check."""
     from fpe_jax.errors import InputError
     from fpe_jax.evaluate import heldout_predictions
     from fpe_jax.fit import BASELINES, baseline, fit
@@ -203,8 +206,14 @@ def run_case(case) -> dict:
         on_track = f"no: {e}"
     init = with_settings(presets["default"], horizon=HORIZON)
     t0 = time.perf_counter()
+    kw = {} if estimator is None else {"estimator": estimator}
     res = fit(
-        [case.fit_drive], [track], init=init, test_drives=[case.test_drive], test_tracks=[track]
+        [case.fit_drive],
+        [track],
+        init=init,
+        test_drives=[case.test_drive],
+        test_tracks=[track],
+        **kw,
     )
     fit_s = time.perf_counter() - t0
     settings = res.params.settings
@@ -325,6 +334,12 @@ def main(argv=None) -> int:
         help="folder of OWNER+NAME/repo git mirrors (default $FPE_MIRROR or /work/.mirror)",
     )
     ap.add_argument("--seed", type=int, default=0, help="the detector's seed (0)")
+    ap.add_argument(
+        "--estimator",
+        choices=ESTIMATORS,
+        help="the line model's state estimator (default: the fit's); the results then go to "
+        "real_drives_ESTIMATOR.md / .png",
+    )
     args = ap.parse_args(argv)
     import jax
 
@@ -340,21 +355,25 @@ def main(argv=None) -> int:
             continue
         case = make_case(src, poses, args.seed)
         print(f"{src.name}: fitting ({len(case.fit_drive.t_s)} detections)", flush=True)
-        rows.append((src, run_case(case)))
+        rows.append((src, run_case(case, args.estimator)))
         print(f"  {rows[-1][1]['fde']}", flush=True)
     if not rows:
         print("no source present: nothing written")
         return 0
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     RESULTS.mkdir(parents=True, exist_ok=True)
-    png = _plot(rows)
-    md = RESULTS / "real_drives.md"
-    md.write_text(markdown(rows, skipped, time.perf_counter() - t0, peak_mib, png))
+    stem = "real_drives" + (f"_{args.estimator}" if args.estimator else "")
+    png = _plot(rows, RESULTS / f"{stem}.png")
+    md = RESULTS / f"{stem}.md"
+    text = markdown(rows, skipped, time.perf_counter() - t0, peak_mib, png)
+    if args.estimator:
+        text = text.replace("\n\n", f"\n\nFit with `estimator={args.estimator!r}`.\n\n", 1)
+    md.write_text(text)
     print(f"wrote {md}")
     return 0
 
 
-def _plot(rows) -> str:
+def _plot(rows, out: Path) -> str:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -377,7 +396,6 @@ def _plot(rows) -> str:
         ax.set_title(f"held-out last {HOLDOUT:.0%}, {label} ahead")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    out = RESULTS / "real_drives.png"
     fig.savefig(out, dpi=110)
     plt.close(fig)
     return out.name
