@@ -367,7 +367,7 @@ def main(argv=None) -> int:
     md = RESULTS / f"{stem}.md"
     text = markdown(rows, skipped, time.perf_counter() - t0, peak_mib, png)
     if args.estimator:
-        text = text.replace("\n\n", f"\n\nFit with `estimator={args.estimator!r}`.\n\n", 1)
+        text = text.replace("\n\n", f"\n\nFit with `--estimator {args.estimator}`.\n\n", 1)
     md.write_text(text)
     print(f"wrote {md}")
     return 0
