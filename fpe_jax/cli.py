@@ -387,7 +387,7 @@ def _fit_inputs(args, say=lambda msg: None):
             settings=r.settings,
             waypoints=r.waypoints,
         )
-        return r.drives, r.test_drives, args.out or r.out, opts | flags
+        return r.drives, r.test_drives, args.out or r.out, opts | flags | {"inputs": r.inputs}
     if not args.waypoints:
         raise InputError("--waypoints", "missing", "a waypoint file for the drives")
     wp = io.load_waypoints(args.waypoints).xy_m
@@ -403,6 +403,7 @@ def _fit_inputs(args, say=lambda msg: None):
     drives, tests = read(args.logs, "drive"), read(args.test or [], "test drive")
     opts = dict(holdout=0.3, fit=None, blend="auto", model=None, solver=None, settings={})
     opts["estimator"] = None
+    opts["inputs"] = [*args.logs, *(args.test or []), args.waypoints]
     return drives, tests, args.out, opts | {"waypoints": args.waypoints} | flags
 
 
@@ -443,14 +444,14 @@ def cmd_fit(args) -> int:
     if args.out is None and not args.logs[0].endswith(".toml"):
         raise InputError("--out", "missing", "CONFIG.json to write")
     if args.out:
-        io.check_output_path(args.out, args.force)
+        io.check_output_path(args.out, args.force, (*args.logs, *(args.test or ()), args.waypoints))
     with _progress(args) as say:
         say("reading drives")
         drives, tests, out, opts = _fit_inputs(args, say)
         drives, tests = _local_drives(drives), _local_drives(tests)
         if out is None:
             raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
-        io.check_output_path(out, args.force)
+        io.check_output_path(out, args.force, opts["inputs"])
         _start_jax(args, say)
         from fpe_jax.config import apply_settings
         from fpe_jax.fit import fit
@@ -588,7 +589,7 @@ def cmd_predict(args) -> int:
     from fpe_jax import io
     from fpe_jax.config import read_config
 
-    io.check_output_path(args.out, args.force)
+    io.check_output_path(args.out, args.force, inputs=(args.log, args.waypoints, args.config))
     if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
         raise InputError(args.out, "unknown output format", ".csv or .mcap")
     with _progress(args) as say:
@@ -729,7 +730,7 @@ def _print_tf(info: dict) -> None:
 def cmd_convert(args) -> int:
     from fpe_jax import io
 
-    io.check_output_path(args.out, args.force)
+    io.check_output_path(args.out, args.force, inputs=(args.log,))
     if Path(args.out).suffix.lower() != ".csv":
         raise InputError(args.out, "unknown output format", ".csv")
     drive = _load_drive_from_args(args)
@@ -751,6 +752,7 @@ def cmd_simulate(args) -> int:
         raise InputError(out, "exists and is not empty; pass --force to write into it")
     if not out.exists():
         io.check_output_path(out, False)  # its parent exists and is writable
+    sim.check_simulation_out(out, (args.track, args.raceline))
     res = sim.simulate(
         args.track,
         duration_s=args.duration,
@@ -778,7 +780,7 @@ def cmd_batch(args) -> int:
 
     from fpe_jax import io
 
-    out = io.check_output_path(args.out, args.force)
+    out = io.check_output_path(args.out, args.force, (args.states, args.waypoints, args.config))
     if out.suffix.lower() not in (".npy", ".csv"):
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
     spec.check_chunk(args.chunk)

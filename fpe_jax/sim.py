@@ -648,6 +648,20 @@ POSE_TOPIC, ODOM_TOPIC, TF_TOPIC = "/opp/pose", "/opp/odom", "/tf"
 MAP_FRAME, CAR_FRAME = "map", "other_base_link"
 
 
+SIMULATION_FILES = ("drive.mcap", "waypoints.csv", "scenario.json")  # what write_simulation writes
+
+
+def check_simulation_out(out_dir, inputs) -> None:
+    """InputError if a file `write_simulation` would write into `out_dir` is one of the `inputs`
+    (the track and raceline files; built-in track names and None are skipped), however spelled
+    (`fpe_jax.io.writers.check_not_input`): `--force` never replaces what the simulation read."""
+    from fpe_jax.io.writers import check_not_input
+
+    files = [p for p in inputs if p is not None and not (isinstance(p, str) and is_builtin(p))]
+    for name in SIMULATION_FILES:
+        check_not_input(Path(out_dir) / name, files)
+
+
 def write_simulation(
     res: SimResult, out_dir: str | Path, *, force: bool = False, layout: str | None = None
 ) -> list[Path]:
@@ -682,6 +696,7 @@ def write_simulation(
         raise InputError(out, "is a file", "a folder to write the simulated drive into")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise InputError(out, "exists and is not empty; pass --force to write into it")
+    check_simulation_out(out, (res.scenario.get("track_file"), res.scenario.get("raceline")))
     out.mkdir(parents=True, exist_ok=True)
     d = res.drive
     truth = dict(t_s=d.truth_t_s, xy_m=d.truth_xy_m, yaw_rad=d.truth_yaw_rad)

@@ -27,13 +27,38 @@ OBSERVATION_TOPIC = "/opp/pose"
 _ZERO_COV = [0.0] * 36  # mcap_ros2 wants a list (not an array) for float64[36]
 
 
-def check_output_path(path, force: bool) -> Path:
+def check_not_input(path, inputs) -> None:
+    """Raise InputError if the output `path` is the same file as any of `inputs` (paths, None
+    skipped), however spelled: relative, through a symlink, or a hard link (same device and
+    inode), so an output never replaces what the command reads, `--force` or not."""
+    try:
+        out = os.stat(path)
+    except OSError:  # nothing there (or nothing reachable): it cannot be an input
+        return
+    for given in inputs:
+        if given is None:
+            continue
+        try:
+            st = os.stat(given)
+        except (OSError, TypeError, ValueError):
+            continue
+        if (st.st_dev, st.st_ino) == (out.st_dev, out.st_ino):
+            raise InputError(
+                path,
+                f"is the same file as the input {str(given)!r}; refusing to overwrite it",
+                "an output path that is not one of the command's inputs",
+            )
+
+
+def check_output_path(path, force: bool, inputs=()) -> Path:
     """Fail early (before any work) if `path` cannot be written as asked.
 
     Raises InputError if its folder does not exist or cannot be written (read-only folder or file
-    system), if it is a folder, or if it exists and `force` is false. Returns it as a `Path`.
+    system), if it is a folder, if it is the same file as one of `inputs` (`check_not_input`,
+    whatever `force` says), or if it exists and `force` is false. Returns it as a `Path`.
     """
     p = Path(path)
+    check_not_input(p, inputs)
     try:
         os.stat(p.parent)  # is_dir() says False for a name too long, stat says why
         os.lstat(p) if p.name else None
