@@ -55,6 +55,7 @@ from jaxtyping import Array, Bool, Float, Int
 from fpe_jax import spec
 from fpe_jax.errors import InputError
 from fpe_jax.params import Params
+from fpe_jax.path import ON_TRACK_M, off_track
 from fpe_jax.predict import pad_rows, predict_batch
 from fpe_jax.state import State
 from fpe_jax.track import Track
@@ -660,3 +661,32 @@ def _store(out: np.ndarray, start: int, stop: int, result, n_sets) -> None:
         out[start:stop] = res[: stop - start]
     else:
         out[:, start:stop] = res[:, : stop - start]
+
+
+def off_track_cars(params: Params, cars_xy_m, track: Track) -> np.ndarray:
+    """(N,) bool: the cars (N, 2) [m] (in the track's frame) that lie farther than
+    `fpe_jax.path.ON_TRACK_M` from the track's line and, for the line model, from the learned
+    line: the rule of the on-track checks (`fpe_jax.path.off_track`). Their predictions follow
+    the nearest part of the track, which for a car in another map frame means nothing."""
+    path = dict(
+        xy_m=np.asarray(track.xy_m, dtype=np.float64),
+        heading_rad=np.asarray(track.heading_rad, dtype=np.float64),
+        ds_m=float(track.ds_m),
+        length_m=float(track.length_m),
+        closed=track.closed,
+    )
+    line = np.asarray(params.line_offset_m) if params.settings.model == "line" else None
+    return off_track(np.asarray(cars_xy_m, dtype=np.float64), path, line)
+
+
+def off_track_summary(off: np.ndarray, source: str, shown: int = 10) -> str | None:
+    """One line on the cars `off_track_cars` flagged (N,), None when there are none."""
+    rows = np.flatnonzero(off)
+    if not len(rows):
+        return None
+    listed = ", ".join(str(r) for r in rows[:shown]) + (", ..." if len(rows) > shown else "")
+    return (
+        f"warning: {len(rows)} of {len(off)} cars of {source} lie off the track, more than "
+        f"{ON_TRACK_M:g} m from its waypoints (rows {listed}): likely another map frame; "
+        "their predictions follow the nearest part of the track"
+    )

@@ -787,7 +787,7 @@ def cmd_batch(args) -> int:
     with _progress(args) as say:
         # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
         _start_jax(args, say, x64=False, executables=False)
-        from fpe_jax.batch import predict_chunked
+        from fpe_jax.batch import off_track_cars, off_track_summary, predict_chunked
         from fpe_jax.drive import map_origin
         from fpe_jax.track import Track
 
@@ -810,8 +810,11 @@ def cmd_batch(args) -> int:
         poses = np.array(poses, dtype=np.float64)  # a writable copy
         poses[..., :2] += origin
         poses = poses.astype(dtype)
+        off = off_track_cars(params, cars[:, :2], track)
+        if warning := off_track_summary(off, args.states):
+            print(f"fpe batch: {warning}", file=sys.stderr)
         say(f"writing {out}")
-        io.write_poses(out, poses, params.settings.dt_s, force=args.force)
+        io.write_poses(out, poses, params.settings.dt_s, force=args.force, off_track=off)
     print(
         f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
         f"({args.dtype}, {wall_s:.2f} s incl. compilation)",

@@ -266,6 +266,81 @@ _MOVE_M = 2.0  # direction of motion judged over about this distance driven
 _MAX_CHECKED = 200_000  # observations sampled for the share (its error is then < 0.3 %)
 
 
+ALLOW_HINT = "pass --allow-off-track to use them anyway"
+
+
+def _vertex_stride(xy_m: np.ndarray) -> int:
+    """Every how many points of a resampled path (M, 2) [m] a vertex is kept so that the
+    nearest-vertex distance is within 0.15 m of the distance to the path's line."""
+    spacing = float(np.median(np.hypot(*np.diff(xy_m, axis=0).T))) if len(xy_m) > 1 else 1.0
+    return max(1, int(0.3 / max(spacing, 1e-9)))
+
+
+def near_path(points_xy_m, path_xy_m, near_m: float = ON_TRACK_M) -> np.ndarray:
+    """(P,) bool: whether each point (P, 2) [m] lies within `near_m` [m] of a resampled path
+    (M, 2) [m] (judged to 0.15 m: a vertex every ~0.3 m). The rule of the on-track checks."""
+    xy = np.asarray(path_xy_m, dtype=np.float64)
+    idx, _ = nearest_vertex(
+        np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2), xy[:: _vertex_stride(xy)], near_m
+    )
+    return idx >= 0
+
+
+def profile_values(values, s_m, length_m: float, closed: bool) -> np.ndarray:
+    """A line profile (P,) at arc lengths s (N,) [m], linear between its P evenly spread points
+    (NumPy twin of `fpe_jax.rollout.profile_at`: on a loop point i sits at s = i L / P and the
+    profile wraps; on an open path at s = i L / (P - 1), held beyond the ends)."""
+    v = np.asarray(values, dtype=np.float64)
+    p, s = len(v), np.asarray(s_m, dtype=np.float64)
+    if closed:
+        u = s * (p / length_m)
+        u_floor = np.floor(u)
+        i = u_floor.astype(np.int64) % p
+        j, f = (i + 1) % p, u - u_floor
+    else:
+        u = np.clip(s / length_m, 0.0, 1.0) * (p - 1)
+        i = np.clip(np.floor(u).astype(np.int64), 0, p - 2)
+        j, f = i + 1, u - i
+    return v[i] + f * (v[j] - v[i])
+
+
+def off_track(
+    points_xy_m, path: dict, line_offset_m=None, near_m: float = ON_TRACK_M
+) -> np.ndarray:
+    """(P,) bool: points (P, 2) [m] farther than `near_m` [m] from the path (`build_path`'s dict,
+    or any with xy_m, heading_rad, ds_m, length_m, closed) and, given a learned line's offset
+    profile (P_line,) [m, left positive], from that line too (`near_path`'s rule)."""
+    off = ~near_path(points_xy_m, path["xy_m"], near_m)
+    if line_offset_m is not None and off.any():
+        xy, h = np.asarray(path["xy_m"]), np.asarray(path["heading_rad"])
+        d = profile_values(
+            line_offset_m,
+            np.arange(len(xy)) * float(path["ds_m"]),
+            float(path["length_m"]),
+            bool(path["closed"]),
+        )
+        line = xy + d[:, None] * np.stack([-np.sin(h), np.cos(h)], axis=1)
+        rows = np.flatnonzero(off)
+        off[rows] = ~near_path(np.asarray(points_xy_m).reshape(-1, 2)[rows], line, near_m)
+    return off
+
+
+def check_share_near(
+    share_near: float, drive_to_path_m: float, *, source: str, drive: str, hint: str = ALLOW_HINT
+) -> None:
+    """InputError (naming the waypoints `source` and the `drive`) when less than
+    MIN_ON_TRACK_SHARE of a drive's observations lie within ON_TRACK_M of the waypoints."""
+    if share_near < MIN_ON_TRACK_SHARE:
+        raise InputError(
+            source,
+            f"only {share_near:.0%} of the observations of {drive} lie within "
+            f"{ON_TRACK_M:g} m of these waypoints (the drive's centre is "
+            f"{drive_to_path_m:.0f} m from theirs): likely the wrong waypoints file or a "
+            f"different map frame; {hint}",
+            f"at least {MIN_ON_TRACK_SHARE:.0%}",
+        )
+
+
 def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON_TRACK_M) -> dict:
     """How well a drive's observations (N, 2) [m] sit on a resampled path (M, 2) [m] with its
     headings (M,) [rad] (`build_path`'s, or a Track's, in the same frame).
@@ -280,13 +355,12 @@ def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON
     obs = obs[np.all(np.isfinite(obs), axis=1)]
     xy = np.asarray(path_xy_m, dtype=np.float64)
     heading = np.asarray(path_heading_rad, dtype=np.float64)
-    # every few points of the path: a nearest-vertex distance within 0.15 m of the true one
-    spacing = float(np.median(np.hypot(*np.diff(xy, axis=0).T))) if len(xy) > 1 else 1.0
-    k = max(1, int(0.3 / max(spacing, 1e-9)))
-    xy, heading = xy[::k], heading[::k]
     stride = max(1, len(obs) // _MAX_CHECKED)
-    idx, _ = nearest_vertex(obs[::stride], xy, near_m)
-    share_near = float(np.mean(idx >= 0)) if len(idx) else 1.0
+    near = near_path(obs[::stride], xy, near_m)
+    share_near = float(np.mean(near)) if len(near) else 1.0
+    # every few points of the path: a nearest-vertex distance within 0.15 m of the true one
+    k = _vertex_stride(xy)
+    xy, heading = xy[::k], heading[::k]
     # moves: the drive cut where its travelled distance passes each whole metre (repeated
     # detections and jitter add nothing), each judged against the path at its start
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(obs, axis=0).T))])
@@ -318,16 +392,8 @@ def check_on_track(
     a = track_agreement(obs_xy_m, path_xy_m, path_heading_rad)
     if allow:
         return a
-    hint = "pass --allow-off-track to use them anyway"
-    if a["share_near"] < MIN_ON_TRACK_SHARE:
-        raise InputError(
-            source,
-            f"only {a['share_near']:.0%} of the observations of {drive} lie within "
-            f"{ON_TRACK_M:g} m of these waypoints (the drive's centre is "
-            f"{a['drive_to_path_m']:.0f} m from theirs): likely the wrong waypoints file or a "
-            f"different map frame; {hint}",
-            f"at least {MIN_ON_TRACK_SHARE:.0%}",
-        )
+    hint = ALLOW_HINT
+    check_share_near(a["share_near"], a["drive_to_path_m"], source=source, drive=drive)
     if a["share_along"] < MIN_ALONG_SHARE:  # NaN (a car that never moved) passes
         cause = (
             "likely waypoints in the reverse direction"

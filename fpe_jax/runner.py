@@ -36,7 +36,7 @@ import numpy as np
 from fpe_jax.config import LINE_KEYS, check_waypoints, read_config
 from fpe_jax.errors import InputError
 from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
-from fpe_jax.path import build_path
+from fpe_jax.path import MIN_ON_TRACK_SHARE, ON_TRACK_M, build_path, check_share_near
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported: the runner's modes
 from fpe_jax.spec import FILTER_DEFAULTS, FILTER_KEYS, check_config
 from fpe_jax.spec import MODELS as MODELS
@@ -55,6 +55,12 @@ INIT_POS_SIGMA_M = 0.3  # fpe_jax.kalman's
 INIT_SPEED_SIGMA_MPS = 2.0
 INIT_LAT_RATE_SIGMA_MPS = 0.5
 GATE_SHARPNESS = 4.0
+# The off-track check (`Runner.check_track`): the first this many observations must pass the
+# offline rule (`fpe_jax.path.check_share_near`), and a stream reports an off-track car on
+# stderr at most once per OFF_TRACK_REPORT_S of stamps.
+OFF_TRACK_START_OBS = 10
+OFF_TRACK_REPORT_S = 5.0
+OFF_TRACK_HINT = "check the waypoints file and that the observations are in its map frame"
 
 _PI = math.pi
 _TWO_PI = 2 * math.pi
@@ -129,6 +135,8 @@ class RunnerPath:
         self._table = rows  # the same (M, 8), for `arrays()`
         self._arrays: _ArrayPath | None = None
         self._heading = p["heading_rad"].tolist()
+        self.xy_m: np.ndarray = xy  # (M, 2) the resampled points [m] and their headings [rad]
+        self.heading_rad: np.ndarray = p["heading_rad"]
         self._all_segments = np.arange(m if self.closed else m - 1)
         n_back = int(np.ceil(WINDOW_BEHIND_M / self.ds_m))
         n_ahead = int(np.ceil(WINDOW_AHEAD_M / self.ds_m))
@@ -272,6 +280,8 @@ class Runner:
         self.path = RunnerPath(waypoints_xy_m, source="waypoints")
         self._set_params(p)
         self._history = deque(maxlen=int(st["history"]))  # distinct (t, x, y, yaw), oldest first
+        self.waypoints_source = "waypoints"  # names the waypoints in the off-track error
+        self._reset_track_check()
         self.reset()
 
     def _set_params(self, p: dict) -> None:
@@ -300,6 +310,7 @@ class Runner:
         new = copy.copy(self)
         new._set_params(params)
         new._history = deque(maxlen=self._history.maxlen)
+        new._reset_track_check()
         new.reset()
         return new
 
@@ -309,7 +320,9 @@ class Runner:
         cfg = read_config(config_path)
         xy = load_waypoints_xy(waypoints_path)
         check_waypoints(cfg, config_path, xy, waypoints_path)
-        return cls(cfg, xy, source=str(config_path))
+        runner = cls(cfg, xy, source=str(config_path))
+        runner.waypoints_source = str(waypoints_path)
+        return runner
 
     def reset(self) -> None:
         """Forget the history and the track position (a new drive starts)."""
@@ -318,6 +331,71 @@ class Runner:
         self._last_xy: tuple[float, float] | None = None
         self._s_m: float | None = None
         self._motion: tuple[float, ...] | None = None
+
+    def _reset_track_check(self) -> None:
+        self._check_s_m: float | None = None  # the off-track check's own track position
+        self._start: list[tuple[bool, float, float]] = []  # the first observations: on, x, y
+
+    def track_distance(self, x_m: float, y_m: float) -> float:
+        """Distance [m] of a position from the track's line, or from the learned line where
+        that is nearer (line model). Its own windowed projection (the whole track again when
+        far), so it costs one window search per call and leaves the predictions untouched."""
+        path, x, y = self.path, float(x_m), float(y_m)
+        s = (
+            path.project(x, y)
+            if self._check_s_m is None
+            else path.project_window(x, y, self._check_s_m)
+        )
+        dist = self._off_line_m(x, y, s)
+        if dist > ON_TRACK_M and self._check_s_m is not None:  # lost the car: search everywhere
+            s = path.project(x, y)
+            dist = self._off_line_m(x, y, s)
+        self._check_s_m = s
+        return dist
+
+    def _off_line_m(self, x: float, y: float, s_m: float) -> float:
+        path = self.path
+        cx, cy = path.point_at(s_m)
+        dist = math.hypot(x - cx, y - cy)
+        if self._line is not None:
+            h = path.heading_at(s_m)
+            d = (y - cy) * math.cos(h) - (x - cx) * math.sin(h)
+            dist = min(dist, abs(d - self._profile_at(self._line[0], s_m)))
+        return dist
+
+    def check_track(self, x_m: float, y_m: float) -> str | None:
+        """The off-track check of one observation (call it for each, alongside `update`).
+
+        Returns None when the position lies within `fpe_jax.path.ON_TRACK_M` of the track's
+        line (or of the learned line), else a one-line warning with the distance.
+
+        Raises:
+            InputError naming the waypoints when, of the first OFF_TRACK_START_OBS observations,
+            fewer than MIN_ON_TRACK_SHARE lie on the track: the offline check's rule
+            (`fpe_jax.path.check_share_near`), which catches a waypoint file in another map frame.
+        """
+        dist = self.track_distance(x_m, y_m)
+        on = dist <= ON_TRACK_M
+        start = self._start
+        if len(start) < OFF_TRACK_START_OBS:
+            start.append((on, float(x_m), float(y_m)))
+            n_on = sum(o[0] for o in start)
+            # as soon as the first OFF_TRACK_START_OBS can no longer meet the rule
+            if (len(start) - n_on) > (1.0 - MIN_ON_TRACK_SHARE) * OFF_TRACK_START_OBS:
+                centre = np.mean([o[1:] for o in start], axis=0) - self.path.xy_m.mean(axis=0)
+                check_share_near(
+                    n_on / len(start),
+                    float(np.hypot(*centre)),
+                    source=self.waypoints_source,
+                    drive=f"the stream's first {len(start)}",
+                    hint=OFF_TRACK_HINT,
+                )
+        if on:
+            return None
+        return (
+            f"observation {dist:.1f} m from the track (more than {ON_TRACK_M:g} m): its "
+            "predictions follow the nearest part of the track"
+        )
 
     def update(self, stamp_s: float, x_m: float, y_m: float, yaw_rad: float | None = None):
         """Add one observation and predict from it.
@@ -761,8 +839,11 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
     at once (a car's process pipes into it).
 
     A bad line is reported on `err` with its line number and skipped; where the stamps restart
-    the runner starts a new history. Returns 0 at the end of the input. Raises InputError for a
-    stream laid out wrongly as a whole, and at the end if lines came but none was usable.
+    the runner starts a new history. An observation far from the track (`Runner.check_track`)
+    gets a "warning" field in its reply, and a line on `err` at most once per OFF_TRACK_REPORT_S
+    of stamps while the car stays off (and one when it is back). Returns 0 at the end of the
+    input. Raises InputError for a stream laid out wrongly as a whole, when its first
+    observations are off the track, and at the end if lines came but none was usable.
     """
     from fpe_jax.io.stream import read_observations
 
@@ -773,6 +854,7 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
         print(f"fpe run: {msg}", file=err, flush=True)
 
     n_written = 0
+    off = _OffTrackReports(err)
     for obs in read_observations(lines, warn, rate_hz):
         if obs.restart:
             runner.reset()
@@ -784,12 +866,44 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
         except (InputError, ValueError) as e:
             warn(f"line {obs.line}: {e}; skipped")
             continue
+        # an InputError here (the first observations off the track) ends the stream
+        warning = off.observe(obs, runner.check_track(obs.x_m, obs.y_m))
+        if warning is not None:  # only then: an on-track reply is unchanged
+            reply = f"{reply[:-1]}, {json.dumps('warning')}: {json.dumps(warning)}}}"
         out.write(reply + "\n")
         out.flush()
         n_written += 1
     if skipped and not n_written:
         raise InputError("stdin", f"none of its observations was usable ({len(skipped)} skipped)")
     return 0
+
+
+class _OffTrackReports:
+    """`run_stream`'s stderr lines for a car off the track: at the first off-track observation,
+    then at most once per OFF_TRACK_REPORT_S of stamps while it stays off, with the count, and
+    once when it is back."""
+
+    def __init__(self, err):
+        self.err = err
+        self.n_seen = 0
+        self.n_off = 0  # of the current stretch off the track
+        self.last_report_s: float | None = None
+
+    def observe(self, obs, warning: str | None) -> str | None:
+        self.n_seen += 1
+        if warning is None:
+            if self.n_off:
+                self._say(f"line {obs.line}: back on the track after {self.n_off} observation(s)")
+            self.n_off, self.last_report_s = 0, None
+            return None
+        self.n_off += 1
+        if self.last_report_s is None or obs.t_s - self.last_report_s >= OFF_TRACK_REPORT_S:
+            self._say(f"line {obs.line}: warning: {warning} ({self.n_off} in a row)")
+            self.last_report_s = obs.t_s
+        return warning
+
+    def _say(self, msg: str) -> None:
+        print(f"fpe run: {msg}", file=self.err, flush=True)
 
 
 # ---- benchmark -----------------------------------------------------------------------------------

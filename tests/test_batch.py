@@ -426,7 +426,8 @@ def test_cli_batch_npy_and_csv(tmp_path, cli_files, loop):
     common = ["--waypoints", str(wp), "--preset", "seed", "--chunk", str(CHUNK)]
     assert main(["batch", str(npy), *common, "--out", str(out_csv)]) == 0
     table = np.loadtxt(out_csv, delimiter=",", skiprows=1)
-    assert table.shape == (N_CARS * 10, 6)
+    assert table.shape == (N_CARS * 10, 7)  # car, step, horizon_s, x, y, yaw, off_track
+    assert not table[:, 6].any()
     np.testing.assert_allclose(table[:10, 2], np.arange(1, 11) * 0.1)
 
 

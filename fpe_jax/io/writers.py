@@ -358,8 +358,11 @@ def write_drive_csv(path, drive, *, force: bool = False) -> Path:
     return Path(path)
 
 
-def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) -> Path:
-    """Write (N, H, 3) poses as `.npy`, or as CSV with columns car,step,horizon_s,x,y,yaw.
+def write_poses(
+    path, poses: np.ndarray, dt_s: float, *, force: bool = False, off_track=None
+) -> Path:
+    """Write (N, H, 3) poses as `.npy`, or as CSV with columns car,step,horizon_s,x,y,yaw, and
+    off_track (1 for a car far from the track, 0 else) when `off_track` (N,) bool is given.
 
     Written to a temporary file in the target's folder and renamed into place, so a failure
     never leaves a partial file; an existing file is replaced only with `force`.
@@ -373,20 +376,25 @@ def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) ->
             with open(tmp, "xb") as f:
                 np.save(f, poses)
         else:
-            _write_poses_csv(tmp, poses, dt_s)
+            _write_poses_csv(tmp, poses, dt_s, off_track)
     return target
 
 
-def _write_poses_csv(path: Path, poses: np.ndarray, dt_s: float, rows_per_block: int = 200_000):
+def _write_poses_csv(
+    path: Path, poses: np.ndarray, dt_s: float, off_track=None, rows_per_block: int = 200_000
+):
     n, h, _ = poses.shape
     step = np.arange(1, h + 1)
+    fmt = ["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"] + ["%d"] * (off_track is not None)
     with open(path, "w") as f:
-        f.write("car,step,horizon_s,x,y,yaw\n")
+        f.write("car,step,horizon_s,x,y,yaw" + ",off_track" * (off_track is not None) + "\n")
         cars_per_block = max(rows_per_block // h, 1)
         for start in range(0, n, cars_per_block):
             block = poses[start : start + cars_per_block].astype(np.float64)
             k = block.shape[0]
             car = np.repeat(np.arange(start, start + k), h)
             st = np.tile(step, k)
-            table = np.column_stack([car, st, st * dt_s, block.reshape(-1, 3)])
-            np.savetxt(f, table, fmt=["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"], delimiter=",")
+            cols = [car, st, st * dt_s, block.reshape(-1, 3)]
+            if off_track is not None:
+                cols.append(np.repeat(np.asarray(off_track[start : start + k], dtype=int), h))
+            np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",")
