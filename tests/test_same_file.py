@@ -13,7 +13,8 @@ from fpe_jax import io
 from fpe_jax.cli import main
 from fpe_jax.errors import InputError
 
-DATA = Path(__file__).resolve().parents[1] / "data"
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "data"
 
 
 def _inputs(tmp_path: Path) -> dict[str, Path]:
@@ -120,3 +121,18 @@ def test_check_not_input_library(tmp_path):
     io.check_not_input(other, [a])  # equal content, different file: fine
     with pytest.raises(InputError, match="same file as the input"):
         io.check_output_path(tmp_path / "." / "a.csv", True, inputs=[a])
+
+
+def test_recipes_show_a_refit_that_leaves_the_committed_configs_alone():
+    """Each recipe's comment shows a command writing under out/, and says that without --out it
+    writes (and with --force regenerates) the committed config beside it."""
+    recipes = sorted((ROOT / "fit").glob("*.toml"))
+    assert recipes
+    for recipe in recipes:
+        comments = [line for line in recipe.read_text().splitlines() if line.startswith("#")]
+        text = "\n".join(comments)
+        rel = recipe.relative_to(ROOT)
+        assert f"fpe fit {rel} --out out/{recipe.stem}.json" in text, rel
+        commands = [c for c in comments if "fpe fit" in c]
+        assert all("--out out/" in c for c in commands), commands
+        assert "regenerates that file" in text and f"fit/{recipe.stem}.json" in text
