@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import bisect
 import hashlib
+import math
 
 import numpy as np
 
@@ -265,6 +266,17 @@ MIN_ALONG_SHARE = 0.5  # of the moves, starting near the waypoints and going the
 _MOVE_M = 2.0  # direction of motion judged over about this distance driven
 _MAX_CHECKED = 200_000  # observations sampled for the share (its error is then < 0.3 %)
 
+
+# Where a track crosses itself (a figure-eight) two branches are equally near the car: a global
+# projection with a known heading takes the nearest segment whose direction lies within
+# BRANCH_MAX_ANGLE of it, if that lies within BRANCH_M of the car; else the nearest of all (a
+# car far off the track, or driving against it). Where the nearest agrees (everywhere but at
+# crossings and hairpin mix-ups) the result is the nearest, exactly. The heading counts as
+# known when the car's yaw is observed, or its measured speed is at least MIN_HEADING_SPEED_MPS.
+BRANCH_MAX_ANGLE_RAD = math.pi / 4
+BRANCH_COS = math.cos(BRANCH_MAX_ANGLE_RAD)
+BRANCH_M = 2.0
+MIN_HEADING_SPEED_MPS = 0.5
 
 ALLOW_HINT = "pass --allow-off-track to use them anyway"
 

@@ -36,7 +36,15 @@ import numpy as np
 from fpe_jax.config import LINE_KEYS, check_waypoints, read_config
 from fpe_jax.errors import InputError
 from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
-from fpe_jax.path import MIN_ON_TRACK_SHARE, ON_TRACK_M, build_path, check_share_near
+from fpe_jax.path import (
+    BRANCH_COS,
+    BRANCH_M,
+    MIN_HEADING_SPEED_MPS,
+    MIN_ON_TRACK_SHARE,
+    ON_TRACK_M,
+    build_path,
+    check_share_near,
+)
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported: the runner's modes
 from fpe_jax.spec import FILTER_DEFAULTS, FILTER_KEYS, check_config
 from fpe_jax.spec import MODELS as MODELS
@@ -60,6 +68,7 @@ GATE_SHARPNESS = 4.0
 # stderr at most once per OFF_TRACK_REPORT_S of stamps.
 OFF_TRACK_START_OBS = 10
 OFF_TRACK_REPORT_S = 5.0
+_MIN_ON_AT_START = math.ceil(round(MIN_ON_TRACK_SHARE * OFF_TRACK_START_OBS, 9))
 OFF_TRACK_HINT = "check the waypoints file and that the observations are in its map frame"
 
 _PI = math.pi
@@ -190,9 +199,12 @@ class RunnerPath:
             )
         return s
 
-    def _nearest(self, x_m: float, y_m: float, idx: np.ndarray, contiguous: bool) -> float:
+    def _nearest(
+        self, x_m: float, y_m: float, idx: np.ndarray, contiguous: bool, heading_rad=None
+    ) -> float:
         """Arc length [m] of the closest point to (x, y) on the segments starting at idx (n,);
-        `contiguous` (idx = lo, lo + 1, ...) reads them as a view instead of gathering."""
+        `contiguous` (idx = lo, lo + 1, ...) reads them as a view instead of gathering. With a
+        heading [rad], the branch rule of `fpe_jax.path.BRANCH_COS` (Track._project_segments)."""
         lo = int(idx[0])
         seg = self._seg[:, lo : lo + len(idx)] if contiguous else self._seg.take(idx, axis=1)
         ax, ay, abx, aby, ab2 = seg
@@ -201,12 +213,29 @@ class RunnerPath:
         np.minimum(t, 1.0, out=t)
         dx = ax + t * abx - x_m
         dy = ay + t * aby - y_m
-        k = int(np.argmin(dx * dx + dy * dy))  # the first minimum, as jnp.argmin
+        d2 = dx * dx + dy * dy
+        k = int(np.argmin(d2))  # the first minimum, as jnp.argmin
+        if heading_rad is not None:
+            tangent = self._table[idx, 4:6]
+            agree = tangent @ np.array([math.cos(heading_rad), math.sin(heading_rad)])
+            d2_agree = np.where(agree >= BRANCH_COS, d2, np.inf)
+            ka = int(np.argmin(d2_agree))
+            if d2_agree[ka] <= BRANCH_M * BRANCH_M:
+                k = ka
         return (int(idx[k]) + float(t[k])) * self.ds_m
 
-    def project(self, x_m: float, y_m: float) -> float:
-        """Arc length [m] of the closest point of the whole track (global search)."""
-        return self._nearest(x_m, y_m, self._all_segments, True)
+    def project(self, x_m: float, y_m: float, heading_rad: float | None = None) -> float:
+        """Arc length [m] of the closest point of the whole track (global search); given the
+        car's heading [rad], of the branch that agrees with it (`fpe_jax.path.BRANCH_COS`)."""
+        return self._nearest(x_m, y_m, self._all_segments, True, heading_rad)
+
+    def continuous(self, s_m: float, s_ref_m: float) -> float:
+        """s [m] moved by whole laps to within half a lap of s_ref [m] on a loop (as is on an
+        open path): Track.project_window's seam rule."""
+        if not self.closed:
+            return s_m
+        half = 0.5 * self.length_m
+        return s_ref_m + ((s_m - s_ref_m + half) % self.length_m - half)
 
     def project_window(self, x_m: float, y_m: float, s_hint_m: float) -> float:
         """Arc length [m] of the closest point within [s_hint - 2 m, s_hint + 4 m], continuous
@@ -330,6 +359,7 @@ class Runner:
         self._last_stamp_s: float | None = None
         self._last_xy: tuple[float, float] | None = None
         self._s_m: float | None = None
+        self._settled = False  # whether the track position was found with a known heading
         self._motion: tuple[float, ...] | None = None
 
     def _reset_track_check(self) -> None:
@@ -381,7 +411,7 @@ class Runner:
             start.append((on, float(x_m), float(y_m)))
             n_on = sum(o[0] for o in start)
             # as soon as the first OFF_TRACK_START_OBS can no longer meet the rule
-            if (len(start) - n_on) > (1.0 - MIN_ON_TRACK_SHARE) * OFF_TRACK_START_OBS:
+            if len(start) - n_on > OFF_TRACK_START_OBS - _MIN_ON_AT_START:
                 centre = np.mean([o[1:] for o in start], axis=0) - self.path.xy_m.mean(axis=0)
                 check_share_near(
                     n_on / len(start),
@@ -437,7 +467,12 @@ class Runner:
             return self._ctrv(est)
         path = self.path
         ex, ey = est[0], est[1]
-        s_prev = path.project(ex, ey) if self._s_m is None else self._s_m
+        s_prev = self._s_m
+        if not self._settled:  # until the heading is known the branch is searched globally
+            known = math.isfinite(self._history[-1][3]) or est[3] >= MIN_HEADING_SPEED_MPS
+            s_glob = path.project(ex, ey, est[2] if known else None)
+            s_prev = s_glob if s_prev is None else path.continuous(s_glob, s_prev)
+            self._settled = known
         self._s_m = path.project_window(ex, ey, s_prev)
         if self.model in ("frenet", "line"):
             return self._frenet(self._track_frame(self._s_m), est)

@@ -123,9 +123,15 @@ def test_batch_reports_off_track_cars_once(tmp_path, capsys, oval):
 
 def test_runner_start_check_is_the_offline_rule(oval):
     """The start check raises the offline check's InputError (share of observations within
-    ON_TRACK_M below MIN_ON_TRACK_SHARE) after OFF_TRACK_START_OBS observations."""
+    ON_TRACK_M below MIN_ON_TRACK_SHARE, 80 %, of the first OFF_TRACK_START_OBS = 10) as soon
+    as the rule can no longer be met: at the third off-track observation, not before."""
     cfg, wp, rows = oval
     runner = Runner(cfg, wp)
-    with pytest.raises(InputError, match="within"):
-        for _, x, y, _ in rows[: OFF_TRACK_START_OBS + 1]:
-            runner.check_track(x + 100.0, y)
+    for _, x, y, _ in rows[:2]:
+        assert runner.check_track(x + 100.0, y) is not None
+    with pytest.raises(InputError, match="only 0% of the observations of the stream's first 3"):
+        runner.check_track(rows[2, 1] + 100.0, rows[2, 2])
+    # two off, eight on: the rule is met, the stream goes on
+    runner = Runner(cfg, wp)
+    for k, (_, x, y, _) in enumerate(rows[:30]):
+        runner.check_track(x + (100.0 if k in (0, 5) else 0.0), y)
