@@ -322,6 +322,8 @@ def _build_parser() -> argparse.ArgumentParser:
         metavar="HZ",
         help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
     )
+    p.add_argument("--allow-off-track", action="store_true", help="warn, not fail, when the "
+                   "first observations are off the waypoints")  # fmt: skip
 
     p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
@@ -363,6 +365,7 @@ def cmd_run(args) -> int:
     if sys.stdout is None:  # started with stdout closed: fail before the work, as a write would
         raise OSError(errno.EBADF, os.strerror(errno.EBADF))
     runner = Runner.from_config(args.config, args.waypoints)
+    runner.allow_off_track = args.allow_off_track
     return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr, rate_hz)
 
 

@@ -69,7 +69,10 @@ GATE_SHARPNESS = 4.0
 OFF_TRACK_START_OBS = 10
 OFF_TRACK_REPORT_S = 5.0
 _MIN_ON_AT_START = math.ceil(round(MIN_ON_TRACK_SHARE * OFF_TRACK_START_OBS, 9))
-OFF_TRACK_HINT = "check the waypoints file and that the observations are in its map frame"
+OFF_TRACK_HINT = (
+    "check the waypoints file and that the observations are in its map frame, or pass "
+    "--allow-off-track to go on with warnings"
+)
 
 _PI = math.pi
 _TWO_PI = 2 * math.pi
@@ -310,6 +313,7 @@ class Runner:
         self._set_params(p)
         self._history = deque(maxlen=int(st["history"]))  # distinct (t, x, y, yaw), oldest first
         self.waypoints_source = "waypoints"  # names the waypoints in the off-track error
+        self.allow_off_track = False  # True: the start check only warns (--allow-off-track)
         self._reset_track_check()
         self.reset()
 
@@ -402,12 +406,13 @@ class Runner:
         Raises:
             InputError naming the waypoints when, of the first OFF_TRACK_START_OBS observations,
             fewer than MIN_ON_TRACK_SHARE lie on the track: the offline check's rule
-            (`fpe_jax.path.check_share_near`), which catches a waypoint file in another map frame.
+            (`fpe_jax.path.check_share_near`), which catches a waypoint file in another map frame;
+            not with `allow_off_track` set.
         """
         dist = self.track_distance(x_m, y_m)
         on = dist <= ON_TRACK_M
         start = self._start
-        if len(start) < OFF_TRACK_START_OBS:
+        if len(start) < OFF_TRACK_START_OBS and not self.allow_off_track:
             start.append((on, float(x_m), float(y_m)))
             n_on = sum(o[0] for o in start)
             # as soon as the first OFF_TRACK_START_OBS can no longer meet the rule

@@ -135,3 +135,14 @@ def test_runner_start_check_is_the_offline_rule(oval):
     runner = Runner(cfg, wp)
     for k, (_, x, y, _) in enumerate(rows[:30]):
         runner.check_track(x + (100.0 if k in (0, 5) else 0.0), y)
+
+
+def test_allow_off_track_lets_the_stream_run_with_warnings(monkeypatch, capsys, files, oval):
+    _, _, rows = oval
+    rows = rows.copy()
+    rows[:, 1] += 100.0
+    argv = [*files, "--allow-off-track"]
+    rc, replies, err = fpe_run(monkeypatch, capsys, argv, csv_lines(rows))
+    assert rc == 0 and len(replies) == len(rows)
+    assert all("warning" in r for r in replies)
+    assert 1 <= len(err) <= 1 + (rows[-1, 0] - rows[0, 0]) / 5.0
