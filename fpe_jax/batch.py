@@ -704,3 +704,21 @@ def off_track_summary(off: np.ndarray, source: str, shown: int = 10) -> str | No
         f"{ON_TRACK_M:g} m from its waypoints (rows {listed}): likely another map frame; "
         "their predictions follow the nearest part of the track"
     )
+
+
+ORIGIN_MAX_FLOAT32_M = 1000.0  # beyond a kilometre float32 cannot hold a position to the mm
+
+
+def with_origin(poses: np.ndarray, origin_m, block: int = 1 << 16) -> np.ndarray:
+    """Poses (N, H, 3) in the track's local frame moved back by the map origin (2,) [m]: x, y
+    plus the origin computed in float64, block by block (no full float64 copy), in place when
+    the poses' dtype can hold map coordinates (|origin| <= ORIGIN_MAX_FLOAT32_M or float64),
+    else into a new float64 array."""
+    origin = np.asarray(origin_m, dtype=np.float64)
+    far = poses.dtype != np.float64 and np.abs(origin).max() > ORIGIN_MAX_FLOAT32_M
+    out = np.empty(poses.shape, dtype=np.float64) if far else poses
+    for a in range(0, len(poses), block):
+        part = poses[a : a + block].astype(np.float64)
+        part[..., :2] += origin
+        out[a : a + block] = part
+    return out

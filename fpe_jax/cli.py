@@ -790,7 +790,7 @@ def cmd_batch(args) -> int:
     with _progress(args) as say:
         # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
         _start_jax(args, say, x64=False, executables=False)
-        from fpe_jax.batch import off_track_cars, off_track_summary, predict_chunked
+        from fpe_jax.batch import off_track_cars, off_track_summary, predict_chunked, with_origin
         from fpe_jax.drive import map_origin
         from fpe_jax.track import Track
 
@@ -799,7 +799,7 @@ def cmd_batch(args) -> int:
         wp = waypoints.xy_m
         origin = map_origin(wp)  # removed in float64 before the (float32) computation
         track = Track.from_waypoints(wp - origin)
-        cars = np.array(io.read_cars(args.states), dtype=np.float64)
+        cars = np.asarray(io.read_cars(args.states), dtype=np.float64)  # its own float64 copy
         cars[:, :2] -= origin
         say(f"predicting {len(cars)} cars")
         t0 = time.perf_counter()
@@ -808,11 +808,7 @@ def cmd_batch(args) -> int:
             params, cars, track, dtype=args.dtype, chunk=args.chunk, progress=progress
         )
         wall_s = time.perf_counter() - t0
-        # float32 cannot hold coordinates beyond a kilometre to the millimetre: write float64 then
-        dtype = poses.dtype if np.abs(origin).max() <= 1000.0 else np.float64
-        poses = np.array(poses, dtype=np.float64)  # a writable copy
-        poses[..., :2] += origin
-        poses = poses.astype(dtype)
+        poses = with_origin(poses, origin)  # float64 where float32 cannot hold map coordinates
         off = off_track_cars(params, cars[:, :2], track)
         if warning := off_track_summary(off, args.states):
             print(f"fpe batch: {warning}", file=sys.stderr)

@@ -288,14 +288,41 @@ def _vertex_stride(xy_m: np.ndarray) -> int:
     return max(1, int(0.3 / max(spacing, 1e-9)))
 
 
-def near_path(points_xy_m, path_xy_m, near_m: float = ON_TRACK_M) -> np.ndarray:
+def near_path(
+    points_xy_m, path_xy_m, near_m: float = ON_TRACK_M, max_cells: int = 1 << 21
+) -> np.ndarray:
     """(P,) bool: whether each point (P, 2) [m] lies within `near_m` [m] of a resampled path
-    (M, 2) [m] (judged to 0.15 m: a vertex every ~0.3 m). The rule of the on-track checks."""
+    (M, 2) [m] (judged to 0.15 m: a vertex every ~0.3 m). The rule of the on-track checks.
+
+    Many points are judged on a raster of at most `max_cells` cells over the path: a cell whose
+    centre lies within near_m minus its half-diagonal of a vertex is near for every point in it,
+    one beyond near_m plus that is far; only the points of the cells between are searched
+    (the same answers as searching every point, at O(1) per point).
+    """
     xy = np.asarray(path_xy_m, dtype=np.float64)
-    idx, _ = nearest_vertex(
-        np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2), xy[:: _vertex_stride(xy)], near_m
-    )
-    return idx >= 0
+    pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    fine = xy[:: _vertex_stride(xy)]
+    lo = fine.min(axis=0) - near_m - 1.0
+    span = fine.max(axis=0) + near_m + 1.0 - lo
+    cell = max(near_m / 8, float(np.sqrt(span[0] * span[1] / max_cells)))
+    shape = np.ceil(span / cell).astype(np.int64)
+    if len(pts) <= shape[0] * shape[1] or cell >= near_m:  # few points: search each
+        idx, _ = nearest_vertex(pts, fine, near_m)
+        return idx >= 0
+    half_diag = cell * math.sqrt(0.5)
+    ij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1)
+    _, d = nearest_vertex(lo + (ij.reshape(-1, 2) + 0.5) * cell, fine, near_m + half_diag)
+    state = np.where(d <= near_m - half_diag, 1, np.where(np.isfinite(d), 2, 0)).astype(np.int8)
+    at = np.floor((pts - lo) / cell).astype(np.int64)
+    inside = np.all((at >= 0) & (at < shape), axis=1)  # outside: farther than near_m from all
+    judged = np.zeros(len(pts), dtype=np.int8)
+    judged[inside] = state.reshape(shape)[at[inside, 0], at[inside, 1]]
+    near = judged == 1
+    unsure = np.flatnonzero(judged == 2)
+    if len(unsure):
+        idx, _ = nearest_vertex(pts[unsure], fine, near_m)
+        near[unsure] = idx >= 0
+    return near
 
 
 def profile_values(values, s_m, length_m: float, closed: bool) -> np.ndarray:

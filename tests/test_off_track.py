@@ -146,3 +146,19 @@ def test_allow_off_track_lets_the_stream_run_with_warnings(monkeypatch, capsys, 
     assert rc == 0 and len(replies) == len(rows)
     assert all("warning" in r for r in replies)
     assert 1 <= len(err) <= 1 + (rows[-1, 0] - rows[0, 0]) / 5.0
+
+
+@pytest.mark.parametrize("max_cells", [1 << 21, 1 << 12])
+def test_near_path_raster_gives_the_search_s_answers(oval, max_cells):
+    """Many points are judged on a raster (fine or coarse): exactly the answers of searching
+    each point's nearest vertex within ON_TRACK_M."""
+    from fpe_jax.path import _vertex_stride, near_path, nearest_vertex
+
+    _, wp, _ = oval
+    xy = build_path(wp)["xy_m"]
+    rng = np.random.default_rng(7)
+    pts = np.resize(xy, (300_000, 2)) + rng.uniform(-6.0, 6.0, (300_000, 2))
+    idx, _ = nearest_vertex(pts, xy[:: _vertex_stride(xy)], ON_TRACK_M)
+    near = near_path(pts, xy, max_cells=max_cells)
+    assert 0.2 < near.mean() < 0.8
+    np.testing.assert_array_equal(near, idx >= 0)
