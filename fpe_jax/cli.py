@@ -357,6 +357,8 @@ def _build_parser() -> argparse.ArgumentParser:
         help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
     )
     _add_adapt_flags(p, save=False)
+    p.add_argument("--allow-off-track", action="store_true", help="warn, not fail, when the "
+                   "first observations are off the waypoints")  # fmt: skip
 
     p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
@@ -409,6 +411,7 @@ def cmd_run(args) -> int:
         raise InputError("--config", "missing", "a tuned config JSON (or --adapt)")
     else:
         runner = Runner.from_config(args.config, args.waypoints)
+    runner.allow_off_track = args.allow_off_track
     return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr, rate_hz)
 
 
@@ -433,7 +436,7 @@ def _fit_inputs(args, say=lambda msg: None):
             settings=r.settings,
             waypoints=r.waypoints,
         )
-        return r.drives, r.test_drives, args.out or r.out, opts | flags
+        return r.drives, r.test_drives, args.out or r.out, opts | flags | {"inputs": r.inputs}
     if not args.waypoints:
         raise InputError("--waypoints", "missing", "a waypoint file for the drives")
     wp = io.load_waypoints(args.waypoints).xy_m
@@ -449,6 +452,7 @@ def _fit_inputs(args, say=lambda msg: None):
     drives, tests = read(args.logs, "drive"), read(args.test or [], "test drive")
     opts = dict(holdout=0.3, fit=None, blend="auto", model=None, solver=None, settings={})
     opts["estimator"] = None
+    opts["inputs"] = [*args.logs, *(args.test or []), args.waypoints]
     return drives, tests, args.out, opts | {"waypoints": args.waypoints} | flags
 
 
@@ -489,14 +493,14 @@ def cmd_fit(args) -> int:
     if args.out is None and not args.logs[0].endswith(".toml"):
         raise InputError("--out", "missing", "CONFIG.json to write")
     if args.out:
-        io.check_output_path(args.out, args.force)
+        io.check_output_path(args.out, args.force, (*args.logs, *(args.test or ()), args.waypoints))
     with _progress(args) as say:
         say("reading drives")
         drives, tests, out, opts = _fit_inputs(args, say)
         drives, tests = _local_drives(drives), _local_drives(tests)
         if out is None:
             raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
-        io.check_output_path(out, args.force)
+        io.check_output_path(out, args.force, opts["inputs"])
         _start_jax(args, say)
         from fpe_jax.config import apply_settings
         from fpe_jax.fit import fit
@@ -634,7 +638,7 @@ def cmd_predict(args) -> int:
     from fpe_jax import io
     from fpe_jax.config import read_config
 
-    io.check_output_path(args.out, args.force)
+    io.check_output_path(args.out, args.force, inputs=(args.log, args.waypoints, args.config))
     if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
         raise InputError(args.out, "unknown output format", ".csv or .mcap")
     if args.adapt or args.save_state or args.delay is not None:
@@ -696,7 +700,9 @@ def _predict_adaptive(args) -> int:
     if args.preset:
         raise InputError("--preset", "given with --adapt", "--config, or neither")
     if args.save_state:
-        io.check_output_path(args.save_state, args.force)
+        io.check_output_path(
+            args.save_state, args.force, inputs=(args.log, args.waypoints, args.config)
+        )
     wp = io.load_waypoints(args.waypoints).xy_m
     cfg = None
     if args.config:
@@ -818,7 +824,7 @@ def _print_tf(info: dict) -> None:
 def cmd_convert(args) -> int:
     from fpe_jax import io
 
-    io.check_output_path(args.out, args.force)
+    io.check_output_path(args.out, args.force, inputs=(args.log,))
     if Path(args.out).suffix.lower() != ".csv":
         raise InputError(args.out, "unknown output format", ".csv")
     drive = _load_drive_from_args(args)
@@ -840,6 +846,7 @@ def cmd_simulate(args) -> int:
         raise InputError(out, "exists and is not empty; pass --force to write into it")
     if not out.exists():
         io.check_output_path(out, False)  # its parent exists and is writable
+    sim.check_simulation_out(out, (args.track, args.raceline))
     res = sim.simulate(
         args.track,
         duration_s=args.duration,
@@ -867,15 +874,16 @@ def cmd_batch(args) -> int:
 
     from fpe_jax import io
 
-    out = io.check_output_path(args.out, args.force)
+    out = io.check_output_path(args.out, args.force, (args.states, args.waypoints, args.config))
     if out.suffix.lower() not in (".npy", ".csv"):
         raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
     spec.check_chunk(args.chunk)
     with _progress(args) as say:
         # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
         _start_jax(args, say, x64=False, executables=False)
-        from fpe_jax.batch import predict_chunked
+        from fpe_jax.batch import off_track_cars, off_track_summary, predict_chunked, with_origin
         from fpe_jax.drive import map_origin
+        from fpe_jax.path import on_track_m
         from fpe_jax.track import Track
 
         say("reading the cars and waypoints")
@@ -883,7 +891,7 @@ def cmd_batch(args) -> int:
         wp = waypoints.xy_m
         origin = map_origin(wp)  # removed in float64 before the (float32) computation
         track = Track.from_waypoints(wp - origin)
-        cars = np.array(io.read_cars(args.states), dtype=np.float64)
+        cars = np.asarray(io.read_cars(args.states), dtype=np.float64)  # its own float64 copy
         cars[:, :2] -= origin
         say(f"predicting {len(cars)} cars")
         t0 = time.perf_counter()
@@ -892,13 +900,13 @@ def cmd_batch(args) -> int:
             params, cars, track, dtype=args.dtype, chunk=args.chunk, progress=progress
         )
         wall_s = time.perf_counter() - t0
-        # float32 cannot hold coordinates beyond a kilometre to the millimetre: write float64 then
-        dtype = poses.dtype if np.abs(origin).max() <= 1000.0 else np.float64
-        poses = np.array(poses, dtype=np.float64)  # a writable copy
-        poses[..., :2] += origin
-        poses = poses.astype(dtype)
+        poses = with_origin(poses, origin)  # float64 where float32 cannot hold map coordinates
+        off = off_track_cars(params, cars[:, :2], track)
+        near_m = on_track_m(np.asarray(track.xy_m))
+        if warning := off_track_summary(off, args.states, near_m):
+            print(f"fpe batch: {warning}", file=sys.stderr)
         say(f"writing {out}")
-        io.write_poses(out, poses, params.settings.dt_s, force=args.force)
+        io.write_poses(out, poses, params.settings.dt_s, force=args.force, off_track=off)
     print(
         f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
         f"({args.dtype}, {wall_s:.2f} s incl. compilation)",

@@ -13,7 +13,10 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import re
+import secrets
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -430,17 +433,36 @@ def export_config(
         wp_name = None if waypoints is None else str(waypoints)
         text = to_ros2_yaml(cfg, node=node, waypoint_file=wp_name, source=Path(config_path).name)
     out = Path(out)
-    if fmt == "all":
-        if out.exists() and not out.is_dir():
-            raise InputError(out, "is not a folder", "a folder for config.json, params.yaml, ...")
-        targets = {k: out / name for k, name in ALL_FILES.items()}
-        if not out.exists():
-            check_output_paths([out], force)  # its parent exists and is writable
-            out.mkdir()
-        check_output_paths([*targets.values(), out / (ALL_FILES["stablehlo"] + ".json")], force)
-    else:
-        targets = {fmt: out}
+    if fmt != "all":
         check_output_paths([out], force)
+        return _write_formats(cfg, xy, text, {fmt: out}, waypoints, force)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is not a folder", "a folder for config.json, params.yaml, ...")
+    hlo = ALL_FILES["stablehlo"]
+    names = [hlo, hlo + ".json", ALL_FILES["json"], ALL_FILES["ros2"]]  # the order written
+    if out.exists():
+        check_output_paths([out / n for n in names], force)
+    else:
+        check_output_paths([out], force)  # its parent exists and is writable
+    # the set is written whole in a hidden folder beside `out` and moved in only when complete:
+    # a failure (a full disk) leaves no partial or mixed set that a car could deploy
+    stage = out.with_name(f".{out.name[:64]}.{os.getpid()}.{secrets.token_hex(4)}.part")
+    stage.mkdir()
+    try:
+        targets = {k: stage / name for k, name in ALL_FILES.items()}
+        _write_formats(cfg, xy, text, targets, waypoints, force=False)
+        if not out.exists():
+            stage.rename(out)
+        else:  # other files of the user's folder stay; each of ours is replaced by a rename
+            for n in names:
+                os.replace(stage / n, out / n)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return [out / n for n in names]
+
+
+def _write_formats(cfg, xy, text, targets: dict, waypoints, force: bool) -> list[Path]:
+    """Write each format of `targets` (format -> path) for `export_config`: the paths written."""
     written = []
     if "stablehlo" in targets:  # first: the slowest, and the only one that can fail late
         written += export_stablehlo(

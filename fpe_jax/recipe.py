@@ -143,6 +143,7 @@ class Recipe:
     estimator: str | None
     settings: dict  # {"[settings] key": (Settings field, value)}, see config.apply_settings
     waypoints: Path | None = None  # the top-level waypoint file (drives may name their own)
+    inputs: list[Path] = dataclasses.field(default_factory=list)  # every file it reads
 
 
 def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
@@ -242,4 +243,15 @@ def load_recipe(path) -> Recipe:
         estimator=spec.get("estimator"),
         settings={f"[settings] {k}": (k, v) for k, v in table.items()},
         waypoints=None if wp is None else base / wp,
+        inputs=[path, *_entry_files(spec, base, wp)],
     )
+
+
+def _entry_files(spec: dict, base: Path, default_wp: str | None) -> list[Path]:
+    """The drive and waypoint files the [[drives]] and [[test_drives]] entries read."""
+    files = []
+    for e in [*spec["drives"], *spec.get("test_drives", [])]:
+        for name in (e.get("path"), e.get("waypoints", default_wp) if "path" in e else None):
+            if name is not None:
+                files.append(base / name)
+    return files

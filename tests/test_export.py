@@ -327,3 +327,28 @@ def test_export_refuses_a_line_config_on_other_waypoints(case, tmp_path, fmt, ca
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "other.csv" in err and "line.json" in err
     assert not out.exists()
+
+
+def test_all_failing_midway_leaves_no_partial_export(case, tmp_path, monkeypatch):
+    """A write that fails after the StableHLO artifact (a full disk) leaves no folder, or an
+    existing export exactly as it was: never a mixed or partial set a car could deploy."""
+    import errno
+
+    import fpe_jax.export as ex
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(ex, "export_json", full_disk)
+    out = tmp_path / "car"
+    argv = ["export", str(case["tmp"] / "tuned.json"), "--format", "all", "--out", str(out)]
+    argv += ["--waypoints", str(case["tmp"] / "wp.csv")]
+    assert main(argv) != 0
+    assert list(tmp_path.iterdir()) == []  # no folder, no temporary left
+    out.mkdir()
+    names = [*ex.ALL_FILES.values(), ex.ALL_FILES["stablehlo"] + ".json", "notes.txt"]
+    for name in names:
+        (out / name).write_text(f"old {name}")
+    assert main([*argv, "--force"]) != 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["car"]
+    assert {p.name: p.read_text() for p in out.iterdir()} == {n: f"old {n}" for n in names}

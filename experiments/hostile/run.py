@@ -783,5 +783,242 @@ def main() -> int:
     return 0 if all(r["ok"] for r in rows) else 1
 
 
+# ---- issue 34: off the track, crossings, the CLI's blend start, outputs naming inputs, partial
+# exports, committed files, simulate's track checks -------------------------------------------
+#
+#     .venv/bin/python experiments/hostile/run.py --only offtrack    # -> offtrack.md, ~3 min
+
+
+def _offtrack_setup(work: Path) -> None:
+    """Inputs of the off-track section: the oval drive shifted 100 m (all of it, or from row 40
+    on), cars partly off the track, a figure-eight with a drive from its crossing, bad tracks."""
+    from fpe_jax.config import params_to_config, write_config
+    from fpe_jax.params import presets
+
+    rows = np.loadtxt(work / "drive.csv", delimiter=",", skiprows=1)
+    shifted = rows.copy()
+    shifted[:, 1] += 100.0
+    _csv(work / "drive_far.csv", "t,x,y,yaw", shifted)
+    leaving = rows.copy()
+    leaving[40:, 1] += 100.0
+    _csv(work / "drive_leaving.csv", "t,x,y,yaw", leaving)
+    cars = np.column_stack([rows[:50, 1:4], np.full(50, 3.0)])
+    cars[[3, 17, 40], 0] += 100.0
+    _csv(work / "cars_some_off.csv", "x,y,yaw,v", cars)
+    write_config(work / "default.json", params_to_config(presets["default"]))
+    # a lemniscate: x = a sin t, y = a sin t cos t crosses itself at the origin
+    t = np.linspace(0.0, 2 * np.pi, 1200, endpoint=False)
+    _csv(work / "eight.csv", "x,y", 15.0 * np.column_stack([np.sin(t), np.sin(t) * np.cos(t)]))
+    fine = np.linspace(0.0, 2 * np.pi, 200_001)
+    xy = 15.0 * np.column_stack([np.sin(fine), np.sin(fine) * np.cos(fine)])
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    tt = np.arange(0.0, 6.0, 0.1)
+    path = np.column_stack([np.interp(3.0 * tt, s, xy[:, 0]), np.interp(3.0 * tt, s, xy[:, 1])])
+    d = np.gradient(path, axis=0)
+    _csv(work / "eight_drive.csv", "t,x,y,yaw", np.column_stack([tt, path, np.arctan2(*d.T[::-1])]))
+    _csv(work / "eight_car.csv", "x,y,yaw,v", [[0.0, 0.0, 0.25 * np.pi, 3.0]])
+    a = np.linspace(0.0, 2 * np.pi, 60, endpoint=False)
+    ring = np.column_stack([np.cos(a), np.sin(a)])
+    _csv(work / "track_tiny.csv", "x,y", 1e-4 * ring)
+    _csv(work / "track_huge.csv", "x,y", 1e6 * ring)
+    _csv(work / "track_tight.csv", "x,y", 0.5 * ring)
+    oval = np.loadtxt(work / "wp.csv", delimiter=",", skiprows=1)
+    _csv(work / "track_spike.csv", "x,y", np.insert(oval, 10, oval[10] + [283_000.0, 0.0], axis=0))
+    (work / "simdir").mkdir()
+    (work / "simdir" / "waypoints.csv").write_bytes((work / "wp.csv").read_bytes())
+    (work / "links").mkdir()
+    (work / "links" / "drive_link.csv").symlink_to(work / "drive.csv")
+    os.link(work / "drive.csv", work / "links" / "drive_hard.csv")
+    os.link(work / "wp.csv", work / "links" / "wp_hard.csv")
+
+
+def _offtrack_case(work: Path, rows: list, item, name, argv, *, outputs=(), expect="exit2",
+                   check=None, stdin=None, command=None, limit_bytes=None) -> dict:  # fmt: skip
+    """One case as `run_cases` judges it (exit status, stderr lines, traceback, no other file
+    changed); expect "exit2", "ok" or "fail" (a non-zero exit other than a crash); `command`
+    replaces `fpe`; `limit_bytes` caps the size of any file written (a full disk midway)."""
+    import resource
+    import signal
+
+    def mine(k):
+        return any(k == o or k.startswith(o + "/") for o in outputs)
+
+    before = {k: v for k, v in snapshot(work).items() if not mine(k)}
+    if command is None and limit_bytes is None:
+        r = fpe(work, *argv, stdin=stdin)
+    else:
+
+        def cap():
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+        cmd = command or [sys.executable, "-m", "fpe_jax.cli", *argv]
+        t0 = time.perf_counter()
+        p = subprocess.run(cmd, cwd=work, input=stdin, capture_output=True,
+                           preexec_fn=cap if limit_bytes else None)  # fmt: skip
+        r = dict(rc=p.returncode, err=p.stderr.decode(errors="replace"), out=p.stdout,
+                 wall_s=time.perf_counter() - t0, rss_mb=0.0)  # fmt: skip
+    after = {k: v for k, v in snapshot(work).items() if not mine(k) or r["rc"] != 0}
+    changed = sorted(set(before.items()) ^ set(after.items()))
+    lines = len(r["err"].strip().splitlines())
+    tb = "Traceback" in r["err"]
+    ok = not tb and not changed
+    if expect == "exit2":
+        ok &= r["rc"] == 2 and 1 <= lines <= 3
+    elif expect == "fail":
+        ok &= r["rc"] in (1, 2) and 1 <= lines <= 3
+    else:
+        ok &= r["rc"] == 0
+    note = ""
+    if check is not None and (r["rc"] == 0 or expect == "fail"):
+        good, note = check(r)
+        ok &= good
+    if r["rc"] != 0 and not note:
+        note = r["err"].strip().splitlines()[-1][:150] if lines else ""
+    rows.append(dict(item=item, case=name, rc=r["rc"], lines=lines, traceback=tb,
+                     files_unchanged=not changed, ok=bool(ok), note=note,
+                     wall_s=round(r["wall_s"], 1), rss_mb=round(r["rss_mb"])))  # fmt: skip
+    print(f"{item:>3} {name:48s} rc {r['rc']} {'ok' if ok else 'FAIL'} {note[:90]}")
+    return r
+
+
+def run_offtrack_cases(work: Path) -> list[dict]:
+    """Issue 34 items 1, 5, 6, 8, 10, 11 and 12 through the command line."""
+    rows: list[dict] = []
+
+    def case(*args, **kwargs):
+        return _offtrack_case(work, rows, *args, **kwargs)
+
+    run = ["run", "--config", "default.json", "--waypoints", "wp.csv"]
+    # 1. a car off the track
+    case("34.1", "run: a stream 100 m off the track", run,
+         stdin=(work / "drive_far.csv").read_bytes())  # fmt: skip
+
+    def warned(r):
+        replies = [json.loads(x) for x in r["out"].decode().splitlines()]
+        n = sum("warning" in x for x in replies)
+        lines = len(r["err"].strip().splitlines())
+        off_s = replies[-1]["stamp"] - replies[40]["stamp"]
+        limit = 1 + off_s / 5.0  # one line when it leaves, then at most one per 5 s of stamps
+        return n == len(replies) - 40 and lines <= limit, (
+            f"{n} replies warned, {lines} stderr lines over {off_s:.0f} s off the track"
+        )
+
+    case("34.1", "run: a stream leaving the track after 40 rows", run, expect="ok",
+         stdin=(work / "drive_leaving.csv").read_bytes(), check=warned)  # fmt: skip
+
+    def on_track_clean(r):
+        replies = [json.loads(x) for x in r["out"].decode().splitlines()]
+        return all(set(x) == {"stamp", "poses"} for x in replies) and not r["err"].strip(), (
+            f"{len(replies)} replies, none warned, stderr empty"
+        )
+
+    case("34.1", "run: the on-track stream", run, expect="ok",
+         stdin=(work / "drive.csv").read_bytes(), check=on_track_clean)  # fmt: skip
+
+    def flagged(r):
+        table = np.genfromtxt(work / "b_off.csv", delimiter=",", names=True)
+        cars = sorted(set(table["car"][table["off_track"] == 1].astype(int).tolist()))
+        said = "3 of 50 cars" in r["err"]
+        return cars == [3, 17, 40] and said, f"flagged cars {cars}; summary on stderr: {said}"
+
+    case("34.1", "batch: 3 of 50 cars 100 m off", ["batch", "cars_some_off.csv", "--waypoints",
+         "wp.csv", "--preset", "default", "--out", "b_off.csv", "--quiet"], outputs=["b_off.csv"],
+         expect="ok", check=flagged)  # fmt: skip
+
+    # 5. a figure-eight, starting at its crossing
+    def along(path):
+        def check(r):
+            obs = np.loadtxt(work / "eight_drive.csv", delimiter=",", skiprows=1)
+            p = _predictions(work / path)
+            last = p[p["step"] == p["step"].max()]
+            k = np.arange(1, len(obs) - 10)  # from the second row (the first has no speed)
+            err = np.hypot(last["x"][k] - obs[k + 10, 1], last["y"][k] - obs[k + 10, 2])
+            return err.max() < 1.0, f"1 s error max {err.max():.2f} m"
+
+        return check
+
+    case("34.5", "predict: figure-eight drive from the crossing", ["predict", "eight_drive.csv",
+         "--waypoints", "eight.csv", "--out", "p_eight.csv", "--quiet"],
+         outputs=["p_eight.csv"], expect="ok", check=along("p_eight.csv"))  # fmt: skip
+
+    def drives_on(r):
+        poses = np.load(work / "b_eight.npy")
+        moved = float(np.hypot(*poses[0, -1, :2]))
+        turn = abs(math.remainder(float(poses[0, 0, 2]) - 0.25 * math.pi, 2 * math.pi))
+        return moved > 2.0 and turn < 0.3, f"moved {moved:.2f} m in 1 s, yaw turned {turn:.2f} rad"
+
+    case("34.5", "batch: a car at the crossing", ["batch", "eight_car.csv", "--waypoints",
+         "eight.csv", "--preset", "default", "--out", "b_eight.npy", "--quiet",
+         "--dtype", "float64"], outputs=["b_eight.npy"], expect="ok", check=drives_on)  # fmt: skip
+
+    # 6. fpe fit --model blend starts at the measured speed, as the Python API
+    def measured_speed(r):
+        cfg = json.loads((work / "blend.json").read_text())
+        w = cfg["params"]["speed_weight"]
+        return w > 0.99, f"speed_weight {w:.6f}, speed_mps {cfg['params']['speed_mps']:.3f}"
+
+    case("34.6", "fit --model blend: speed parameters", ["fit", "oval/drive.mcap", "--waypoints",
+         "oval/waypoints.csv", "--model", "blend", "--blend", "position", "--out", "blend.json",
+         "--quiet"], outputs=["blend.json"], expect="ok", check=measured_speed)  # fmt: skip
+
+    # 8. an output that is one of the inputs, --force or not
+    pr = ["--waypoints", "wp.csv", "--preset", "linear", "--quiet", "--force"]
+    for out in ("drive.csv", "./drive.csv", "links/drive_link.csv", "links/drive_hard.csv"):
+        case("34.8", f"predict --out {out} --force (the input)",
+             ["predict", "drive.csv", *pr, "--out", out])  # fmt: skip
+    case("34.8", "convert --out (hard link of the input) --force",
+         ["convert", "drive.csv", "--out", "links/drive_hard.csv", "--force"])  # fmt: skip
+    case("34.8", "batch --out ./cars_some_off.csv --force", ["batch", "cars_some_off.csv",
+         *pr, "--out", "./cars_some_off.csv"])  # fmt: skip
+    case("34.8", "fit --out (the waypoints' hard link) --force", ["fit", "drive.csv",
+         "--waypoints", "wp.csv", "--out", "links/wp_hard.csv", "--force", "--quiet"])  # fmt: skip
+    case("34.8", "simulate --force into the folder of its --track", ["simulate", "--track",
+         "simdir/waypoints.csv", "--duration", "5", "--out", "simdir", "--force"])  # fmt: skip
+
+    # 10. export --format all failing midway (files capped at 16 kB: EFBIG on the artifact)
+    case("34.10", "export all, a write fails midway", ["export", "default.json", "--format",
+         "all", "--out", "e_all", "--waypoints", "wp.csv"], expect="fail", limit_bytes=16_000,
+         check=lambda r: (not (work / "e_all").exists(), "no e_all/ left"))  # fmt: skip
+
+    # 11. committed files: the sample data's check compares values within a stated tolerance
+    root = HERE.parents[1]
+    case("34.11", "data/make_samples.py --check", [], expect="ok",
+         command=[sys.executable, str(root / "data" / "make_samples.py"), "--check"],
+         check=lambda r: (True, r["out"].decode().strip().splitlines()[-1]))  # fmt: skip
+
+    # 12. simulate applies the track checks of the other commands
+    for name in ("tiny", "huge", "spike", "tight"):
+        case("34.12", f"simulate --track track_{name}.csv", ["simulate", "--track",
+             f"track_{name}.csv", "--duration", "20", "--out", f"sim_{name}"])  # fmt: skip
+    return rows
+
+
+def offtrack_main() -> int:
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="fpe-hostile-offtrack-") as tmp:
+        os.environ.setdefault("FPE_CACHE_DIR", str(Path(tmp) / "cache"))
+        work = Path(tmp) / "work"
+        work.mkdir()
+        setup(work)
+        _offtrack_setup(work)
+        rows = run_offtrack_cases(work)
+    path = HERE / "offtrack.md"
+    write_markdown(rows, path, time.perf_counter() - t0)
+    text = path.read_text().splitlines()
+    text[0] = "# Hostile inputs, issue 34: off the track, crossings, outputs naming inputs, tracks"
+    text[2] = (
+        "`.venv/bin/python experiments/hostile/run.py --only offtrack`: each case is `fpe ...` "
+        "in a fresh process in a scratch folder of inputs. *unchanged*: no file it was not asked "
+        f"to write changed, appeared or vanished. {sum(r['ok'] for r in rows)} of {len(rows)} "
+        f"cases pass; the walk took {time.perf_counter() - t0:.0f} s."
+    )
+    path.write_text("\n".join(text) + "\n")
+    print(f"wrote {path}: {sum(r['ok'] for r in rows)}/{len(rows)} pass")
+    return 0 if all(r["ok"] for r in rows) else 1
+
+
 if __name__ == "__main__":
-    sys.exit(main_io() if "--io" in sys.argv[1:] else main())
+    if "--io" in sys.argv[1:]:
+        sys.exit(main_io())
+    sys.exit(offtrack_main() if sys.argv[1:] == ["--only", "offtrack"] else main())

@@ -29,13 +29,38 @@ OBSERVATION_TOPIC = "/opp/pose"
 _ZERO_COV = [0.0] * 36  # mcap_ros2 wants a list (not an array) for float64[36]
 
 
-def check_output_path(path, force: bool) -> Path:
+def check_not_input(path, inputs) -> None:
+    """Raise InputError if the output `path` is the same file as any of `inputs` (paths, None
+    skipped), however spelled: relative, through a symlink, or a hard link (same device and
+    inode), so an output never replaces what the command reads, `--force` or not."""
+    try:
+        out = os.stat(path)
+    except OSError:  # nothing there (or nothing reachable): it cannot be an input
+        return
+    for given in inputs:
+        if given is None:
+            continue
+        try:
+            st = os.stat(given)
+        except (OSError, TypeError, ValueError):
+            continue
+        if (st.st_dev, st.st_ino) == (out.st_dev, out.st_ino):
+            raise InputError(
+                path,
+                f"is the same file as the input {str(given)!r}; refusing to overwrite it",
+                "an output path that is not one of the command's inputs",
+            )
+
+
+def check_output_path(path, force: bool, inputs=()) -> Path:
     """Fail early (before any work) if `path` cannot be written as asked.
 
     Raises InputError if its folder does not exist or cannot be written (read-only folder or file
-    system), if it is a folder, or if it exists and `force` is false. Returns it as a `Path`.
+    system), if it is a folder, if it is the same file as one of `inputs` (`check_not_input`,
+    whatever `force` says), or if it exists and `force` is false. Returns it as a `Path`.
     """
     p = Path(path)
+    check_not_input(p, inputs)
     try:
         os.stat(p.parent)  # is_dir() says False for a name too long, stat says why
         os.lstat(p) if p.name else None
@@ -369,8 +394,11 @@ def write_drive_csv(path, drive, *, force: bool = False) -> Path:
     return Path(path)
 
 
-def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) -> Path:
-    """Write (N, H, 3) poses as `.npy`, or as CSV with columns car,step,horizon_s,x,y,yaw.
+def write_poses(
+    path, poses: np.ndarray, dt_s: float, *, force: bool = False, off_track=None
+) -> Path:
+    """Write (N, H, 3) poses as `.npy`, or as CSV with columns car,step,horizon_s,x,y,yaw, and
+    off_track (1 for a car far from the track, 0 else) when `off_track` (N,) bool is given.
 
     Written to a temporary file in the target's folder and renamed into place, so a failure
     never leaves a partial file; an existing file is replaced only with `force`.
@@ -384,20 +412,25 @@ def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) ->
             with open(tmp, "xb") as f:
                 np.save(f, poses)
         else:
-            _write_poses_csv(tmp, poses, dt_s)
+            _write_poses_csv(tmp, poses, dt_s, off_track)
     return target
 
 
-def _write_poses_csv(path: Path, poses: np.ndarray, dt_s: float, rows_per_block: int = 200_000):
+def _write_poses_csv(
+    path: Path, poses: np.ndarray, dt_s: float, off_track=None, rows_per_block: int = 200_000
+):
     n, h, _ = poses.shape
     step = np.arange(1, h + 1)
+    fmt = ["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"] + ["%d"] * (off_track is not None)
     with open(path, "w") as f:
-        f.write("car,step,horizon_s,x,y,yaw\n")
+        f.write("car,step,horizon_s,x,y,yaw" + ",off_track" * (off_track is not None) + "\n")
         cars_per_block = max(rows_per_block // h, 1)
         for start in range(0, n, cars_per_block):
             block = poses[start : start + cars_per_block].astype(np.float64)
             k = block.shape[0]
             car = np.repeat(np.arange(start, start + k), h)
             st = np.tile(step, k)
-            table = np.column_stack([car, st, st * dt_s, block.reshape(-1, 3)])
-            np.savetxt(f, table, fmt=["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"], delimiter=",")
+            cols = [car, st, st * dt_s, block.reshape(-1, 3)]
+            if off_track is not None:
+                cols.append(np.repeat(np.asarray(off_track[start : start + k], dtype=int), h))
+            np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",")
