@@ -15,6 +15,7 @@ every frame has one parent; a frame with two is an error only when a lookup pass
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterable
 from typing import Any
 
@@ -216,36 +217,53 @@ class TfBuffer:
         source: what to name in errors (the log's path).
     """
 
-    def __init__(self, transforms: Iterable[tuple], source: Any = "TF"):
+    def __init__(self, transforms: Iterable[tuple] = (), source: Any = "TF"):
         self.source = source
-        raw: dict[tuple[str, str, bool], list] = {}
-        for parent, child, stamp_ns, t, q, static, topic in transforms:
-            key = (parent.lstrip("/"), child.lstrip("/"), bool(static))
-            raw.setdefault(key, []).append((int(stamp_ns), t, q, topic))
+        self._raw: dict[tuple[str, str, bool], list] = {}
         self.edges: dict[tuple[str, str], Edge] = {}
         self._both: set[tuple[str, str]] = set()  # edges on both a static and a dynamic topic
-        for (parent, child, static), rows in raw.items():
-            if (parent, child) in self.edges:
-                self._both.add((parent, child))
-            self.edges[(parent, child)] = self._edge(parent, child, static, rows)
         self.parents: dict[str, list[str]] = {}
-        for parent, child in sorted(self.edges):
-            self.parents.setdefault(child, []).append(parent)
+        self.add(transforms)
+
+    def add(self, transforms: Iterable[tuple], keep_ns: int | None = None) -> None:
+        """Add transforms (tuples as the constructor takes) to the buffer, as a live node receives
+        them. With `keep_ns`, a dynamic edge keeps only the transforms no older than that before
+        its newest (a bounded buffer). Raises InputError for a non-finite or zero transform,
+        before any of `transforms` is added."""
+        rows = list(transforms)
+        for parent, child, stamp_ns, t, q, *_ in rows:
+            norm2 = sum(float(v) * float(v) for v in q)
+            if not (all(math.isfinite(float(v)) for v in (*t, *q)) and norm2 > 1e-18):
+                raise InputError(
+                    self.source,
+                    f"TF {parent.lstrip('/')} -> {child.lstrip('/')}: transform at "
+                    f"{format_stamp(stamp_ns)} has a zero or non-finite rotation or translation",
+                    "finite translations and non-zero quaternions",
+                )
+        changed = set()
+        for parent, child, stamp_ns, t, q, static, topic in rows:
+            key = (parent.lstrip("/"), child.lstrip("/"), bool(static))
+            self._raw.setdefault(key, []).append((int(stamp_ns), t, q, topic))
+            changed.add(key)
+        new_edge = False
+        for key in sorted(changed):
+            parent, child, static = key
+            if keep_ns is not None and not static:
+                newest = max(r[0] for r in self._raw[key])
+                self._raw[key] = [r for r in self._raw[key] if r[0] >= newest - keep_ns]
+            if (parent, child) in self.edges and self.edges[(parent, child)].static != static:
+                self._both.add((parent, child))
+            new_edge |= (parent, child) not in self.edges
+            self.edges[(parent, child)] = self._edge(parent, child, static, self._raw[key])
+        if new_edge:
+            self.parents = {}
+            for parent, child in sorted(self.edges):
+                self.parents.setdefault(child, []).append(parent)
 
     def _edge(self, parent: str, child: str, static: bool, rows: list) -> Edge:
         stamps = np.array([r[0] for r in rows], dtype=np.int64)
         t = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
         q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
-        norm = np.linalg.norm(q, axis=1)
-        bad = ~(np.isfinite(norm) & (norm > 1e-9)) | ~np.isfinite(t).all(axis=1)
-        if bad.any():
-            k = int(np.argmax(bad))
-            raise InputError(
-                self.source,
-                f"TF {parent} -> {child}: transform at {format_stamp(stamps[k])} has a zero or "
-                "non-finite rotation or translation",
-                "finite translations and non-zero quaternions",
-            )
         if static:  # the last one published wins (a latched topic may repeat or update it)
             keep = np.array([len(rows) - 1])
         else:  # sorted by stamp; of repeated stamps the last to arrive
