@@ -595,6 +595,7 @@ def cmd_predict(args) -> int:
         _start_jax(args, say)
         from fpe_jax.drive import local_frame
         from fpe_jax.evaluate import covariance_map, path_heading, prediction_covariance
+        from fpe_jax.history import drive_valid
         from fpe_jax.predict import predict_rows, states_from_drive
         from fpe_jax.track import Track
 
@@ -618,8 +619,9 @@ def cmd_predict(args) -> int:
         poses[..., :2] += origin
         say(f"writing {args.out}")
         dt_s = params.settings.dt_s
+        valid = drive_valid(local, params.settings.history)
         io.write_predictions(
-            args.out, stamps_s, poses, dt_s, drive=drive, cov_m2=cov, force=args.force
+            args.out, stamps_s, poses, dt_s, drive=drive, cov_m2=cov, valid=valid, force=args.force
         )
     print(
         f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr

@@ -233,11 +233,13 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
     return _write_ros2_mcap(path, events, force)
 
 
-def _marker(ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple) -> dict:
+def _marker(
+    ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple, space="future_pose"
+) -> dict:
     r, g, b, a = rgba
     return {
         "header": {"stamp": rm.stamp_dict(ns), "frame_id": "map"},
-        "ns": "future_pose",
+        "ns": space,
         "id": ident,
         "type": kind,
         "action": 0,  # ADD (replaces the previous marker with the same ns and id)
@@ -252,7 +254,15 @@ def _marker(ns: int | np.integer, ident: int, kind: int, points: list, rgba: tup
 
 
 def write_predictions(
-    path, stamps_s, poses, dt_s: float, *, drive=None, cov_m2=None, force: bool = False
+    path,
+    stamps_s,
+    poses,
+    dt_s: float,
+    *,
+    drive=None,
+    cov_m2=None,
+    valid=None,
+    force: bool = False,
 ) -> Path:
     """Write predicted poses as CSV or ROS 2 MCAP, chosen by the suffix of `path`.
 
@@ -264,6 +274,9 @@ def write_predictions(
         drive: the observed `Drive`; its poses are written alongside (MCAP only).
         cov_m2: optional (N, H, 2, 2) map-frame covariance of each predicted position [m^2];
             CSV only, as three more columns `cov_xx_m2,cov_xy_m2,cov_yy_m2`.
+        valid: optional (N,) bool, whether each prediction had enough history
+            (`fpe_jax.history.history_valid`): CSV a last column `valid` (1 / 0); MCAP the
+            markers of an invalid prediction in the namespace `future_pose/invalid`, grey.
         force: replace an existing file.
 
     CSV: header `stamp,step,horizon_s,x,y,yaw`, one row per (observation, step), 9 decimals.
@@ -295,6 +308,10 @@ def write_predictions(
             cols += [c[:, 0, 0], c[:, 0, 1], c[:, 1, 1]]
             fmt += ["%.9g"] * 3
             header += ",cov_xx_m2,cov_xy_m2,cov_yy_m2"
+        if valid is not None:
+            cols.append(np.repeat(np.asarray(valid, dtype=np.int64), h))
+            fmt.append("%d")
+            header += ",valid"
         with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
             np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",", header=header, comments="")
         return Path(path)
@@ -303,9 +320,11 @@ def write_predictions(
     events = []
     for k in range(n):
         pts = poses[k, :, :2].tolist()
+        ok = valid is None or bool(valid[k])
+        space, rgb = ("future_pose", (1.0, 0.5, 0.0)) if ok else ("future_pose/invalid", (0.5,) * 3)
         markers = [
-            _marker(ns[k], 0, rm.MARKER_SPHERE_LIST, pts, (1.0, 0.5, 0.0, 1.0)),
-            _marker(ns[k], 1, rm.MARKER_LINE_STRIP, pts, (1.0, 0.5, 0.0, 0.6)),
+            _marker(ns[k], 0, rm.MARKER_SPHERE_LIST, pts, (*rgb, 1.0), space),
+            _marker(ns[k], 1, rm.MARKER_LINE_STRIP, pts, (*rgb, 0.6), space),
         ]
         events.append(
             (int(ns[k]), PREDICTION_TOPIC, "visualization_msgs/MarkerArray", {"markers": markers})
