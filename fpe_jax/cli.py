@@ -323,6 +323,10 @@ def _build_parser() -> argparse.ArgumentParser:
         help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
     )
 
+    from fpe_jax.node import _cli as node_cli  # JAX-free
+
+    node_cli.add_parser(sub)
+
     p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
     _add_run_flags(p)
