@@ -27,12 +27,13 @@ naming the topic and the problem, and nothing is published for it.
 
 from __future__ import annotations
 
+import collections
 import math
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -47,6 +48,7 @@ MARKER_LINE_STRIP = rm.MARKER_LINE_STRIP
 MARKER_SPHERE_LIST = rm.MARKER_SPHERE_LIST
 ELLIPSE_POINTS = 24  # segments of each 1-sigma ellipse
 TF_KEEP_S = 10.0  # the live TF buffer keeps this much of each dynamic edge
+MAX_PENDING = 64  # detections waiting for their TF
 
 # output name -> (default topic, type); a topic of None switches it off
 OUTPUTS = {
@@ -62,6 +64,7 @@ OBSTACLES_TYPE = "f110_msgs/msg/ObstacleArray"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 
 
+@runtime_checkable
 class Transport(Protocol):
     """A middleware (ROS 1, ROS 2): messages as nested dicts; see docs/on-the-car.md."""
 
@@ -94,6 +97,7 @@ class NodeOptions:
     tag_to_base: Any = None
     car_frame: str = "other_base_link"
     drop_after_s: float = 1.0
+    tf_wait_s: float = 0.2
     max_tracks: int = 16
     warn_every_s: float = 5.0
     trajectory_every_s: float = 1.0
@@ -166,6 +170,7 @@ class Node:
         self.last_seen_ns: dict[str, int] = {}  # receive time (monotonic) of each track
         self.t0_ns: int | None = None  # stamps enter the runners as seconds after this one
         self.tf = TfBuffer(source="TF")
+        self.pending: collections.deque = collections.deque()  # detections waiting for TF
         self.tag_to_base = parse_tag_to_base(options.tag_to_base)
         self.tag_frame = tag_frame_name(options.tag_id, "apriltag_ros")
         self.scene = scene
@@ -224,6 +229,8 @@ class Node:
                 self.warn(topic, str(e.problem if isinstance(e, InputError) else e))
             except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
                 self.warn(topic, f"malformed message ({type(e).__name__}: {e})")
+            except Exception as e:  # the node outlives any one message
+                self.warn(topic, f"unexpected error ({type(e).__name__}: {e})")
 
         return callback
 
@@ -254,6 +261,7 @@ class Node:
                          stamp_ns(tr["header"]["stamp"]), (p["x"], p["y"], p["z"]),
                          (r["x"], r["y"], r["z"], r["w"]), static, topic))  # fmt: skip
         self.tf.add(rows, keep_ns=int(TF_KEEP_S * 1e9))
+        self._place_pending(receive_ns)
 
     def _on_tags(self, topic: str, msg: dict, type_name: str, receive_ns: int) -> None:
         dets = msg["detections"]
@@ -274,17 +282,47 @@ class Node:
         if not _finite(*vals) or sum(v * v for v in vals[3:]) < 1e-18:
             raise BadMessage("the tag's pose is non-finite or has a zero quaternion")
         cam_tag = Rigid.make(vals[:3], vals[3:])
-        if self.tag_to_base is not None:
-            tag_car = tag_mount(*self.tag_to_base).inv()
-        else:
-            tag_car = self.tf.lookup(self.tag_frame, self.opt.car_frame, [ns], "detections")
-        stamps = np.array([ns], dtype=np.int64)
-        try:
-            map_car = place_tag(self.tf, self.opt.map_frame, camera, stamps, cam_tag, tag_car)
-        except InputError as e:
-            raise BadMessage(f"TF: {e.problem}") from None
-        x, y = (float(v) for v in map_car.t_m[0, :2])
-        self._observe("0", ns, x, y, float(map_car.yaw_rad()[0]), receive_ns)
+        if len(self.pending) >= MAX_PENDING:
+            self.pending.popleft()
+            self.warn(topic, f"more than {MAX_PENDING} detections wait for TF: the oldest dropped")
+        self.pending.append((topic, ns, camera, cam_tag, receive_ns))
+        self._place_pending(receive_ns)
+
+    def _place_pending(self, now_ns: int) -> None:
+        """Place the waiting detections, oldest first: each as soon as the TF buffer covers its
+        stamp; one the TF has not reached yet waits up to tf_wait_s (receive time), then is
+        dropped with a warning (TF extrapolation), as is one inside a TF gap."""
+        while self.pending:
+            topic, ns, camera, cam_tag, receive_ns = self.pending[0]
+            try:
+                ahead = self._tf_behind(camera, ns)
+            except InputError as e:  # no TF chain (yet): a wrong frame or TF still to come
+                ahead, problem = True, f"TF: {e.problem}"
+            else:
+                problem = "TF extrapolation: no transform at or after the detection's stamp yet"
+            if ahead:
+                if now_ns - receive_ns <= self.opt.tf_wait_s * 1e9:
+                    return
+                self.pending.popleft()
+                self.warn(topic, problem)
+                continue
+            self.pending.popleft()
+            try:
+                if self.tag_to_base is not None:
+                    tag_car = tag_mount(*self.tag_to_base).inv()
+                else:
+                    tag_car = self.tf.lookup(self.tag_frame, self.opt.car_frame, [ns], "detections")
+                stamps = np.array([ns], dtype=np.int64)
+                map_car = place_tag(self.tf, self.opt.map_frame, camera, stamps, cam_tag, tag_car)
+                x, y = (float(v) for v in map_car.t_m[0, :2])
+                self._observe("0", ns, x, y, float(map_car.yaw_rad()[0]), receive_ns)
+            except (BadMessage, InputError) as e:
+                self.warn(topic, f"TF: {e.problem}" if isinstance(e, InputError) else str(e))
+
+    def _tf_behind(self, camera: str, ns: int) -> bool:
+        """Whether a dynamic TF edge between the map and `camera` ends before stamp ns [ns]."""
+        up_a, up_b = self.tf.path(self.opt.map_frame, camera)
+        return any(not e.static and e.stamps_ns[-1] < ns for e in up_a + up_b)
 
     def _on_obst(self, topic: str, msg: dict, type_name: str, receive_ns: int) -> None:
         ns = stamp_ns(msg["header"]["stamp"])
@@ -315,11 +353,7 @@ class Node:
             self._pub["obstacles"](self._obstacle_array(ns, updated))
 
     def _frenet_to_map(self, s_m: float, d_m: float) -> tuple[float, float]:
-        """Map position of arc length s [m] and offset d [m] (left positive) along the
-        waypoints (the frame of ForzaETH's obstacles)."""
-        cx, cy = self.path.point_at(s_m)
-        h = self.path.heading_at(s_m)
-        return cx - d_m * math.sin(h), cy + d_m * math.cos(h)
+        return frenet_to_map(self.path, s_m, d_m)
 
     # -- prediction
 
@@ -504,6 +538,14 @@ class Node:
         if self.flavour == "ros1":
             msg["id"] = 0
         return msg
+
+
+def frenet_to_map(path, s_m: float, d_m: float) -> tuple[float, float]:
+    """Map position x [m], y [m] of arc length s [m] and offset d [m] (left positive) along a
+    `RunnerPath` (the frame of ForzaETH's obstacles: the waypoints given to the node)."""
+    cx, cy = path.point_at(s_m)
+    h = path.heading_at(s_m)
+    return cx - d_m * math.sin(h), cy + d_m * math.cos(h)
 
 
 def ellipse_points(center_m: np.ndarray, cov_m2: np.ndarray, n: int = ELLIPSE_POINTS) -> list:

@@ -13,6 +13,7 @@ import importlib
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable
 
 from fpe_jax.errors import InputError
@@ -168,4 +169,6 @@ class Ros1Transport:
             s.unregister()
         for p in self._pubs:
             p.unregister()
-        rospy.signal_shutdown("fpe node stopped")
+        with warnings.catch_warnings():  # rospy's shutdown calls deprecated threading APIs
+            warnings.simplefilter("ignore", DeprecationWarning)
+            rospy.signal_shutdown("fpe node stopped")
