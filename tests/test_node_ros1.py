@@ -25,7 +25,12 @@ from fpe_jax.runner import Runner, RunnerPath, load_waypoints_xy
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 40.0
 # rospy (Debian's) calls threading APIs Python 3.11 deprecates, from its own threads
-pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
+# and leaves its connection sockets to the garbage collector
+pytestmark = [
+    pytest.mark.filterwarnings("ignore::DeprecationWarning"),
+    pytest.mark.filterwarnings("ignore::ResourceWarning"),
+    pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning"),
+]
 H = 10
 COV = [[[0.01 * (k + 1), 0.002], [0.002, 0.004 * (k + 1)]] for k in range(H)]
 
