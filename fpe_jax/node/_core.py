@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import collections
 import math
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -208,7 +209,7 @@ class Node:
 
     def warn(self, topic: str, problem: str) -> None:
         """One line per (topic, kind of problem) every warn_every_s, counting the repeats."""
-        kind = problem.split(":", 1)[0][:60]
+        kind = re.sub(r"[-+0-9.e]+|'[^']*'|\([^)]*\)", "#", problem)[:80]  # values vary, kinds not
         now = time.monotonic()
         last = self._warned.get((topic, kind))
         if last is not None and now - last[0] < self.opt.warn_every_s:
