@@ -138,9 +138,9 @@ def test_tag_input_matches_fpe_predict_none_dropped(ros, drive):
     tmp, _ = drive
     log = open_log(tmp / "sim" / "drive.mcap")
     msgs = list(log.messages(["/tf", "/tf_static", "/tag_detections"]))
-    proc = start_node(
-        env, "--config", str(tmp / "cfg.json"), "--waypoints", str(tmp / "sim" / "waypoints.csv")
-    )
+    # a loaded machine can hold the TF thread back: a generous wait keeps every detection
+    wp = str(tmp / "sim" / "waypoints.csv")
+    proc = start_node(env, "--config", str(tmp / "cfg.json"), "--waypoints", wp, "--tf-wait", "5")
     try:
         pubs = {
             "/tf": r1.rospy.Publisher(

@@ -73,6 +73,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="drop an obstacle track after S seconds without updates (1.0)",
     )
     g.add_argument(
+        "--tf-wait",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="how long a detection waits for the TF at its stamp before it is dropped (0.5)",
+    )
+    g.add_argument(
         "--max-tracks", type=int, default=16, metavar="N", help="most obstacles tracked (16)"
     )
     o = p.add_argument_group("outputs (each can be renamed or switched off)")
@@ -178,9 +185,12 @@ def options_from_args(args, transport):
             outputs[name] = None
         else:
             value = getattr(args, f"{flag.replace('-', '_')}_topic")
-            outputs[name] = _param(transport, args, value, f"{name}_topic", OUTPUTS[name][0])
-    if args.drop_after <= 0 or args.max_tracks < 1:
-        raise InputError("fpe node", "--drop-after or --max-tracks not positive", "> 0")
+            key = f"{flag.replace('-', '_')}_topic"
+            outputs[name] = _param(transport, args, value, key, OUTPUTS[name][0])
+    if not (args.drop_after > 0 and args.max_tracks >= 1 and args.tf_wait >= 0):
+        raise InputError(
+            "fpe node", "--drop-after, --max-tracks or --tf-wait out of range", "positive values"
+        )
     opts = NodeOptions(
         input=kind,
         topic=topic,
@@ -189,6 +199,7 @@ def options_from_args(args, transport):
         tag_to_base=args.tag_to_base,
         car_frame=args.tf_child,
         drop_after_s=args.drop_after,
+        tf_wait_s=args.tf_wait,
         max_tracks=args.max_tracks,
         outputs=outputs,
     )

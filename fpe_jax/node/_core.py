@@ -98,7 +98,7 @@ class NodeOptions:
     tag_to_base: Any = None
     car_frame: str = "other_base_link"
     drop_after_s: float = 1.0
-    tf_wait_s: float = 0.2
+    tf_wait_s: float = 0.5
     max_tracks: int = 16
     warn_every_s: float = 5.0
     trajectory_every_s: float = 1.0
