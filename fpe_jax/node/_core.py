@@ -293,21 +293,27 @@ class Node:
         """Place the waiting detections, oldest first: each as soon as the TF buffer covers its
         stamp; one the TF has not reached yet waits up to tf_wait_s (receive time), then is
         dropped with a warning (TF extrapolation), as is one inside a TF gap."""
+        keep: collections.deque = collections.deque()
         while self.pending:
-            topic, ns, camera, cam_tag, receive_ns = self.pending[0]
+            entry = self.pending.popleft()
+            topic, ns, camera, cam_tag, receive_ns = entry
+            expired = now_ns - receive_ns > self.opt.tf_wait_s * 1e9
             try:
                 ahead = self._tf_behind(camera, ns)
-            except InputError as e:  # no TF chain (yet): a wrong frame or TF still to come
-                ahead, problem = True, f"TF: {e.problem}"
-            else:
-                problem = "TF extrapolation: no transform at or after the detection's stamp yet"
-            if ahead:
-                if now_ns - receive_ns <= self.opt.tf_wait_s * 1e9:
-                    return
-                self.pending.popleft()
-                self.warn(topic, problem)
+            except InputError as e:  # no chain to this camera (yet): later detections go on
+                if expired:
+                    self.warn(topic, f"TF: {e.problem}")
+                else:
+                    keep.append(entry)
                 continue
-            self.pending.popleft()
+            if ahead:  # the TF has not reached this stamp: this and later ones wait
+                if not expired:
+                    keep.append(entry)
+                    keep.extend(self.pending)
+                    self.pending.clear()
+                    break
+                self.warn(topic, "TF extrapolation: no transform at or after the stamp arrived")
+                continue
             try:
                 if self.tag_to_base is not None:
                     tag_car = tag_mount(*self.tag_to_base).inv()
@@ -319,6 +325,7 @@ class Node:
                 self._observe("0", ns, x, y, float(map_car.yaw_rad()[0]), receive_ns)
             except (BadMessage, InputError) as e:
                 self.warn(topic, f"TF: {e.problem}" if isinstance(e, InputError) else str(e))
+        self.pending = keep
 
     def _tf_behind(self, camera: str, ns: int) -> bool:
         """Whether a dynamic TF edge between the map and `camera` ends before stamp ns [ns]."""
