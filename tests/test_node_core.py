@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from fpe_jax.config import params_to_config
 from fpe_jax.history import drive_valid
@@ -181,3 +182,34 @@ def test_tag_input_with_bad_detections_and_a_flood_of_obstacles(tmp_path):
     one = [{"id": 1, "s_center": 5.0, "d_center": 0.0, "is_static": False}]
     t2.subs["/obst"]({"header": hdr, "obstacles": one}, "f110_msgs/msg/ObstacleArray", 10**9)
     assert sorted(node2.runners) == ["1"]
+
+
+def test_missing_files_and_mismatched_waypoints_stop_at_start(tmp_path, capsys):
+    import argparse
+
+    from fpe_jax.cli import main
+    from fpe_jax.config import write_config
+    from fpe_jax.errors import InputError
+    from fpe_jax.io.writers import write_xy_csv
+    from fpe_jax.node import _cli
+
+    assert main(["node", "--ros1", "--config", str(tmp_path / "no.json"), "--waypoints", "x"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no.json: does not exist" in err[0]
+    # --params-file: the exported YAML gives the config and the waypoints beside it
+    res = simulate("oval", duration_s=2.0, seed=1)
+    write_xy_csv(tmp_path / "wp.csv", res.centerline_xy_m)
+    write_config(tmp_path / "cfg.json", params_to_config(presets["default"]))
+    argv = ["export", str(tmp_path / "cfg.json"), "--format", "ros2", "--out"]
+    assert main([*argv, str(tmp_path / "p.yaml"), "--waypoints", str(tmp_path / "wp.csv")]) == 0
+    parser = argparse.ArgumentParser()
+    _cli.add_parser(parser.add_subparsers())
+    args = parser.parse_args(["node", "--ros2", "--params-file", str(tmp_path / "p.yaml")])
+    cfg, xy, opts = _cli.options_from_args(args, FakeTransport())
+    assert cfg["params"] == params_to_config(presets["default"])["params"]
+    assert opts.input == "tags" and opts.topic == "/tag_detections"
+    np.testing.assert_allclose(xy, res.centerline_xy_m, atol=1e-6)
+    # no waypoints at all: refused
+    args = parser.parse_args(["node", "--ros2", "--config", str(tmp_path / "cfg.json")])
+    with pytest.raises(InputError, match="no waypoints"):
+        _cli.options_from_args(args, FakeTransport())

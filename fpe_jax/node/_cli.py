@@ -207,8 +207,14 @@ def options_from_args(args, transport):
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from fpe_jax.node._core import Node
 
+    for flag in ("config", "waypoints", "params_file"):  # before connecting to any middleware
+        value = getattr(args, flag)
+        if value is not None and not Path(value).is_file():
+            raise InputError(value, "does not exist", f"--{flag.replace('_', '-')} FILE")
     transport = _transport(args)
     stop = threading.Event()
     scene = None
