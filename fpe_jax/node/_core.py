@@ -47,7 +47,7 @@ from fpe_jax.runner import Runner
 MARKER_LINE_LIST = 5
 MARKER_LINE_STRIP = rm.MARKER_LINE_STRIP
 MARKER_SPHERE_LIST = rm.MARKER_SPHERE_LIST
-ELLIPSE_POINTS = 24  # segments of each 1-sigma ellipse
+ELLIPSE_POINTS = 16  # segments of each 1-sigma ellipse
 TF_KEEP_S = 10.0  # the live TF buffer keeps this much of each dynamic edge
 MAX_PENDING = 64  # detections waiting for their TF
 
@@ -490,10 +490,8 @@ class Node:
             self._marker(car, ns, 1, MARKER_LINE_STRIP, pts, (0.0, 1.0, 0.0, 0.6), 0.03),
         ]
         if cov is not None:
-            seg = []
-            for (x, y), c in zip(pts, cov):
-                ring = ellipse_points(np.array([x, y]), c)
-                seg += [p for a, b in zip(ring[:-1], ring[1:]) for p in (a, b)]
+            rings = ellipse_points(poses[:, :2], cov)  # (H, n + 1, 2)
+            seg = np.stack([rings[:, :-1], rings[:, 1:]], axis=2).reshape(-1, 2).tolist()
             out.append(self._marker(car, ns, 2, MARKER_LINE_LIST, seg, (0.0, 0.6, 1.0, 0.8), 0.02))
         return out
 
@@ -564,12 +562,14 @@ def frenet_to_map(path, s_m: float, d_m: float) -> tuple[float, float]:
     return cx - d_m * math.sin(h), cy + d_m * math.cos(h)
 
 
-def ellipse_points(center_m: np.ndarray, cov_m2: np.ndarray, n: int = ELLIPSE_POINTS) -> list:
-    """A closed ring of n + 1 points (x, y) [m] on the 1-sigma ellipse of a (2, 2) covariance."""
+def ellipse_points(center_m: np.ndarray, cov_m2: np.ndarray, n: int = ELLIPSE_POINTS):
+    """(..., n + 1, 2) closed rings x [m], y [m] on the 1-sigma ellipses of (..., 2, 2)
+    covariances [m^2] around (..., 2) centres."""
     vals, vecs = np.linalg.eigh(cov_m2)
     a = np.linspace(0.0, 2.0 * np.pi, n + 1)
-    ring = (vecs * np.sqrt(np.maximum(vals, 0.0))) @ np.stack([np.cos(a), np.sin(a)])
-    return (ring.T + center_m).tolist()
+    axes = vecs * np.sqrt(np.maximum(vals, 0.0))[..., None, :]  # columns: the scaled axes
+    ring = np.einsum("...ij,jk->...ki", axes, np.stack([np.cos(a), np.sin(a)]))
+    return ring + center_m[..., None, :]
 
 
 def _stderr(line: str) -> None:
