@@ -213,3 +213,14 @@ def test_missing_files_and_mismatched_waypoints_stop_at_start(tmp_path, capsys):
     args = parser.parse_args(["node", "--ros2", "--config", str(tmp_path / "cfg.json")])
     with pytest.raises(InputError, match="no waypoints"):
         _cli.options_from_args(args, FakeTransport())
+
+
+def test_the_node_imports_no_jax():
+    import subprocess
+    import sys
+
+    from test_runner import CHECK_NO_JAX, NO_JAX
+
+    code = NO_JAX + "import fpe_jax.node, fpe_jax.node._cli, fpe_jax.node._core\n" + CHECK_NO_JAX
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr

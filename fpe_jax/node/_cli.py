@@ -25,7 +25,7 @@ OUTPUT_FLAGS = {
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    from fpe_jax.node._core import OUTPUTS
+    from fpe_jax.node._types import OUTPUTS
 
     p = subparsers.add_parser(
         "node",
@@ -152,7 +152,8 @@ def options_from_args(args, transport):
     """(config dict, waypoints (K, 2), NodeOptions) from the flags and the ROS parameters.
     Raises InputError for a missing or mismatched config / waypoint file."""
     from fpe_jax.config import check_waypoints, read_config
-    from fpe_jax.node._core import OUTPUTS, NodeOptions
+    from fpe_jax.node._core import NodeOptions
+    from fpe_jax.node._types import OUTPUTS
     from fpe_jax.runner import load_waypoints_xy
 
     config = _param(transport, args, args.config, "config")

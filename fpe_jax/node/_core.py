@@ -42,6 +42,7 @@ from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io.apriltag import parse_tag_to_base, place_tag, tag_frame_name, tag_mount
 from fpe_jax.io.tf import STATIC_SUFFIX, Rigid, TfBuffer
+from fpe_jax.node._types import OUTPUTS
 from fpe_jax.runner import Runner
 
 MARKER_LINE_LIST = 5
@@ -51,14 +52,6 @@ ELLIPSE_POINTS = 16  # segments of each 1-sigma ellipse
 TF_KEEP_S = 10.0  # the live TF buffer keeps this much of each dynamic edge
 MAX_PENDING = 64  # detections waiting for their TF
 
-# output name -> (default topic, type); a topic of None switches it off
-OUTPUTS = {
-    "markers": ("/future_pose", "visualization_msgs/msg/MarkerArray"),
-    "path": ("/future_pose/path", "nav_msgs/msg/Path"),
-    "covariance": ("/future_pose/covariance", "geometry_msgs/msg/PoseWithCovarianceStamped"),
-    "obstacles": ("/future_pose/obstacles", "f110_msgs/msg/ObstacleArray"),
-    "trajectory": ("/opponent_trajectory", "f110_msgs/msg/OpponentTrajectory"),
-}
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry")
 TAG_TYPE = "apriltag_ros/msg/AprilTagDetectionArray"
 OBSTACLES_TYPE = "f110_msgs/msg/ObstacleArray"
