@@ -360,6 +360,10 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-off-track", action="store_true", help="warn, not fail, when the "
                    "first observations are off the waypoints")  # fmt: skip
 
+    from fpe_jax.node import _cli as node_cli  # JAX-free
+
+    node_cli.add_parser(sub)
+
     p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
     _add_run_flags(p)
@@ -647,6 +651,7 @@ def cmd_predict(args) -> int:
         _start_jax(args, say)
         from fpe_jax.drive import local_frame
         from fpe_jax.evaluate import covariance_map, path_heading, prediction_covariance
+        from fpe_jax.history import drive_valid
         from fpe_jax.predict import predict_rows, states_from_drive
         from fpe_jax.track import Track
 
@@ -670,6 +675,7 @@ def cmd_predict(args) -> int:
         poses[..., :2] += origin
         say(f"writing {args.out}")
         dt_s = params.settings.dt_s
+        valid = drive_valid(local, params.settings.history)
         io.write_predictions(
             args.out,
             stamps_s,
@@ -677,6 +683,7 @@ def cmd_predict(args) -> int:
             dt_s,
             drive=drive,
             cov_m2=cov,
+            valid=valid,
             track_xy_m=waypoints.xy_m,
             track_closed=track.closed,
             force=args.force,

@@ -35,7 +35,7 @@ import numpy as np
 
 from fpe_jax.config import LINE_KEYS, check_waypoints, read_config
 from fpe_jax.errors import InputError
-from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
+from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M, history_valid
 from fpe_jax.path import (
     BRANCH_COS,
     BRANCH_M,
@@ -361,6 +361,7 @@ class Runner:
     def reset(self) -> None:
         """Forget the history and the track position (a new drive starts)."""
         self._history.clear()
+        self.valid = False  # whether the last prediction had enough history (history_valid)
         self._last_stamp_s: float | None = None
         self._last_xy: tuple[float, float] | None = None
         self._s_m: float | None = None
@@ -464,6 +465,9 @@ class Runner:
         if self._last_xy != (x, y):
             self._history.append((t, x, y, yaw))
             self._motion = None
+            t_new = self._history[-1][0]
+            recent = [o[0] for o in self._history if t_new - o[0] <= MAX_SPAN_S]
+            self.valid = bool(history_valid(len(recent), t_new - recent[0]))
         self._last_stamp_s, self._last_xy = t, (x, y)
         if self._motion is None:  # a repeated row is predicted from as if fresh: reuse
             self._motion = self._estimate_motion()
@@ -880,7 +884,8 @@ def load_waypoints_xy(path) -> np.ndarray:
 
 def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) -> int:
     """Predict for every usable observation line of `lines` (parsed by `fpe_jax.io.stream`),
-    writing one JSON line to `out` for each: {"stamp": t, "poses": [[x, y, yaw] x H]}, flushed
+    writing one JSON line to `out` for each: {"stamp": t, "poses": [[x, y, yaw] x H], "valid":
+    bool (`fpe_jax.history.history_valid`: enough history)}, flushed
     at once (a car's process pipes into it).
 
     A bad line is reported on `err` with its line number and skipped (the first
@@ -905,7 +910,8 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
                 runner.update(o.since_s, o.x_m, o.y_m, o.yaw_rad)
         try:
             poses = runner.update(obs.since_s, obs.x_m, obs.y_m, obs.yaw_rad)
-            reply = json.dumps({"stamp": obs.t_s, "poses": poses.tolist()}, allow_nan=False)
+            reply = {"stamp": obs.t_s, "poses": poses.tolist(), "valid": runner.valid}
+            reply = json.dumps(reply, allow_nan=False)
         except (InputError, ValueError) as e:
             warn(f"line {obs.line}: {e}; skipped")
             continue

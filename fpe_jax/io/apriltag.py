@@ -367,13 +367,21 @@ def _compose(log, topic, dets: _Detections, buf: TfBuffer, plan: _Plan, map_fram
     q = np.empty((len(stamps), 4))
     for cam in sorted(set(frames)):
         sel = frames == cam
-        out = (
-            buf.lookup(map_frame, cam, stamps[sel], what, _REMEDY)
-            @ cam_tag.take(sel)
-            @ tag_car.take(sel)
+        out = place_tag(
+            buf, map_frame, cam, stamps[sel], cam_tag.take(sel), tag_car.take(sel), what
         )
         t[sel], q[sel] = out.t_m, out.q
     return keep, Rigid(t, q), int(n - keep.sum()), int((in_gap & ~keep).sum())
+
+
+def place_tag(
+    buf: TfBuffer, map_frame: str, camera_frame: str, stamps_ns, cam_tag: Rigid, tag_car: Rigid,
+    what: str = "detections", remedy: str | None = _REMEDY,
+) -> Rigid:  # fmt: skip
+    """T_map_car of N detections in one camera frame: T_map_camera (TF at each stamp (N,) [ns])
+    @ T_camera_tag (the detections) @ T_tag_car (the tag's mount). Raises InputError when the
+    TF buffer does not join the frames or a stamp lies outside it (`what` names the stamps)."""
+    return buf.lookup(map_frame, camera_frame, stamps_ns, what, remedy) @ cam_tag @ tag_car
 
 
 def detection_rows(

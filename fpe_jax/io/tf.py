@@ -254,34 +254,59 @@ class TfBuffer:
             (`default_max_gap_ns`).
     """
 
-    def __init__(self, transforms: Iterable[tuple], source: Any = "TF", max_gap_s=None):
+    def __init__(self, transforms: Iterable[tuple] = (), source: Any = "TF", max_gap_s=None):
         self.source = source
         self.max_gap_ns = None
         if max_gap_s is not None:
             from fpe_jax import spec
 
             self.max_gap_ns = int(round(spec.check_tf_gap(max_gap_s, "max_gap_s", "value") * 1e9))
-        raw: dict[tuple[str, str, bool], list] = {}
-        for parent, child, stamp_ns, t, q, static, topic in transforms:
-            key = (parent.lstrip("/"), child.lstrip("/"), bool(static))
-            raw.setdefault(key, []).append((int(stamp_ns), t, q, topic))
+        self._raw: dict[tuple[str, str, bool], list] = {}
         self.edges: dict[tuple[str, str], Edge] = {}
         self._both: set[tuple[str, str]] = set()  # edges on both a static and a dynamic topic
-        for (parent, child, static), rows in raw.items():
-            if (parent, child) in self.edges:
-                self._both.add((parent, child))
-            self.edges[(parent, child)] = self._edge(parent, child, static, rows)
         self.parents: dict[str, list[str]] = {}
-        for parent, child in sorted(self.edges):
-            self.parents.setdefault(child, []).append(parent)
+        self.add(transforms)
 
-    def _edge(self, parent: str, child: str, static: bool, rows: list) -> Edge:
-        stamps = np.array([r[0] for r in rows], dtype=np.int64)
-        t = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
-        q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
+    def add(self, transforms: Iterable[tuple], keep_ns: int | None = None) -> None:
+        """Add transforms (tuples as the constructor takes) to the buffer, as a live node receives
+        them. With `keep_ns`, a dynamic edge keeps only the transforms no older than that before
+        its newest (a bounded buffer). Raises InputError for a non-finite, zero, non-unit or
+        absurdly far transform, or static repeats that disagree, before any of `transforms` is
+        added."""
+        rows = list(transforms)
+        by_key: dict[tuple[str, str, bool], list] = {}
+        for parent, child, stamp_ns, t, q, static, topic in rows:
+            key = (parent.lstrip("/"), child.lstrip("/"), bool(static))
+            by_key.setdefault(key, []).append((int(stamp_ns), t, q, topic))
+        for (parent, child, static), new in sorted(by_key.items()):
+            self._check_rows(f"TF {parent} -> {child}", new)
+            if static:
+                self._check_static_rows(
+                    f"TF {parent} -> {child}", self._raw.get((parent, child, True), []) + new
+                )
+        new_edge = False
+        for key, new in sorted(by_key.items()):
+            parent, child, static = key
+            self._raw.setdefault(key, []).extend(new)
+            if keep_ns is not None and not static:
+                newest = max(r[0] for r in self._raw[key])
+                self._raw[key] = [r for r in self._raw[key] if r[0] >= newest - keep_ns]
+            if (parent, child) in self.edges and self.edges[(parent, child)].static != static:
+                self._both.add((parent, child))
+            new_edge |= (parent, child) not in self.edges
+            self.edges[(parent, child)] = self._edge(parent, child, static, self._raw[key])
+        if new_edge:
+            self.parents = {}
+            for parent, child in sorted(self.edges):
+                self.parents.setdefault(child, []).append(parent)
+
+    def _check_rows(self, name: str, rows: list) -> None:
+        """InputError when a transform (stamp_ns, t, q, topic) of `rows` is not a rigid one."""
         from fpe_jax import spec
 
-        name = f"TF {parent} -> {child}"
+        stamps = [r[0] for r in rows]
+        t = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
+        q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
         norm = np.linalg.norm(q, axis=1)
         bad = ~(np.isfinite(norm) & (norm > 1e-9)) | ~np.isfinite(t).all(axis=1)
         if bad.any():
@@ -310,26 +335,14 @@ class TfBuffer:
                 f"{np.abs(t[k]).max():.6g} m",
                 f"translations within ±{spec.MAX_COORD_M:g} m",
             )
-        topics = tuple(sorted({r[3] for r in rows}))
-        if static:  # a latched topic repeats the one mount; all must agree
-            self._check_static(name, t, q, topics)
-            keep = np.array([len(rows) - 1])
-        else:  # sorted by stamp; of repeated stamps the last to arrive
-            order = np.argsort(stamps, kind="stable")
-            last = np.append(stamps[order][1:] != stamps[order][:-1], True)
-            keep = order[last]
-        gap = 0
-        if not static:
-            gap = (
-                self.max_gap_ns if self.max_gap_ns is not None else default_max_gap_ns(stamps[keep])
-            )
-        rigid = Rigid.make(t[keep], q[keep])
-        return Edge(parent, child, static, stamps[keep], rigid, topics, gap)
 
-    def _check_static(self, name: str, t: np.ndarray, q: np.ndarray, topics) -> None:
+    def _check_static_rows(self, name: str, rows: list) -> None:
         """InputError when the transforms of one static edge are not one mount."""
-        if len(t) < 2:
+        if len(rows) < 2:
             return
+        t = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
+        q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
+        topics = sorted({r[3] for r in rows})
         r = Rigid.make(t, q)
         dt_m = float(np.linalg.norm(r.t_m - r.t_m[-1], axis=1).max())
         dot = np.clip(np.abs(np.sum(r.q * r.q[-1], axis=1)), 0.0, 1.0)
@@ -342,6 +355,25 @@ class TfBuffer:
                 f"one transform per static edge (repeats within {STATIC_TOL_M:g} m and "
                 f"{STATIC_TOL_RAD:g} rad); a moving link belongs on /tf",
             )
+
+    def _edge(self, parent: str, child: str, static: bool, rows: list) -> Edge:
+        stamps = np.array([r[0] for r in rows], dtype=np.int64)
+        t = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
+        q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
+        topics = tuple(sorted({r[3] for r in rows}))
+        if static:  # one mount (checked on arrival): the last one published
+            keep = np.array([len(rows) - 1])
+        else:  # sorted by stamp; of repeated stamps the last to arrive
+            order = np.argsort(stamps, kind="stable")
+            last = np.append(stamps[order][1:] != stamps[order][:-1], True)
+            keep = order[last]
+        gap = 0
+        if not static:
+            gap = (
+                self.max_gap_ns if self.max_gap_ns is not None else default_max_gap_ns(stamps[keep])
+            )
+        rigid = Rigid.make(t[keep], q[keep])
+        return Edge(parent, child, static, stamps[keep], rigid, topics, gap)
 
     @classmethod
     def from_log(cls, log, max_gap_s=None) -> TfBuffer:

@@ -267,8 +267,10 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
     return _write_ros2_mcap(path, events, force)
 
 
-def _marker(ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple) -> dict:
-    return scene.ros2_marker(ns, "map", "future_pose", ident, kind, rgba, points=points)
+def _marker(
+    ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple, space="future_pose"
+) -> dict:
+    return scene.ros2_marker(ns, "map", space, ident, kind, rgba, points=points)
 
 
 def write_predictions(
@@ -296,8 +298,10 @@ def write_predictions(
             in CSV three more columns `cov_xx_m2,cov_xy_m2,cov_yy_m2`; in MCAP the ellipses.
         track_xy_m: optional (K, 2) track line x [m], y [m] (the waypoints); MCAP only.
         track_closed: whether the track is a loop (its line is drawn closed).
-        valid: optional (N,) bool; MCAP only: an invalid prediction's path and ellipses are
-            left out and its line is drawn grey (`fpe_jax.io.scene`). Default: all valid.
+        valid: optional (N,) bool, whether each prediction had enough history
+            (`fpe_jax.history.history_valid`): CSV a last column `valid` (1 / 0); MCAP the
+            markers of an invalid prediction in the namespace `future_pose/invalid`, grey, and
+            its path and ellipses left out (`fpe_jax.io.scene`). Default: all valid.
         force: replace an existing file.
 
     CSV: header `stamp,step,horizon_s,x,y,yaw`, one row per (observation, step), 9 decimals.
@@ -332,6 +336,10 @@ def write_predictions(
             cols += [c[:, 0, 0], c[:, 0, 1], c[:, 1, 1]]
             fmt += ["%.9g"] * 3
             header += ",cov_xx_m2,cov_xy_m2,cov_yy_m2"
+        if valid is not None:
+            cols.append(np.repeat(np.asarray(valid, dtype=np.int64), h))
+            fmt.append("%d")
+            header += ",valid"
         with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
             np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",", header=header, comments="")
         return Path(path)
@@ -348,14 +356,18 @@ def write_predictions(
     events = []
     for k in range(n):
         pts = poses[k, :, :2].tolist()
+        good = bool(ok[k])
+        space, rgb = (
+            ("future_pose", (1.0, 0.5, 0.0)) if good else ("future_pose/invalid", (0.5,) * 3)
+        )
         markers = [
-            _marker(ns[k], 0, rm.MARKER_SPHERE_LIST, pts, (1.0, 0.5, 0.0, 1.0)),
-            _marker(ns[k], 1, rm.MARKER_LINE_STRIP, pts, (1.0, 0.5, 0.0, 0.6)),
+            _marker(ns[k], 0, rm.MARKER_SPHERE_LIST, pts, (*rgb, 1.0), space),
+            _marker(ns[k], 1, rm.MARKER_LINE_STRIP, pts, (*rgb, 0.6), space),
         ]
         events.append(
             (int(ns[k]), PREDICTION_TOPIC, "visualization_msgs/MarkerArray", {"markers": markers})
         )
-        drawn = scene.prediction_scene(int(ns[k]), poses[k], cov[k], steps_ns[k], bool(ok[k]))
+        drawn = scene.prediction_scene(int(ns[k]), poses[k], cov[k], steps_ns[k], good)
         events += [(int(ns[k]), *e) for e in scene.ros2_prediction(int(ns[k]), drawn, "map")]
     if drive is not None:
         obs = dict(t_s=drive.t_s, xy_m=drive.xy_m, yaw_rad=drive.yaw_rad)
