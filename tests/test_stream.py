@@ -59,7 +59,11 @@ def fpe_run(monkeypatch, capsys, argv, lines) -> tuple[int, list[dict], list[str
 def expected(cfg, wp, rows) -> list[dict]:
     """What a fresh runner predicts for the rows (t, x, y, yaw) in order."""
     r = Runner(cfg, wp)
-    return [{"stamp": float(t), "poses": r.update(t, x, y, yaw).tolist()} for t, x, y, yaw in rows]
+    out = []
+    for t, x, y, yaw in rows:
+        poses = r.update(t, x, y, yaw).tolist()
+        out.append({"stamp": float(t), "poses": poses, "valid": r.valid})
+    return out
 
 
 @pytest.mark.parametrize(
