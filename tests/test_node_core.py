@@ -224,3 +224,34 @@ def test_the_node_imports_no_jax():
     code = NO_JAX + "import fpe_jax.node, fpe_jax.node._cli, fpe_jax.node._core\n" + CHECK_NO_JAX
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_adapting_node_predicts_as_the_adapting_runner_and_publishes_what_it_learned():
+    """`fpe node --adapt` without a config: each opponent's runner is an AdaptiveRunner started
+    from the waypoints alone; its predictions equal a reference AdaptiveRunner fed the same
+    observations, and the OpponentTrajectory carries the line it learned."""
+    from fpe_jax.adapt import AdaptiveRunner
+
+    res = simulate("oval", duration_s=30.0, seed=2)
+    d = res.drive
+    t = FakeTransport()
+    node = Node(t, None, res.centerline_xy_m,
+                NodeOptions(input="pose", topic="/opp", adapt=True, delay_s=0.1))  # fmt: skip
+    node.start()
+    ref, want = AdaptiveRunner(None, res.centerline_xy_m, delay_s=0.1), []
+    base = 10**18
+    for ts, (x, y) in zip(d.t_s, d.xy_m):
+        ns = base + round(float(ts) * 1e9)
+        t.subs["/opp"](pose_msg(ns, float(x), float(y)), "geometry_msgs/msg/PoseStamped", 0)
+        poses = ref.update((ns - base) * 1e-9, float(x), float(y), None)
+        if ref.valid:
+            want.append(poses)
+    paths = t.out["/future_pose/path"]
+    assert len(paths) == len(want) > 0
+    for m, poses in zip(paths, want):
+        xy = [[p["pose"]["position"]["x"], p["pose"]["position"]["y"]] for p in m["poses"]]
+        np.testing.assert_allclose(xy, poses[:, :2], atol=1e-9, rtol=0)
+    assert ref.samples > 0 and node.runners["0"].samples == ref.samples
+    learned = ref.state_config()["params"]["line_offset_m"]
+    got = [w["d_m"] for w in node.trajectory_message()["oppwpnts"]]
+    np.testing.assert_allclose(got, learned, atol=1e-12, rtol=0)

@@ -45,6 +45,18 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="the ROS 2 parameter file `fpe export --format ros2` writes (config and waypoints)",
     )
     p.add_argument("--waypoints", help="waypoint / centerline / raceline file (map frame)")
+    p.add_argument(
+        "--adapt",
+        action="store_true",
+        help="learn each opponent's line and pace during the race (from --config, or from the "
+        "waypoints and the shape prior alone)",
+    )
+    p.add_argument(
+        "--delay",
+        type=float,
+        metavar="S",
+        help="with --adapt and no config: your sensor's detection delay [s] (default 0)",
+    )
     g = p.add_argument_group("input (one of; default: the AprilTag detections)")
     g.add_argument("--pose-topic", metavar="T", help="PoseStamped or Odometry in the map frame")
     g.add_argument(
@@ -168,12 +180,17 @@ def options_from_args(args, transport):
         cfg = _preset_config(args.preset)
     elif config is not None:
         cfg = read_config(config)
+    elif args.adapt:
+        cfg = None  # learned from the waypoints and the shape prior alone
     else:
         raise InputError("fpe node", "no config given", "--config, --preset or --params-file")
+    if args.delay is not None and (not args.adapt or cfg is not None):
+        raise InputError("--delay", "given with a config or without --adapt", "--adapt --delay S")
     if not waypoints:
         raise InputError("fpe node", "no waypoints given", "--waypoints FILE (or ~waypoints)")
     xy = load_waypoints_xy(waypoints)
-    check_waypoints(cfg, config or args.preset, xy, waypoints)
+    if cfg is not None:
+        check_waypoints(cfg, config or args.preset, xy, waypoints)
     given = [k for k, f in INPUT_FLAGS.items() if getattr(args, f[2:].replace("-", "_"))]
     if len(given) > 1:
         raise InputError("fpe node", f"several inputs ({', '.join(given)})", "one input topic")
@@ -203,6 +220,8 @@ def options_from_args(args, transport):
         tf_wait_s=args.tf_wait,
         max_tracks=args.max_tracks,
         outputs=outputs,
+        adapt=args.adapt,
+        delay_s=args.delay,
     )
     return cfg, xy, opts
 

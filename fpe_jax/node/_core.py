@@ -95,6 +95,8 @@ class NodeOptions:
     max_tracks: int = 16
     warn_every_s: float = 5.0
     trajectory_every_s: float = 1.0
+    adapt: bool = False  # each opponent's runner learns its line and pace (fpe_jax.adapt)
+    delay_s: float | None = None  # with adapt and no config: the sensor's detection delay [s]
     outputs: dict[str, str | None] = field(
         default_factory=lambda: {k: v[0] for k, v in OUTPUTS.items()}
     )
@@ -141,20 +143,38 @@ class Node:
     Args:
         transport: the middleware.
         config: a tuned config dict (`fpe_jax.config.read_config`), checked against
-            `waypoints_xy_m` by the caller.
+            `waypoints_xy_m` by the caller; None only with `options.adapt` (learn from the
+            waypoints and the shape prior alone).
         waypoints_xy_m: (K, 2) waypoints [m] in the map frame.
         options: `NodeOptions`.
         scene: optional Foxglove `SceneSink` (observations and predictions are sent to it).
         warn: where warnings go (one line each; default stderr).
     """
 
-    def __init__(self, transport: Transport, config: dict, waypoints_xy_m, options: NodeOptions,
+    def __init__(self, transport: Transport, config: dict | None, waypoints_xy_m,
+                 options: NodeOptions,
                  *, scene=None, warn: Callable[[str], None] | None = None):  # fmt: skip
         self.transport = transport
         self.flavour = transport.flavour
         self.opt = options
+        if options.adapt:  # config may be None: the waypoints and the shape prior alone
+            from fpe_jax.adapt import AdaptiveRunner
+
+            start = config
+
+            def new_runner() -> Runner:
+                return AdaptiveRunner(start, waypoints_xy_m, delay_s=options.delay_s)
+
+            self.template = new_runner()
+            config = self.template.state_config()
+        else:
+            self.template = Runner(config, waypoints_xy_m, source="config")
+
+            def new_runner() -> Runner:
+                return self.template.with_params(self.config["params"])
+
+        self._new_runner = new_runner
         self.config = config
-        self.template = Runner(config, waypoints_xy_m, source="config")
         self.path = self.template.path
         self.dt_s = self.template.dt_s
         self.horizon = self.template.horizon
@@ -361,7 +381,7 @@ class Node:
     def _runner(self, car: str) -> Runner:
         r = self.runners.get(car)
         if r is None:
-            r = self.runners[car] = self.template.with_params(self.config["params"])
+            r = self.runners[car] = self._new_runner()
         return r
 
     def _observe(self, car: str, ns: int, x: float, y: float, yaw: float, receive_ns: int,
@@ -526,8 +546,11 @@ class Node:
         self._pub["trajectory"](self.trajectory_message())
 
     def trajectory_message(self, stamp: int = 0) -> dict:
-        """f110_msgs/OpponentTrajectory of the config's line: one OppWpnt per line point."""
+        """f110_msgs/OpponentTrajectory of the config's line (with adapt: the line learned by
+        the opponent seen most): one OppWpnt per line point."""
         p = self.config["params"]
+        if self.opt.adapt and self.runners:
+            p = max(self.runners.values(), key=lambda r: r.samples).state_config()["params"]
         offset, speed = p["line_offset_m"], p["line_speed_mps"]
         n = len(offset)
         length = self.path.length_m
