@@ -92,6 +92,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="serve the live scene to Foxglove on 127.0.0.1:PORT (8765)",
     )
     p.add_argument("--record", metavar="X.mcap", help="record the Foxglove scene to MCAP")
+    p.add_argument(
+        "--stats",
+        metavar="FILE.json",
+        help="at exit, write the own update time of every observation [ns] (benchmarks)",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -224,5 +229,12 @@ def run(args) -> int:
         transport.close()
         if scene is not None:
             scene.close()
+    if args.stats:
+        import json
+
+        from fpe_jax.io.writers import write_text
+
+        stats = {"update_ns": node.update_ns, "n_published": node.n_published}
+        write_text(args.stats, json.dumps(stats) + "\n", force=True)
     print(f"fpe node: stopped after {node.n_published} predictions", file=sys.stderr)
     return 0

@@ -340,7 +340,7 @@ class Node:
                 continue
             x, y = self._frenet_to_map(s, d)
             try:
-                out = self._observe(car, ns, x, y, math.nan, receive_ns, publish_obstacles=False)
+                out = self._observe(car, ns, x, y, math.nan, receive_ns, publish=False)
             except (BadMessage, InputError) as e:
                 self.warn(topic, f"obstacle {car}: {getattr(e, 'problem', e)}")
                 continue
@@ -350,8 +350,8 @@ class Node:
                  if receive_ns - t > self.opt.drop_after_s * 1e9]  # fmt: skip
         for c in stale:
             del self.runners[c], self.last_seen_ns[c]
-        if updated and "obstacles" in self._pub:
-            self._pub["obstacles"](self._obstacle_array(ns, updated))
+        if updated:
+            self._publish(updated)
 
     def _frenet_to_map(self, s_m: float, d_m: float) -> tuple[float, float]:
         return frenet_to_map(self.path, s_m, d_m)
@@ -365,7 +365,7 @@ class Node:
         return r
 
     def _observe(self, car: str, ns: int, x: float, y: float, yaw: float, receive_ns: int,
-                 publish_obstacles: bool = True):  # fmt: skip
+                 publish: bool = True):  # fmt: skip
         """Feed one observation to the car's runner and publish its prediction when valid.
         Returns (car, stamp_ns, poses (H, 3), cov (H, 2, 2) or None, s_m) or None (invalid)."""
         if not _finite(x, y):
@@ -384,7 +384,8 @@ class Node:
         if not runner.valid:
             return None
         out = (car, ns, poses, cov, along)
-        self._publish(out, publish_obstacles)
+        if publish:
+            self._publish([out])
         if self.scene is not None:
             steps = ns + np.round(np.arange(1, self.horizon + 1) * self.dt_s * 1e9).astype(np.int64)
             zero = np.zeros((self.horizon, 2, 2))
@@ -424,32 +425,39 @@ class Node:
             self._pub[key] = self.transport.advertise(sub, OUTPUTS[name][1])
         return self._pub[key]
 
-    def _publish(self, out, publish_obstacles: bool) -> None:
-        car, ns, poses, cov, _ = out
+    def _publish(self, outs: list) -> None:
+        """Publish the predictions of one input message: the paths first (what a planner waits
+        for), then the predicted ObstacleArray, the markers and the covariances."""
         f, frame = self.flavour, self.opt.map_frame
-        steps = self.step_ns(ns)
         if "path" in self._pub:
-            self._publisher("path", car)(
-                {
-                    "header": header(f, ns, frame),
-                    "poses": [
-                        {"header": header(f, t, frame), "pose": _pose(x, y, yaw)}
-                        for t, (x, y, yaw) in zip(steps, poses.tolist())
-                    ],
-                }  # fmt: skip
-            )
+            for car, ns, poses, _, _ in outs:
+                self._publisher("path", car)(
+                    {
+                        "header": header(f, ns, frame),
+                        "poses": [
+                            {"header": header(f, t, frame), "pose": _pose(x, y, yaw)}
+                            for t, (x, y, yaw) in zip(self.step_ns(ns), poses.tolist())
+                        ],
+                    }
+                )
+        if "obstacles" in self._pub:
+            self._pub["obstacles"](self._obstacle_array(outs[0][1], outs))
         if "markers" in self._pub:
-            self._pub["markers"]({"markers": self._markers(car, ns, poses, cov)})
-        if "covariance" in self._pub and cov is not None:
-            pub = self._publisher("covariance", car)
-            for t, (x, y, yaw), c in zip(steps, poses.tolist(), cov.tolist()):
-                full = [0.0] * 36
-                full[0], full[1], full[6], full[7] = c[0][0], c[0][1], c[1][0], c[1][1]
-                pub({"header": header(f, t, frame),
-                     "pose": {"pose": _pose(x, y, yaw), "covariance": full}})  # fmt: skip
-        if publish_obstacles and "obstacles" in self._pub:
-            self._pub["obstacles"](self._obstacle_array(ns, [out]))
-        self.n_published += 1
+            markers = [
+                m for car, ns, poses, cov, _ in outs for m in self._markers(car, ns, poses, cov)
+            ]
+            self._pub["markers"]({"markers": markers})
+        if "covariance" in self._pub:
+            for car, ns, poses, cov, _ in outs:
+                if cov is None:
+                    continue
+                pub = self._publisher("covariance", car)
+                for t, (x, y, yaw), c in zip(self.step_ns(ns), poses.tolist(), cov.tolist()):
+                    full = [0.0] * 36
+                    full[0], full[1], full[6], full[7] = c[0][0], c[0][1], c[1][0], c[1][1]
+                    pub({"header": header(f, t, frame),
+                         "pose": {"pose": _pose(x, y, yaw), "covariance": full}})  # fmt: skip
+        self.n_published += len(outs)
         self._publish_trajectory(time.monotonic_ns())
 
     def _marker(self, car, ns, ident, kind, points, rgba, width=0.08) -> dict:
