@@ -192,7 +192,7 @@ def test_tag_input_matches_fpe_predict_none_dropped(ros, drive):
         np.testing.assert_allclose(dyaw, 0.0, atol=1e-6)
         steps = [ns_of(p.header.stamp) - ns for p in m.poses]
         assert steps == [round(k * 0.1e9) for k in range(1, H + 1)]
-    assert len(markers.msgs) == n_want
+    assert 0 < len(markers.msgs) <= n_want  # at most one every --markers-every (0.1 s)
     kinds = [mk.type for mk in markers.msgs[0].markers]
     assert kinds == [7, 4, 5]  # points, line, the ellipses
     assert len(covs.msgs) == n_want * H
@@ -246,7 +246,7 @@ def test_obstacle_input_four_opponents(ros, drive, tmp_path):
     try:
         cls = r1.message_class("f110_msgs/ObstacleArray")
         pub = r1.rospy.Publisher("/perception/obstacles", cls, queue_size=1000)
-        subs = {i: Collector(r1, f"/future_pose/path/{i}", "nav_msgs/Path") for i in ids}
+        subs = {i: Collector(r1, f"/future_pose/path/opp_{i}", "nav_msgs/Path") for i in ids}
         out = Collector(r1, "/future_pose/obstacles", "f110_msgs/ObstacleArray")
         wait_connected([pub], [out.sub], proc)
         # the per-opponent topics appear with the first valid prediction: warm up connections

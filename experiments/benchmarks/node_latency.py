@@ -62,7 +62,7 @@ def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
         args += ["--obstacles-topic", "/perception/obstacles"]
         cls = r1.message_class("f110_msgs/ObstacleArray")
         pub = r1.rospy.Publisher("/perception/obstacles", cls, queue_size=100, tcp_nodelay=True)
-        topics = [f"/future_pose/path/{i}" for i in range(n_opp)]
+        topics = [f"/future_pose/path/opp_{i}" for i in range(n_opp)]
     sent: dict[int, int] = {}
     e2e: list[int] = []
     lock = threading.Lock()

@@ -81,6 +81,20 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
             f"--{flag}-topic", metavar="T", help=f"{OUTPUTS[name][1]} (default {OUTPUTS[name][0]})"
         )
         o.add_argument(f"--no-{flag}", action="store_true", help=f"do not publish {name}")
+    o.add_argument(
+        "--markers-every",
+        type=float,
+        default=0.1,
+        metavar="S",
+        help="publish the MarkerArray with at most one prediction every S seconds (0.1; 0: all)",
+    )
+    o.add_argument(
+        "--trajectory-every",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="publish the OpponentTrajectory every S seconds (1.0)",
+    )
     p.add_argument("--node-name", default="future_pose_estimator", help="ROS node name")
     p.add_argument("--domain-id", type=int, help="ROS 2 domain id (default: ROS_DOMAIN_ID or 0)")
     p.add_argument(
@@ -119,7 +133,7 @@ def _transport(args):
     domain = (
         args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID", 0))
     )
-    return DdsTransport(typestore("ros2"), domain_id=domain)
+    return DdsTransport(typestore("ros2"), domain_id=domain, node_name=args.node_name)
 
 
 def _param(transport, args, flag_value, name, default=None):
@@ -181,6 +195,8 @@ def options_from_args(args, transport):
             outputs[name] = _param(transport, args, value, f"{name}_topic", OUTPUTS[name][0])
     if args.drop_after <= 0 or args.max_tracks < 1:
         raise InputError("fpe node", "--drop-after or --max-tracks not positive", "> 0")
+    if not (args.markers_every >= 0 and args.trajectory_every >= 0):
+        raise InputError("fpe node", "--markers-every or --trajectory-every negative", ">= 0")
     opts = NodeOptions(
         input=kind,
         topic=topic,
@@ -191,6 +207,8 @@ def options_from_args(args, transport):
         drop_after_s=args.drop_after,
         max_tracks=args.max_tracks,
         outputs=outputs,
+        markers_every_s=args.markers_every,
+        trajectory_every_s=args.trajectory_every,
     )
     return cfg, xy, opts
 

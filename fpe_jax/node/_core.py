@@ -87,7 +87,9 @@ class NodeOptions:
     """What the node reads and writes (the `fpe node` flags).
 
     input: "pose", "tags" or "obstacles"; topic: its topic. outputs: {output name: topic or None
-    (off)} over `OUTPUTS`. The tag input's frames and mount as `fpe fit`'s flags.
+    (off)} over `OUTPUTS`. markers_every_s: the MarkerArray (a view, the costliest message to
+    encode) goes out with at most one prediction in this time; trajectory_every_s likewise for
+    the OpponentTrajectory. The tag input's frames and mount as `fpe fit`'s flags.
     """
 
     input: str = "pose"
@@ -102,6 +104,7 @@ class NodeOptions:
     max_tracks: int = 16
     warn_every_s: float = 5.0
     trajectory_every_s: float = 1.0
+    markers_every_s: float = 0.1
     outputs: dict[str, str | None] = field(
         default_factory=lambda: {k: v[0] for k, v in OUTPUTS.items()}
     )
@@ -180,6 +183,7 @@ class Node:
         self._lock = threading.Lock()
         self._pub: dict[str, Callable[[dict], None]] = {}
         self._last_trajectory_ns = -(10**30)
+        self._last_markers_ns = -(10**30)
         self.n_published = 0
         self.update_ns: list[int] = []  # own time of each update (for the latency benchmark)
 
@@ -362,6 +366,11 @@ class Node:
         r = self.runners.get(car)
         if r is None:
             r = self.runners[car] = self.template.with_params(self.config["params"])
+            # a new opponent's topics are advertised with its first observation, so that
+            # subscribers have matched by its first valid prediction (a few samples later)
+            for name in ("path", "covariance"):
+                if name in self._pub and self._topic(name, car) is not None:
+                    self._publisher(name, car)
         return r
 
     def _observe(self, car: str, ns: int, x: float, y: float, yaw: float, receive_ns: int,
@@ -413,8 +422,9 @@ class Node:
         return [ns + round(k * self.dt_s * 1e9) for k in range(1, self.horizon + 1)]
 
     def _topic(self, name: str, car: str) -> str | None:
-        """Per-opponent topics for the per-car outputs when several opponents are tracked."""
-        return None if self.opt.input != "obstacles" else f"{self.opt.outputs[name]}/{car}"
+        """Per-opponent topics of the per-car outputs when several opponents are tracked:
+        `<topic>/opp_<id>` (a ROS name part must not start with a digit)."""
+        return None if self.opt.input != "obstacles" else f"{self.opt.outputs[name]}/opp_{car}"
 
     def _publisher(self, name: str, car: str):
         sub = self._topic(name, car)
@@ -442,7 +452,12 @@ class Node:
                 )
         if "obstacles" in self._pub:
             self._pub["obstacles"](self._obstacle_array(outs[0][1], outs))
-        if "markers" in self._pub:
+        now_ns = time.monotonic_ns()
+        if (
+            "markers" in self._pub
+            and now_ns - self._last_markers_ns >= self.opt.markers_every_s * 1e9
+        ):
+            self._last_markers_ns = now_ns
             markers = [
                 m for car, ns, poses, cov, _ in outs for m in self._markers(car, ns, poses, cov)
             ]
