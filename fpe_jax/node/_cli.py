@@ -86,7 +86,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         type=float,
         default=0.1,
         metavar="S",
-        help="publish the MarkerArray with at most one prediction every S seconds (0.1; 0: all)",
+        help="each opponent's markers at most every S seconds, one opponent's per message (0.1)",
     )
     o.add_argument(
         "--trajectory-every",

@@ -87,9 +87,10 @@ class NodeOptions:
     """What the node reads and writes (the `fpe node` flags).
 
     input: "pose", "tags" or "obstacles"; topic: its topic. outputs: {output name: topic or None
-    (off)} over `OUTPUTS`. markers_every_s: the MarkerArray (a view, the costliest message to
-    encode) goes out with at most one prediction in this time; trajectory_every_s likewise for
-    the OpponentTrajectory. The tag input's frames and mount as `fpe fit`'s flags.
+    (off)} over `OUTPUTS`. markers_every_s: each opponent's markers go out at most once in this
+    time, one opponent's per input message (the MarkerArray, a view, is the costliest message to
+    encode); trajectory_every_s: the OpponentTrajectory's period. The tag input's frames and
+    mount as `fpe fit`'s flags.
     """
 
     input: str = "pose"
@@ -183,7 +184,7 @@ class Node:
         self._lock = threading.Lock()
         self._pub: dict[str, Callable[[dict], None]] = {}
         self._last_trajectory_ns = -(10**30)
-        self._last_markers_ns = -(10**30)
+        self._last_markers_ns: dict[str, int] = {}  # monotonic time of each car's last markers
         self.n_published = 0
         self.update_ns: list[int] = []  # own time of each update (for the latency benchmark)
 
@@ -354,6 +355,7 @@ class Node:
                  if receive_ns - t > self.opt.drop_after_s * 1e9]  # fmt: skip
         for c in stale:
             del self.runners[c], self.last_seen_ns[c]
+            self._last_markers_ns.pop(c, None)
         if updated:
             self._publish(updated)
 
@@ -452,16 +454,8 @@ class Node:
                 )
         if "obstacles" in self._pub:
             self._pub["obstacles"](self._obstacle_array(outs[0][1], outs))
-        now_ns = time.monotonic_ns()
-        if (
-            "markers" in self._pub
-            and now_ns - self._last_markers_ns >= self.opt.markers_every_s * 1e9
-        ):
-            self._last_markers_ns = now_ns
-            markers = [
-                m for car, ns, poses, cov, _ in outs for m in self._markers(car, ns, poses, cov)
-            ]
-            self._pub["markers"]({"markers": markers})
+        if "markers" in self._pub:
+            self._publish_markers(outs)
         if "covariance" in self._pub:
             for car, ns, poses, cov, _ in outs:
                 if cov is None:
@@ -474,6 +468,19 @@ class Node:
                          "pose": {"pose": _pose(x, y, yaw), "covariance": full}})  # fmt: skip
         self.n_published += len(outs)
         self._publish_trajectory(time.monotonic_ns())
+
+    def _publish_markers(self, outs: list) -> None:
+        """The markers of one opponent per input message: the one whose markers are oldest, if
+        at least markers_every_s old. Every opponent's markers refresh at 1 / markers_every_s
+        while the costliest message to encode stays one opponent's (their lifetime keeps the
+        others' on screen)."""
+        now_ns = time.monotonic_ns()
+        last = self._last_markers_ns
+        car, ns, poses, cov, _ = min(outs, key=lambda o: last.get(o[0], -(10**30)))
+        if now_ns - last.get(car, -(10**30)) < self.opt.markers_every_s * 1e9:
+            return
+        last[car] = now_ns
+        self._pub["markers"]({"markers": self._markers(car, ns, poses, cov)})
 
     def _marker(self, car, ns, ident, kind, points, rgba, width=0.08) -> dict:
         r, g, b, a = rgba
