@@ -138,9 +138,9 @@ def test_tag_input_matches_fpe_predict_none_dropped(ros, drive):
     tmp, _ = drive
     log = open_log(tmp / "sim" / "drive.mcap")
     msgs = list(log.messages(["/tf", "/tf_static", "/tag_detections"]))
-    proc = start_node(
-        env, "--config", str(tmp / "cfg.json"), "--waypoints", str(tmp / "sim" / "waypoints.csv")
-    )
+    # a loaded machine can hold the TF thread back: a generous wait keeps every detection
+    wp = str(tmp / "sim" / "waypoints.csv")
+    proc = start_node(env, "--config", str(tmp / "cfg.json"), "--waypoints", wp, "--tf-wait", "5")
     try:
         pubs = {
             "/tf": r1.rospy.Publisher(
@@ -282,3 +282,66 @@ def test_obstacle_input_four_opponents(ros, drive, tmp_path):
     assert all(o.id in ids for m in out.msgs for o in m.obstacles)
     assert max(len(m.obstacles) for m in out.msgs) == 4
     assert json.dumps(sorted({o.id for m in out.msgs for o in m.obstacles})) == json.dumps(ids)
+
+
+def test_bad_input_on_a_running_node(ros, drive):
+    """NaN / inf poses, a wrong frame, stamps going backwards and a 1 kHz flood between good
+    PoseStamped messages: the good ones predict as the runner does, SIGTERM ends the node."""
+    env, r1 = ros
+    tmp, cfg = drive
+    wp = tmp / "sim" / "waypoints.csv"
+    odom = [
+        (msg.pose.pose.position.x, msg.pose.pose.position.y)
+        for _, _, _, msg in open_log(tmp / "sim" / "drive.mcap").messages(["/opp/odom"])
+    ]
+    args = ["--config", str(tmp / "cfg.json"), "--waypoints", str(wp), "--no-markers"]
+    proc = start_node(env, *args, "--pose-topic", "/opp/pose_bad_test", "--no-covariance")
+    cls = r1.message_class("geometry_msgs/PoseStamped")
+
+    def msg(ns, x, y, frame="map"):
+        stamp = {"secs": ns // 10**9, "nsecs": ns % 10**9}
+        return r1.from_dict(cls, {"header": {"stamp": stamp, "frame_id": frame},
+                                  "pose": {"position": {"x": x, "y": y}}})  # fmt: skip
+
+    try:
+        pub = r1.rospy.Publisher("/opp/pose_bad_test", cls, queue_size=1000)
+        paths = Collector(r1, "/future_pose/path", "nav_msgs/Path")
+        wait_connected([pub], [paths.sub], proc)
+        good, base = [], 5 * 10**9
+        for j in range(80):
+            ns = base + j * 25_000_000
+            x, y = odom[2 * j]
+            pub.publish(msg(ns, x, y))
+            good.append((ns, x, y))
+            kind = j % 4
+            if kind == 0:
+                pub.publish(msg(ns + 1, float("nan"), y))
+            elif kind == 1:
+                pub.publish(msg(ns + 1, x, float("inf")))
+            elif kind == 2:
+                pub.publish(msg(ns + 1, x, y, frame="odom"))
+            else:
+                pub.publish(msg(ns - 10_000_000, x + 1.0, y))  # stamp going backwards
+            if j == 40:  # a 1 kHz flood of stale messages
+                for _ in range(300):
+                    pub.publish(msg(base, 0.0, 0.0))
+                    time.sleep(0.001)
+            time.sleep(1.0 / RATE_HZ)
+        ref, want = Runner(cfg, load_waypoints_xy(wp)), []
+        for ns, x, y in good:
+            poses = ref.update((ns - base) * 1e-9, x, y, None)
+            if ref.valid:
+                want.append((ns, poses))
+        wait_for(lambda: len(paths.msgs) >= len(want))
+    finally:
+        proc.send_signal(15)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    got = {ns_of(m.header.stamp): m for m in paths.msgs}
+    assert sorted(got) == [ns for ns, _ in want], err
+    for ns, poses in want:
+        xy = np.array([[p.pose.position.x, p.pose.position.y] for p in got[ns].poses])
+        np.testing.assert_allclose(xy, poses[:, :2], atol=1e-6, rtol=0)
+    for problem in ("non-finite position", "frame 'odom'", "is not after"):
+        assert problem in err, (problem, err)
+    assert len(err.splitlines()) < 20, err  # rate-limited: not one line per bad message

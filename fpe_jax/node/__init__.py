@@ -5,6 +5,15 @@ JAX-free: the car may have no JAX. The middleware-neutral core (`Node`) talks to
 flavour (`typestore`).
 """
 
+from fpe_jax.node._core import OUTPUTS, Node, NodeOptions, Transport
 from fpe_jax.node._types import FLAVOURS, full_definition, typestore
 
-__all__ = ["FLAVOURS", "full_definition", "typestore"]
+__all__ = [
+    "FLAVOURS",
+    "OUTPUTS",
+    "Node",
+    "NodeOptions",
+    "Transport",
+    "full_definition",
+    "typestore",
+]

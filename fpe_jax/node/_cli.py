@@ -25,7 +25,7 @@ OUTPUT_FLAGS = {
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    from fpe_jax.node._core import OUTPUTS
+    from fpe_jax.node._types import OUTPUTS
 
     p = subparsers.add_parser(
         "node",
@@ -71,6 +71,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         default=1.0,
         metavar="S",
         help="drop an obstacle track after S seconds without updates (1.0)",
+    )
+    g.add_argument(
+        "--tf-wait",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="how long a detection waits for the TF at its stamp before it is dropped (0.5)",
     )
     g.add_argument(
         "--max-tracks", type=int, default=16, metavar="N", help="most obstacles tracked (16)"
@@ -159,7 +166,8 @@ def options_from_args(args, transport):
     """(config dict, waypoints (K, 2), NodeOptions) from the flags and the ROS parameters.
     Raises InputError for a missing or mismatched config / waypoint file."""
     from fpe_jax.config import check_waypoints, read_config
-    from fpe_jax.node._core import OUTPUTS, NodeOptions
+    from fpe_jax.node._core import NodeOptions
+    from fpe_jax.node._types import OUTPUTS
     from fpe_jax.runner import load_waypoints_xy
 
     config = _param(transport, args, args.config, "config")
@@ -192,9 +200,12 @@ def options_from_args(args, transport):
             outputs[name] = None
         else:
             value = getattr(args, f"{flag.replace('-', '_')}_topic")
-            outputs[name] = _param(transport, args, value, f"{name}_topic", OUTPUTS[name][0])
-    if args.drop_after <= 0 or args.max_tracks < 1:
-        raise InputError("fpe node", "--drop-after or --max-tracks not positive", "> 0")
+            key = f"{flag.replace('-', '_')}_topic"
+            outputs[name] = _param(transport, args, value, key, OUTPUTS[name][0])
+    if not (args.drop_after > 0 and args.max_tracks >= 1 and args.tf_wait >= 0):
+        raise InputError(
+            "fpe node", "--drop-after, --max-tracks or --tf-wait out of range", "positive values"
+        )
     if not (args.markers_every >= 0 and args.trajectory_every >= 0):
         raise InputError("fpe node", "--markers-every or --trajectory-every negative", ">= 0")
     opts = NodeOptions(
@@ -205,6 +216,7 @@ def options_from_args(args, transport):
         tag_to_base=args.tag_to_base,
         car_frame=args.tf_child,
         drop_after_s=args.drop_after,
+        tf_wait_s=args.tf_wait,
         max_tracks=args.max_tracks,
         outputs=outputs,
         markers_every_s=args.markers_every,
@@ -214,8 +226,14 @@ def options_from_args(args, transport):
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from fpe_jax.node._core import Node
 
+    for flag in ("config", "waypoints", "params_file"):  # before connecting to any middleware
+        value = getattr(args, flag)
+        if value is not None and not Path(value).is_file():
+            raise InputError(value, "does not exist", f"--{flag.replace('_', '-')} FILE")
     transport = _transport(args)
     stop = threading.Event()
     scene = None

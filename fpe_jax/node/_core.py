@@ -42,23 +42,16 @@ from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io.apriltag import parse_tag_to_base, place_tag, tag_frame_name, tag_mount
 from fpe_jax.io.tf import STATIC_SUFFIX, Rigid, TfBuffer
+from fpe_jax.node._types import OUTPUTS
 from fpe_jax.runner import Runner
 
 MARKER_LINE_LIST = 5
 MARKER_LINE_STRIP = rm.MARKER_LINE_STRIP
 MARKER_SPHERE_LIST = rm.MARKER_SPHERE_LIST
-ELLIPSE_POINTS = 24  # segments of each 1-sigma ellipse
+ELLIPSE_POINTS = 16  # segments of each 1-sigma ellipse
 TF_KEEP_S = 10.0  # the live TF buffer keeps this much of each dynamic edge
 MAX_PENDING = 64  # detections waiting for their TF
 
-# output name -> (default topic, type); a topic of None switches it off
-OUTPUTS = {
-    "markers": ("/future_pose", "visualization_msgs/msg/MarkerArray"),
-    "path": ("/future_pose/path", "nav_msgs/msg/Path"),
-    "covariance": ("/future_pose/covariance", "geometry_msgs/msg/PoseWithCovarianceStamped"),
-    "obstacles": ("/future_pose/obstacles", "f110_msgs/msg/ObstacleArray"),
-    "trajectory": ("/opponent_trajectory", "f110_msgs/msg/OpponentTrajectory"),
-}
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry")
 TAG_TYPE = "apriltag_ros/msg/AprilTagDetectionArray"
 OBSTACLES_TYPE = "f110_msgs/msg/ObstacleArray"
@@ -101,7 +94,7 @@ class NodeOptions:
     tag_to_base: Any = None
     car_frame: str = "other_base_link"
     drop_after_s: float = 1.0
-    tf_wait_s: float = 0.2
+    tf_wait_s: float = 0.5
     max_tracks: int = 16
     warn_every_s: float = 5.0
     trajectory_every_s: float = 1.0
@@ -298,21 +291,27 @@ class Node:
         """Place the waiting detections, oldest first: each as soon as the TF buffer covers its
         stamp; one the TF has not reached yet waits up to tf_wait_s (receive time), then is
         dropped with a warning (TF extrapolation), as is one inside a TF gap."""
+        keep: collections.deque = collections.deque()
         while self.pending:
-            topic, ns, camera, cam_tag, receive_ns = self.pending[0]
+            entry = self.pending.popleft()
+            topic, ns, camera, cam_tag, receive_ns = entry
+            expired = now_ns - receive_ns > self.opt.tf_wait_s * 1e9
             try:
                 ahead = self._tf_behind(camera, ns)
-            except InputError as e:  # no TF chain (yet): a wrong frame or TF still to come
-                ahead, problem = True, f"TF: {e.problem}"
-            else:
-                problem = "TF extrapolation: no transform at or after the detection's stamp yet"
-            if ahead:
-                if now_ns - receive_ns <= self.opt.tf_wait_s * 1e9:
-                    return
-                self.pending.popleft()
-                self.warn(topic, problem)
+            except InputError as e:  # no chain to this camera (yet): later detections go on
+                if expired:
+                    self.warn(topic, f"TF: {e.problem}")
+                else:
+                    keep.append(entry)
                 continue
-            self.pending.popleft()
+            if ahead:  # the TF has not reached this stamp: this and later ones wait
+                if not expired:
+                    keep.append(entry)
+                    keep.extend(self.pending)
+                    self.pending.clear()
+                    break
+                self.warn(topic, "TF extrapolation: no transform at or after the stamp arrived")
+                continue
             try:
                 if self.tag_to_base is not None:
                     tag_car = tag_mount(*self.tag_to_base).inv()
@@ -324,6 +323,7 @@ class Node:
                 self._observe("0", ns, x, y, float(map_car.yaw_rad()[0]), receive_ns)
             except (BadMessage, InputError) as e:
                 self.warn(topic, f"TF: {e.problem}" if isinstance(e, InputError) else str(e))
+        self.pending = keep
 
     def _tf_behind(self, camera: str, ns: int) -> bool:
         """Whether a dynamic TF edge between the map and `camera` ends before stamp ns [ns]."""
@@ -505,10 +505,8 @@ class Node:
             self._marker(car, ns, 1, MARKER_LINE_STRIP, pts, (0.0, 1.0, 0.0, 0.6), 0.03),
         ]
         if cov is not None:
-            seg = []
-            for (x, y), c in zip(pts, cov):
-                ring = ellipse_points(np.array([x, y]), c)
-                seg += [p for a, b in zip(ring[:-1], ring[1:]) for p in (a, b)]
+            rings = ellipse_points(poses[:, :2], cov)  # (H, n + 1, 2)
+            seg = np.stack([rings[:, :-1], rings[:, 1:]], axis=2).reshape(-1, 2).tolist()
             out.append(self._marker(car, ns, 2, MARKER_LINE_LIST, seg, (0.0, 0.6, 1.0, 0.8), 0.02))
         return out
 
@@ -579,12 +577,14 @@ def frenet_to_map(path, s_m: float, d_m: float) -> tuple[float, float]:
     return cx - d_m * math.sin(h), cy + d_m * math.cos(h)
 
 
-def ellipse_points(center_m: np.ndarray, cov_m2: np.ndarray, n: int = ELLIPSE_POINTS) -> list:
-    """A closed ring of n + 1 points (x, y) [m] on the 1-sigma ellipse of a (2, 2) covariance."""
+def ellipse_points(center_m: np.ndarray, cov_m2: np.ndarray, n: int = ELLIPSE_POINTS):
+    """(..., n + 1, 2) closed rings x [m], y [m] on the 1-sigma ellipses of (..., 2, 2)
+    covariances [m^2] around (..., 2) centres."""
     vals, vecs = np.linalg.eigh(cov_m2)
     a = np.linspace(0.0, 2.0 * np.pi, n + 1)
-    ring = (vecs * np.sqrt(np.maximum(vals, 0.0))) @ np.stack([np.cos(a), np.sin(a)])
-    return (ring.T + center_m).tolist()
+    axes = vecs * np.sqrt(np.maximum(vals, 0.0))[..., None, :]  # columns: the scaled axes
+    ring = np.einsum("...ij,jk->...ki", axes, np.stack([np.cos(a), np.sin(a)]))
+    return ring + center_m[..., None, :]
 
 
 def _stderr(line: str) -> None:

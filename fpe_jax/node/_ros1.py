@@ -9,6 +9,7 @@ genpy from the type store's full definitions (`fpe_jax.node.typestore("ros1")`),
 
 from __future__ import annotations
 
+import functools
 import importlib
 import sys
 import threading
@@ -84,27 +85,39 @@ def _value_to_py(v):
 def from_dict(cls: type, d: dict):
     """A genpy message of class `cls` from nested dicts; missing fields keep their defaults, an
     unknown field is a ValueError naming the type and the field."""
+    slots, convert, flat = _plan(cls)
+    if flat and len(d) == len(slots) and all(k in d for k in slots):
+        msg = cls.__new__(cls)  # every field given, all primitive: no defaults to build first
+        for k in slots:
+            setattr(msg, k, d[k])
+        return msg
     msg = cls()
-    types = dict(zip(cls.__slots__, cls._slot_types))
     for k, v in d.items():
-        if k not in types:
-            raise ValueError(f"{cls._type} has no field {k!r} (fields: {', '.join(cls.__slots__)})")
-        setattr(msg, k, _value_from_py(types[k], v, getattr(msg, k)))
+        if k not in convert:
+            raise ValueError(f"{cls._type} has no field {k!r} (fields: {', '.join(slots)})")
+        c = convert[k]
+        setattr(msg, k, v if c is None else c(v))
     return msg
 
 
-def _value_from_py(slot_type: str, v, default):
-    base = slot_type.split("[", 1)[0]
-    array = "[" in slot_type
-    if base in ("time", "duration"):
-        make = genpy.Time if base == "time" else genpy.Duration
-        conv = lambda x: make(x["secs"], x["nsecs"]) if isinstance(x, dict) else x  # noqa: E731
-    elif "/" in base or base == "Header":
-        sub = message_class("std_msgs/Header" if base == "Header" else base)
-        conv = lambda x: from_dict(sub, x) if isinstance(x, dict) else x  # noqa: E731
-    else:
-        return list(v) if array and not isinstance(v, bytes | str) else v
-    return [conv(x) for x in v] if array else conv(v)
+@functools.cache
+def _plan(cls: type) -> tuple[tuple[str, ...], dict, bool]:
+    """(slots, {slot: converter or None for a value taken as is}, all slots primitive)."""
+    convert = {}
+    for slot, slot_type in zip(cls.__slots__, cls._slot_types):
+        base, array = slot_type.split("[", 1)[0], "[" in slot_type
+        if base in ("time", "duration"):
+            make = genpy.Time if base == "time" else genpy.Duration
+            one = lambda x, make=make: make(x["secs"], x["nsecs"]) if isinstance(x, dict) else x  # noqa: E731
+        elif "/" in base or base == "Header":
+            sub = message_class("std_msgs/Header" if base == "Header" else base)
+            one = lambda x, sub=sub: from_dict(sub, x) if isinstance(x, dict) else x  # noqa: E731
+        else:
+            convert[slot] = list if array and base not in ("uint8", "char") else None
+            continue
+        convert[slot] = (lambda v, one=one: [one(x) for x in v]) if array else one
+    flat = all(c is None for c in convert.values())
+    return tuple(cls.__slots__), convert, flat
 
 
 class Ros1Transport:

@@ -20,6 +20,15 @@ from pathlib import Path
 from fpe_jax.io import ros_msgs as rm
 
 FLAVOURS = ("ros1", "ros2")
+# the node's outputs: name -> (default topic, type); a topic of None switches one off
+OUTPUTS = {
+    "markers": ("/future_pose", "visualization_msgs/msg/MarkerArray"),
+    "path": ("/future_pose/path", "nav_msgs/msg/Path"),
+    "covariance": ("/future_pose/covariance", "geometry_msgs/msg/PoseWithCovarianceStamped"),
+    "obstacles": ("/future_pose/obstacles", "f110_msgs/msg/ObstacleArray"),
+    "trajectory": ("/opponent_trajectory", "f110_msgs/msg/OpponentTrajectory"),
+}
+
 _NODE_MSGS = Path(__file__).with_name("msgs")
 _IO_MSGS = Path(rm.__file__).with_name("msgs")
 
