@@ -7,7 +7,8 @@ For 1 opponent (PoseStamped input) and 4 opponents (one f110_msgs/ObstacleArray 
 p50 and p99 of each over `--seconds` of a simulated drive. Writes node_latency.md beside this file
 (node_latency_no_markers.md with --no-markers).
 
-    .venv/bin/python experiments/benchmarks/node_latency.py [--seconds 30] [--middleware both]
+    .venv/bin/python experiments/benchmarks/node_latency.py [--seconds 30] [--runs 3]
+        [--middleware both] [--no-markers]
 
 `--middleware` ros1, ros2 or both (default).
 """
@@ -208,6 +209,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=30.0)
     ap.add_argument("--middleware", choices=["ros1", "ros2", "both"], default="both")
+    ap.add_argument("--runs", type=int, default=3, help="runs of each case; medians reported")
     ap.add_argument(
         "--no-markers", action="store_true", help="run the node with --no-markers (what they cost)"
     )
@@ -224,8 +226,9 @@ def main() -> None:
 
                 r1.rospy.init_node("fpe_bench_player", anonymous=True, disable_signals=True)
                 for n_opp in (1, 4):
-                    rows.append(("ros1", run_ros1(n_opp, args.seconds, Path(d), env, r1)))
-                    print(json.dumps(rows[-1]), flush=True)
+                    for _ in range(args.runs):
+                        rows.append(("ros1", run_ros1(n_opp, args.seconds, Path(d), env, r1)))
+                        print(json.dumps(rows[-1]), flush=True)
                 r1.rospy.signal_shutdown("done")
                 os.environ.clear()
                 os.environ.update(saved)
@@ -234,25 +237,33 @@ def main() -> None:
             os.environ["CYCLONEDDS_URI"] = LOOPBACK_URI
             os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 200)
             for n_opp in (1, 4):
-                rows.append(("ros2", run_ros2(n_opp, args.seconds, Path(d), dict(os.environ))))
-                print(json.dumps(rows[-1]), flush=True)
+                for _ in range(args.runs):
+                    rows.append(("ros2", run_ros2(n_opp, args.seconds, Path(d), dict(os.environ))))
+                    print(json.dumps(rows[-1]), flush=True)
     lines = [
         "# `fpe node` latency (loopback)",
         "",
         f"Command: `.venv/bin/python experiments/benchmarks/node_latency.py --seconds "
-        f"{args.seconds:g} --middleware {args.middleware}{' --no-markers' * args.no_markers}`; "
-        f"{RATE_HZ:g} Hz observations of a "
-        "simulated drive, default preset with a per-step covariance (all outputs on, the "
-        "MarkerArray at most every 0.1 s). Own update: runner update + covariance per opponent, "
+        f"{args.seconds:g} --runs {args.runs} --middleware {args.middleware}"
+        f"{' --no-markers' * args.no_markers}`; {RATE_HZ:g} Hz observations of a simulated drive, "
+        "default preset with a per-step covariance (all outputs on, the "
+        f"markers of each opponent at most every 0.1 s{', here off' * args.no_markers}). "
+        "Own update: runner update + covariance per opponent, "
         "inside the node. End to end: publishing an observation to receiving its nav_msgs/Path "
         "in the publishing process (ROS 1: roscore on 127.0.0.1; ROS 2: Cyclone DDS on the "
-        "loopback interface).",
+        f"loopback interface). Each value: the median over {args.runs} runs.",
         "",
-        "| middleware | opponents | observations | paths received | own update p50 / p99 [ms] "
+        "| middleware | opponents | observations | paths received (fewest) "
+        "| own update p50 / p99 [ms] "
         "| end to end p50 / p99 [ms] |",
         "|---|---|---|---|---|---|",
     ]
-    for mw, r in rows:
+    cases = sorted({(mw, r["opponents"]) for mw, r in rows})
+    for mw, n_opp in cases:
+        runs = [r for m, r in rows if (m, r["opponents"]) == (mw, n_opp)]
+        r = {k: float(np.median([x[k] for x in runs])) for k in runs[0]}
+        r["opponents"], r["observations"] = n_opp, runs[0]["observations"]
+        r["predictions_received"] = min(x["predictions_received"] for x in runs)
         lines.append(
             f"| {mw} | {r['opponents']} | {r['observations']} | "
             f"{r['predictions_received']} | {r['update_p50_ms']:.3f} / {r['update_p99_ms']:.3f} | "
