@@ -1,4 +1,4 @@
-"""A roscore on 127.0.0.1 for the ROS 1 node tests, and log messages as ROS 1 dicts."""
+"""A roscore on 127.0.0.1 for the ROS 1 node tests."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import socket
 import subprocess
 import time
 
-import numpy as np
 import pytest
 
 
@@ -76,17 +75,3 @@ def roscore(tmp_path):
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, 9)
             proc.wait()
-
-
-def ros1_dict(msg):
-    """A rosbags message object (as the log reader gives it) as a ROS 1 message dict."""
-    fields = getattr(msg, "__dataclass_fields__", None) or getattr(msg, "__slots__", None)
-    if isinstance(msg, str | bytes | int | float) or fields is None:
-        if isinstance(msg, np.ndarray):
-            return msg.tolist()
-        if isinstance(msg, list | tuple):
-            return [ros1_dict(v) for v in msg]
-        return msg
-    if set(fields) == {"sec", "nanosec"}:
-        return {"secs": msg.sec, "nsecs": msg.nanosec}
-    return {k: ros1_dict(getattr(msg, k)) for k in fields if k != "__msgtype__"}

@@ -251,6 +251,41 @@ def plain(value):
     return value
 
 
+def raw_take(reader) -> list[bytes]:
+    """The serialized samples waiting in a cyclonedds DataReader, exactly as they arrived."""
+    from cyclonedds._clayer import ddspy_take
+    from cyclonedds.core import InstanceState, SampleState, ViewState
+
+    mask = SampleState.Any | ViewState.Any | InstanceState.Any
+    out = []
+    while batch := ddspy_take(reader._ref, mask, 64):
+        out += [bytes(data) for data, info in batch if info.valid_data]
+    return out
+
+
+def endpoints(participant, builtin) -> list:
+    """The alive endpoints a participant has discovered (builtin: BuiltinTopicDcpsPublication
+    or BuiltinTopicDcpsSubscription)."""
+    import time
+
+    from cyclonedds.builtin import BuiltinDataReader
+    from cyclonedds.core import InstanceState
+
+    reader = BuiltinDataReader(participant, builtin)
+    wait_until(lambda: reader.read(N=256), 5, "discovery data")
+    time.sleep(0.2)
+    return [
+        e
+        for e in reader.read(N=256)
+        if getattr(e, "topic_name", None) and e.sample_info.instance_state == InstanceState.Alive
+    ]
+
+
+def padded(data: bytes) -> bytes:
+    """CDR as a writer sends it: padded to a multiple of 4 bytes."""
+    return data + b"\0" * (-len(data) % 4)
+
+
 BEST_EFFORT_TOPIC = "/opponent/pose_sensor"  # a sensor-data (best effort) writer's topic
 
 

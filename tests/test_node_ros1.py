@@ -6,24 +6,30 @@ from __future__ import annotations
 import json
 import os
 import subprocess
-import sys
 import threading
 import time
 import warnings
-from pathlib import Path
 
+import node_helpers
 import numpy as np
 import pytest
-from ros1_helpers import need_ros1, ros1_dict, roscore
+from node_helpers import (
+    COV,
+    OPPONENT_IDS,
+    RATE_HZ,
+    H,
+    make_drive,
+    msg_dict,
+    obstacle_frames,
+    runner_predictions,
+    stop_node,
+    wait_for,
+)
+from ros1_helpers import need_ros1, roscore
 
-from fpe_jax.cli import main
-from fpe_jax.config import params_to_config, write_config
 from fpe_jax.io.logs import open_log
-from fpe_jax.params import presets
-from fpe_jax.runner import Runner, RunnerPath, load_waypoints_xy
+from fpe_jax.runner import Runner, load_waypoints_xy
 
-ROOT = Path(__file__).resolve().parents[1]
-RATE_HZ = 40.0
 # rospy (Debian's) calls threading APIs Python 3.11 deprecates, from its own threads
 # and leaves its connection sockets to the garbage collector
 pytestmark = [
@@ -31,8 +37,6 @@ pytestmark = [
     pytest.mark.filterwarnings("ignore::ResourceWarning"),
     pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning"),
 ]
-H = 10
-COV = [[[0.01 * (k + 1), 0.002], [0.002, 0.004 * (k + 1)]] for k in range(H)]
 
 
 @pytest.fixture(scope="module")
@@ -64,39 +68,11 @@ def drive(tmp_path_factory):
     """A 12 s simulated drive in the seed's layout, a config with per-step covariance, and
     `fpe predict`'s CSV of it."""
     tmp = tmp_path_factory.mktemp("drive")
-    assert (
-        main(["simulate", "--sensor", "apriltag", "--duration", "12", "--out", str(tmp / "sim")])
-        == 0
-    )
-    cfg = params_to_config(presets["default"], uncertainty={"frame": "track", "cov_m2": COV})
-    write_config(tmp / "cfg.json", cfg)
-    wp, log = tmp / "sim" / "waypoints.csv", tmp / "sim" / "drive.mcap"
-    argv = ["predict", str(log), "--config", str(tmp / "cfg.json"), "--waypoints", str(wp)]
-    assert main([*argv, "--out", str(tmp / "pred.csv")]) == 0
-    return tmp, cfg
+    return tmp, make_drive(tmp)
 
 
 def start_node(env, *args) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "fpe_jax.cli", "node", "--ros1", *args],
-        env=env | {"PYTHONUNBUFFERED": "1"},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-    )
-
-
-def stop_node(proc) -> str:
-    proc.send_signal(2)
-    try:
-        _, err = proc.communicate(timeout=20)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        _, err = proc.communicate()
-        raise AssertionError(f"the node did not stop on SIGINT: {err}") from None
-    assert proc.returncode == 0, err
-    return err
+    return node_helpers.start_node("ros1", env, *args)
 
 
 class Collector:
@@ -121,12 +97,6 @@ def wait_connected(pubs, subs, proc, timeout=60.0):
             return
         time.sleep(0.1)
     raise AssertionError("the node did not connect")
-
-
-def wait_for(pred, timeout=20.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not pred():
-        time.sleep(0.05)
 
 
 def ns_of(t) -> int:
@@ -161,11 +131,11 @@ def test_tag_input_matches_fpe_predict_none_dropped(ros, drive):
         wait_connected(pubs.values(), [paths.sub, markers.sub, covs.sub], proc)
         static = [m for m in msgs if m[0] == "/tf_static"]
         for topic, msgtype, _, msg in static:  # latched: the node holds it before the drive
-            pubs[topic].publish(r1.from_dict(r1.message_class(msgtype), ros1_dict(msg)))
+            pubs[topic].publish(r1.from_dict(r1.message_class(msgtype), msg_dict(msg, "ros1")))
         time.sleep(1.0)
         for topic, msgtype, _, msg in [m for m in msgs if m[0] != "/tf_static"]:
             cls = r1.message_class(msgtype)
-            pubs[topic].publish(r1.from_dict(cls, ros1_dict(msg)))
+            pubs[topic].publish(r1.from_dict(cls, msg_dict(msg, "ros1")))
             if topic == "/tag_detections":
                 time.sleep(1.0 / RATE_HZ)
         pred = np.genfromtxt(tmp / "pred.csv", delimiter=",", names=True)
@@ -192,7 +162,7 @@ def test_tag_input_matches_fpe_predict_none_dropped(ros, drive):
         np.testing.assert_allclose(dyaw, 0.0, atol=1e-6)
         steps = [ns_of(p.header.stamp) - ns for p in m.poses]
         assert steps == [round(k * 0.1e9) for k in range(1, H + 1)]
-    assert len(markers.msgs) == n_want
+    assert 0 < len(markers.msgs) <= n_want  # at most one every --markers-every (0.1 s)
     kinds = [mk.type for mk in markers.msgs[0].markers]
     assert kinds == [7, 4, 5]  # points, line, the ellipses
     assert len(covs.msgs) == n_want * H
@@ -208,37 +178,8 @@ def test_obstacle_input_four_opponents(ros, drive, tmp_path):
     tmp, cfg = drive
     wp_file = tmp / "sim" / "waypoints.csv"
     xy_wp = load_waypoints_xy(wp_file)
-    path = RunnerPath(xy_wp)
-    from fpe_jax.node._core import frenet_to_map
-
-    truth = next(
-        msg for _, _, _, msg in open_log(tmp / "sim" / "drive.mcap").messages(["/opp/odom"])
-    )
-    del truth
-    odom = [
-        (msg.pose.pose.position.x, msg.pose.pose.position.y)
-        for _, _, _, msg in open_log(tmp / "sim" / "drive.mcap").messages(["/opp/odom"])
-    ]
-    n_rows, ids = 120, [3, 7, 11, 20]
-    frames = []
-    s_prev = {}
-    for j in range(n_rows):
-        obst = []
-        for k, ident in enumerate(ids):
-            x, y = odom[j * 2 + 60 * k]
-            s = (
-                path.project(x, y)
-                if ident not in s_prev
-                else path.project_window(x, y, s_prev[ident])
-            )
-            s_prev[ident] = s
-            cx, cy = path.point_at(s)
-            h = path.heading_at(s)
-            d = (y - cy) * np.cos(h) - (x - cx) * np.sin(h)
-            obst.append({"id": ident, "s_center": s % path.length_m, "d_center": float(d),
-                         "is_static": False, "is_visible": True})  # fmt: skip
-        obst.append({"id": 99, "s_center": 1.0, "d_center": 0.0, "is_static": True})
-        frames.append((1_000_000_000 + j * 25_000_000, obst))
+    ids = OPPONENT_IDS
+    frames = obstacle_frames(tmp / "sim" / "drive.mcap", xy_wp)
     proc = start_node(
         env, "--config", str(tmp / "cfg.json"), "--waypoints", str(wp_file),
         "--obstacles-topic", "/perception/obstacles",
@@ -246,7 +187,7 @@ def test_obstacle_input_four_opponents(ros, drive, tmp_path):
     try:
         cls = r1.message_class("f110_msgs/ObstacleArray")
         pub = r1.rospy.Publisher("/perception/obstacles", cls, queue_size=1000)
-        subs = {i: Collector(r1, f"/future_pose/path/{i}", "nav_msgs/Path") for i in ids}
+        subs = {i: Collector(r1, f"/future_pose/path/opp_{i}", "nav_msgs/Path") for i in ids}
         out = Collector(r1, "/future_pose/obstacles", "f110_msgs/ObstacleArray")
         wait_connected([pub], [out.sub], proc)
         # the per-opponent topics appear with the first valid prediction: warm up connections
@@ -254,16 +195,7 @@ def test_obstacle_input_four_opponents(ros, drive, tmp_path):
             pub.publish(r1.from_dict(cls, {"header": {"stamp": {"secs": ns // 10**9,
                         "nsecs": ns % 10**9}, "frame_id": "map"}, "obstacles": obst}))  # fmt: skip
             time.sleep(1.0 / RATE_HZ)
-        want = {}
-        for i in ids:
-            r = Runner(cfg, xy_wp)
-            want[i] = []
-            for ns, obst in frames:
-                o = next(o for o in obst if o["id"] == i)
-                x, y = frenet_to_map(path, o["s_center"], o["d_center"])
-                poses = r.update((ns - frames[0][0]) * 1e-9, x, y, None)
-                if r.valid:
-                    want[i].append((ns, poses))
+        want = runner_predictions(cfg, xy_wp, frames)
         wait_for(lambda: len(out.msgs) >= len(frames) - 3)
         time.sleep(0.5)
     finally:

@@ -21,11 +21,10 @@ except ImportError:
     )
 
 from cyclonedds.builtin import (
-    BuiltinDataReader,
     BuiltinTopicDcpsPublication,
     BuiltinTopicDcpsSubscription,
 )
-from cyclonedds.core import InstanceState, Policy, Qos, SampleState, ViewState
+from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -33,8 +32,11 @@ from ros2_helpers import (
     BEST_EFFORT_TOPIC,
     LOOPBACK_URI,
     catalogue,
+    endpoints,
+    padded,
     plain,
     random_message,
+    raw_take,
     ros2_typestore,
     rosbags_message,
     wait_until,
@@ -73,10 +75,6 @@ def domain_id():
             os.environ.pop(key, None)
         else:
             os.environ[key] = value
-
-
-def _padded(data: bytes) -> bytes:
-    return data + b"\0" * (-len(data) % 4)
 
 
 def _assert_values(received, sent, where: str = "msg") -> None:
@@ -273,28 +271,6 @@ def test_spin_stops_promptly_and_close_is_final(store, domain_id):
 # --- two processes on loopback --------------------------------------------------------------
 
 
-def _raw_take(reader: DataReader) -> list[bytes]:
-    """The serialized samples waiting in `reader`, exactly as they arrived."""
-    from cyclonedds._clayer import ddspy_take
-
-    mask = SampleState.Any | ViewState.Any | InstanceState.Any
-    out = []
-    while batch := ddspy_take(reader._ref, mask, 64):
-        out += [bytes(data) for data, info in batch if info.valid_data]
-    return out
-
-
-def _endpoints(participant, builtin) -> list:
-    reader = BuiltinDataReader(participant, builtin)
-    wait_until(lambda: reader.read(N=256), 5, "discovery data")
-    time.sleep(0.2)
-    return [
-        e
-        for e in reader.read(N=256)
-        if getattr(e, "topic_name", None) and e.sample_info.instance_state == InstanceState.Alive
-    ]
-
-
 def test_two_processes(store, domain_id):
     """A publisher process (the transport, plus a plain cyclonedds best-effort writer) and this
     process: every message arrives with its values; the bytes on the wire are rosbags' CDR; the
@@ -353,8 +329,8 @@ def test_two_processes(store, domain_id):
         missing = {topic: ROUNDS - len(v) for topic, v in received.items() if len(v) != ROUNDS}
         assert not missing, f"messages missing (or extra) per topic: {missing}"
         assert publisher.poll() is None, publisher.communicate()
-        publications = _endpoints(raw_participant, BuiltinTopicDcpsPublication)
-        subscriptions = _endpoints(raw_participant, BuiltinTopicDcpsSubscription)
+        publications = endpoints(raw_participant, BuiltinTopicDcpsPublication)
+        subscriptions = endpoints(raw_participant, BuiltinTopicDcpsSubscription)
         announced = DataReader(
             raw_participant,
             Topic(
@@ -392,11 +368,11 @@ def test_two_processes(store, domain_id):
 
     # (b) the wire bytes are rosbags' CDR (the writer pads samples to a multiple of 4 bytes)
     for topic, (type_name, _) in topics.items():
-        wire = _raw_take(raw_readers[topic])
+        wire = raw_take(raw_readers[topic])
         assert len(wire) == ROUNDS, topic
         for r, data in enumerate(wire):
             msg = rosbags_message(store, type_name, catalogue(r)[topic][1])
-            assert data == _padded(bytes(store.serialize_cdr(msg, type_name))), (topic, r)
+            assert data == padded(bytes(store.serialize_cdr(msg, type_name))), (topic, r)
 
     # (c) DDS names, QoS and the RIHS01 hashes rosbags computes, on writers and readers
     for topic, (type_name, _) in topics.items():
@@ -459,6 +435,41 @@ def test_subscribe_without_type_learns_it_in_process(store, domain_id):
         assert msg["child_frame_id"] == "car"
         assert msg["twist"]["twist"]["linear"] == {"x": 2.5, "y": 0.0, "z": 0.0}
         assert np.array_equal(msg["pose"]["covariance"], np.zeros(36))
+
+
+def _tf(k: int) -> dict:
+    return {"transforms": [{"header": {"stamp": {"sec": k}, "frame_id": "map"},
+                            "child_frame_id": f"car{k}"}]}  # fmt: skip
+
+
+def test_tf_takes_tf2s_qos(store, domain_id):
+    """TF as tf2_ros has it: /tf_static is transient local (a reader that subscribes after the
+    static broadcaster published still gets its transforms), and TF readers and writers keep
+    100 samples, so a burst of transforms between two spins loses none."""
+    with DdsTransport(store, node_name="a") as a, DdsTransport(store, node_name="b") as b:
+        static = a.advertise("/tf_static", "tf2_msgs/msg/TFMessage")
+        dynamic = a.advertise("/tf", "tf2_msgs/msg/TFMessage")
+        static(_tf(0))
+        got = {"/tf": [], "/tf_static": []}
+        for topic, out in got.items():
+            b.subscribe(topic, "tf2_msgs/msg/TFMessage", lambda m, t, ns, o=out: o.append(m))
+        wait_until(lambda: a.subscriber_count("/tf") == 1, 10, "the /tf reader")
+        wait_until(lambda: a.subscriber_count("/tf_static") == 1, 10, "the /tf_static reader")
+        for k in range(1, 61):  # nobody spins: the reader holds them
+            dynamic(_tf(k))
+        time.sleep(0.5)
+        stop = threading.Event()
+        thread = threading.Thread(target=b.spin, args=(stop,))
+        thread.start()
+        try:
+            wait_until(lambda: len(got["/tf"]) >= 60 and got["/tf_static"], 5, "the transforms")
+        except TimeoutError:
+            pass
+        finally:
+            stop.set()
+            thread.join(2.0)
+    assert [m["transforms"][0]["child_frame_id"] for m in got["/tf_static"]] == ["car0"]
+    assert [m["transforms"][0]["header"]["stamp"]["sec"] for m in got["/tf"]] == list(range(1, 61))
 
 
 def test_subscribe_without_type_waits_out_unknown_types(store, domain_id, caplog):

@@ -1,14 +1,16 @@
-"""Latency of `fpe node` on ROS 1 (loopback, a roscore on 127.0.0.1 started here).
+"""Latency of `fpe node` on ROS 1 (a roscore on 127.0.0.1) and ROS 2 (Cyclone DDS on loopback).
 
 For 1 opponent (PoseStamped input) and 4 opponents (one f110_msgs/ObstacleArray per tick) at
 40 Hz it measures
 - the node's own update time per opponent (runner update + covariance, inside the node), and
 - end to end: from publishing an observation to receiving its nav_msgs/Path in this process.
-p50 and p99 of each over `--seconds` of a simulated drive. Writes node_latency.md beside this file.
+p50 and p99 of each over `--seconds` of a simulated drive. Writes node_latency.md beside this file
+(node_latency_no_markers.md with --no-markers).
 
-    .venv/bin/python experiments/benchmarks/node_latency.py [--seconds 30] [--middleware ros1]
+    .venv/bin/python experiments/benchmarks/node_latency.py [--seconds 30] [--runs 3]
+        [--middleware both] [--no-markers]
 
-`--middleware` names the transport (ros1 here; ros2 once its player is added below).
+`--middleware` ros1, ros2 or both (default).
 """
 
 from __future__ import annotations
@@ -31,75 +33,44 @@ ROOT = HERE.parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from ros1_helpers import roscore  # noqa: E402
+from ros2_helpers import LOOPBACK_URI  # noqa: E402
 
 from fpe_jax.config import params_to_config, write_config  # noqa: E402
 from fpe_jax.io.writers import write_xy_csv  # noqa: E402
+from fpe_jax.node._core import time_dict  # noqa: E402
 from fpe_jax.params import presets  # noqa: E402
 from fpe_jax.runner import RunnerPath  # noqa: E402
 from fpe_jax.sim import simulate  # noqa: E402
 
 RATE_HZ = 40.0
 H = 10
+NODE_ARGS: list[str] = []  # more `fpe node` flags (main's --no-markers)
 COV = [[[0.01 * (k + 1), 0.002], [0.002, 0.004 * (k + 1)]] for k in range(H)]
 
 
-def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
+def _setup(n_opp: int, seconds: float, tmp: Path):
+    """(node arguments, [(stamp [ns], message dict without its header)], output path topics)."""
     res = simulate("oval", duration_s=seconds + 10.0, seed=0)
     truth_xy = np.column_stack([res.drive.truth_xy_m[:, 0], res.drive.truth_xy_m[:, 1]])
     write_xy_csv(tmp / "wp.csv", res.centerline_xy_m, force=True)
     cfg = params_to_config(presets["default"], uncertainty={"frame": "track", "cov_m2": COV})
     write_config(tmp / "cfg.json", cfg, force=True)
     path = RunnerPath(res.centerline_xy_m)
-    stats = tmp / f"stats{n_opp}.json"
-    args = ["--config", str(tmp / "cfg.json"), "--waypoints", str(tmp / "wp.csv")]
-    args += ["--stats", str(stats)]
+    args = ["--config", str(tmp / "cfg.json"), "--waypoints", str(tmp / "wp.csv"), *NODE_ARGS]
     if n_opp == 1:
         args += ["--pose-topic", "/opp/pose"]
-        cls = r1.message_class("geometry_msgs/PoseStamped")
-        pub = r1.rospy.Publisher("/opp/pose", cls, queue_size=100, tcp_nodelay=True)
         topics = ["/future_pose/path"]
     else:
         args += ["--obstacles-topic", "/perception/obstacles"]
-        cls = r1.message_class("f110_msgs/ObstacleArray")
-        pub = r1.rospy.Publisher("/perception/obstacles", cls, queue_size=100, tcp_nodelay=True)
-        topics = [f"/future_pose/path/{i}" for i in range(n_opp)]
-    sent: dict[int, int] = {}
-    e2e: list[int] = []
-    lock = threading.Lock()
-
-    def got(m):
-        now = time.time_ns()
-        ns = m.header.stamp.secs * 10**9 + m.header.stamp.nsecs
-        with lock:
-            if ns in sent:
-                e2e.append(now - sent[ns])
-
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "fpe_jax.cli", "node", "--ros1", *args],
-        env=env,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-    )
-    path_cls = r1.message_class("nav_msgs/Path")
-    subs = [
-        r1.rospy.Subscriber(t, path_cls, got, queue_size=1000, tcp_nodelay=True) for t in topics
-    ]
-    deadline = time.monotonic() + 60
-    while pub.get_num_connections() == 0 and time.monotonic() < deadline:
-        time.sleep(0.05)
+        topics = [f"/future_pose/path/opp_{i}" for i in range(n_opp)]
     t0_ns = 10**18
-    n = int(seconds * RATE_HZ)
     step = 50.0 / RATE_HZ  # truth rows are at 50 Hz
-    next_t = time.perf_counter()
-    for j in range(n):
+    frames = []
+    for j in range(int(seconds * RATE_HZ)):
         ns = t0_ns + int(j * 1e9 / RATE_HZ)
-        stamp = {"secs": ns // 10**9, "nsecs": ns % 10**9}
         if n_opp == 1:
             x, y = truth_xy[int(j * step)]
-            msg = {"header": {"stamp": stamp, "frame_id": "map"},
-                   "pose": {"position": {"x": float(x), "y": float(y)},
-                            "orientation": {"w": 1.0}}}  # fmt: skip
+            msg = {"pose": {"position": {"x": float(x), "y": float(y)}, "orientation": {"w": 1.0}}}
         else:
             obst = []
             for k in range(n_opp):
@@ -109,19 +80,34 @@ def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
                 h = path.heading_at(s)
                 d = (y - cy) * np.cos(h) - (x - cx) * np.sin(h)
                 obst.append({"id": k, "s_center": s, "d_center": float(d)})
-            msg = {"header": {"stamp": stamp, "frame_id": "map"}, "obstacles": obst}
-        m = r1.from_dict(cls, msg)
+            msg = {"obstacles": obst}
+        frames.append((ns, msg))
+    return args, frames, topics
+
+
+def _play(frames, flavour: str, publish, sent: dict, lock) -> None:
+    """Publish the frames at RATE_HZ, noting each one's send time [ns] by its stamp."""
+    next_t = time.perf_counter()
+    for ns, body in frames:
+        msg = {"header": {"stamp": time_dict(flavour, ns), "frame_id": "map"}, **body}
         with lock:
             sent[ns] = time.time_ns()
-        pub.publish(m)
+        publish(msg)
         next_t += 1.0 / RATE_HZ
         time.sleep(max(0.0, next_t - time.perf_counter()))
-    time.sleep(1.0)
-    proc.send_signal(2)
-    proc.communicate(timeout=30)
-    for s in subs:
-        s.unregister()
-    pub.unregister()
+
+
+def _start(flavour: str, args: list, stats: Path, env: dict) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "fpe_jax.cli", "node", f"--{flavour}", *args, "--stats", str(stats)],
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+
+
+def _summary(n_opp: int, n: int, stats: Path, e2e: list) -> dict:
     upd = np.array(json.loads(stats.read_text())["update_ns"], dtype=np.float64) * 1e-6
     e = np.array(e2e, dtype=np.float64) * 1e-6
     return {
@@ -135,42 +121,156 @@ def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
     }
 
 
+def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
+    args, frames, topics = _setup(n_opp, seconds, tmp)
+    stats = tmp / f"stats_ros1_{n_opp}.json"
+    in_topic, in_type = (
+        ("/opp/pose", "geometry_msgs/PoseStamped")
+        if n_opp == 1
+        else ("/perception/obstacles", "f110_msgs/ObstacleArray")
+    )
+    cls = r1.message_class(in_type)
+    pub = r1.rospy.Publisher(in_topic, cls, queue_size=100, tcp_nodelay=True)
+    sent: dict[int, int] = {}
+    e2e: list[int] = []
+    lock = threading.Lock()
+
+    def got(m):
+        now = time.time_ns()
+        ns = m.header.stamp.secs * 10**9 + m.header.stamp.nsecs
+        with lock:
+            if ns in sent:
+                e2e.append(now - sent[ns])
+
+    proc = _start("ros1", args, stats, env)
+    path_cls = r1.message_class("nav_msgs/Path")
+    subs = [
+        r1.rospy.Subscriber(t, path_cls, got, queue_size=1000, tcp_nodelay=True) for t in topics
+    ]
+    deadline = time.monotonic() + 60
+    while pub.get_num_connections() == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    _play(frames, "ros1", lambda msg: pub.publish(r1.from_dict(cls, msg)), sent, lock)
+    time.sleep(1.0)
+    proc.send_signal(2)
+    proc.communicate(timeout=30)
+    for s in subs:
+        s.unregister()
+    pub.unregister()
+    return _summary(n_opp, len(frames), stats, e2e)
+
+
+def run_ros2(n_opp: int, seconds: float, tmp: Path, env: dict) -> dict:
+    """The same over DDS: this process publishes and receives with DdsTransport."""
+    from fpe_jax.node._dds import DdsTransport
+    from fpe_jax.node._types import typestore
+
+    args, frames, topics = _setup(n_opp, seconds, tmp)
+    stats = tmp / f"stats_ros2_{n_opp}.json"
+    in_topic, in_type = (
+        ("/opp/pose", "geometry_msgs/msg/PoseStamped")
+        if n_opp == 1
+        else ("/perception/obstacles", "f110_msgs/msg/ObstacleArray")
+    )
+    sent: dict[int, int] = {}
+    e2e: list[int] = []
+    lock = threading.Lock()
+
+    def got(msg, type_name, receive_ns):
+        t = msg["header"]["stamp"]
+        ns = t["sec"] * 10**9 + t["nanosec"]
+        with lock:
+            if ns in sent:
+                e2e.append(receive_ns - sent[ns])
+
+    with DdsTransport(typestore("ros2"), node_name="fpe_bench_player") as player:
+        publish = player.advertise(in_topic, in_type)
+        for t in topics:
+            player.subscribe(t, "nav_msgs/msg/Path", got)
+        stop = threading.Event()
+        spinner = threading.Thread(target=player.spin, args=(stop,))
+        spinner.start()
+        proc = _start("ros2", args, stats, env)
+        try:
+            deadline = time.monotonic() + 60
+            while player.subscriber_count(in_topic) == 0 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            _play(frames, "ros2", publish, sent, lock)
+            time.sleep(1.0)
+        finally:
+            proc.send_signal(2)
+            proc.communicate(timeout=30)
+            stop.set()
+            spinner.join(5.0)
+    return _summary(n_opp, len(frames), stats, e2e)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=30.0)
-    ap.add_argument("--middleware", choices=["ros1"], default="ros1")
+    ap.add_argument("--middleware", choices=["ros1", "ros2", "both"], default="both")
+    ap.add_argument("--runs", type=int, default=3, help="runs of each case; medians reported")
+    ap.add_argument(
+        "--no-markers", action="store_true", help="run the node with --no-markers (what they cost)"
+    )
     args = ap.parse_args()
+    NODE_ARGS.extend(["--no-markers"] if args.no_markers else [])
     warnings.simplefilter("ignore", DeprecationWarning)
     rows = []
-    with tempfile.TemporaryDirectory() as d, roscore(Path(d)) as env:
-        os.environ.update(env)
-        from fpe_jax.node import _ros1 as r1
+    with tempfile.TemporaryDirectory() as d:
+        if args.middleware in ("ros1", "both"):
+            with roscore(Path(d)) as env:
+                saved = dict(os.environ)
+                os.environ.update(env)
+                from fpe_jax.node import _ros1 as r1
 
-        r1.rospy.init_node("fpe_bench_player", anonymous=True, disable_signals=True)
-        for n_opp in (1, 4):
-            rows.append(run_ros1(n_opp, args.seconds, Path(d), env, r1))
-            print(json.dumps(rows[-1]), flush=True)
-        r1.rospy.signal_shutdown("done")
+                r1.rospy.init_node("fpe_bench_player", anonymous=True, disable_signals=True)
+                for n_opp in (1, 4):
+                    for _ in range(args.runs):
+                        rows.append(("ros1", run_ros1(n_opp, args.seconds, Path(d), env, r1)))
+                        print(json.dumps(rows[-1]), flush=True)
+                r1.rospy.signal_shutdown("done")
+                os.environ.clear()
+                os.environ.update(saved)
+        if args.middleware in ("ros2", "both"):
+            # Cyclone DDS on loopback, in a domain of this run alone
+            os.environ["CYCLONEDDS_URI"] = LOOPBACK_URI
+            os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 200)
+            for n_opp in (1, 4):
+                for _ in range(args.runs):
+                    rows.append(("ros2", run_ros2(n_opp, args.seconds, Path(d), dict(os.environ))))
+                    print(json.dumps(rows[-1]), flush=True)
     lines = [
-        "# `fpe node` latency (ROS 1, loopback)",
+        "# `fpe node` latency (loopback)",
         "",
         f"Command: `.venv/bin/python experiments/benchmarks/node_latency.py --seconds "
-        f"{args.seconds:g}`; {RATE_HZ:g} Hz observations of a simulated drive, default preset with "
-        "a per-step covariance (all outputs on). Own update: runner update + covariance per "
-        "opponent, inside the node. End to end: publishing an observation to receiving its "
-        "nav_msgs/Path in the publishing process.",
+        f"{args.seconds:g} --runs {args.runs} --middleware {args.middleware}"
+        f"{' --no-markers' * args.no_markers}`; {RATE_HZ:g} Hz observations of a simulated drive, "
+        "default preset with a per-step covariance (all outputs on, the "
+        f"markers of each opponent at most every 0.1 s{', here off' * args.no_markers}). "
+        "Own update: runner update + covariance per opponent, "
+        "inside the node. End to end: publishing an observation to receiving its nav_msgs/Path "
+        "in the publishing process (ROS 1: roscore on 127.0.0.1; ROS 2: Cyclone DDS on the "
+        f"loopback interface). Each value: the median over {args.runs} runs.",
         "",
-        "| middleware | opponents | observations | paths received | own update p50 / p99 [ms] "
+        "| middleware | opponents | observations | paths received (fewest) "
+        "| own update p50 / p99 [ms] "
         "| end to end p50 / p99 [ms] |",
         "|---|---|---|---|---|---|",
     ]
-    for r in rows:
+    cases = sorted({(mw, r["opponents"]) for mw, r in rows})
+    for mw, n_opp in cases:
+        runs = [r for m, r in rows if (m, r["opponents"]) == (mw, n_opp)]
+        r = {k: float(np.median([x[k] for x in runs])) for k in runs[0]}
+        r["opponents"], r["observations"] = n_opp, runs[0]["observations"]
+        r["predictions_received"] = min(x["predictions_received"] for x in runs)
         lines.append(
-            f"| {args.middleware} | {r['opponents']} | {r['observations']} | "
+            f"| {mw} | {r['opponents']} | {r['observations']} | "
             f"{r['predictions_received']} | {r['update_p50_ms']:.3f} / {r['update_p99_ms']:.3f} | "
             f"{r['e2e_p50_ms']:.2f} / {r['e2e_p99_ms']:.2f} |"
         )
-    (HERE / "node_latency.md").write_text("\n".join(lines) + "\n")
+    out = HERE / ("node_latency_no_markers.md" if args.no_markers else "node_latency.md")
+    out.write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

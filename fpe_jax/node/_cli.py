@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import signal
 import sys
 import threading
@@ -100,6 +101,20 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
             f"--{flag}-topic", metavar="T", help=f"{OUTPUTS[name][1]} (default {OUTPUTS[name][0]})"
         )
         o.add_argument(f"--no-{flag}", action="store_true", help=f"do not publish {name}")
+    o.add_argument(
+        "--markers-every",
+        type=float,
+        default=0.1,
+        metavar="S",
+        help="each opponent's markers at most every S seconds, one opponent's per message (0.1)",
+    )
+    o.add_argument(
+        "--trajectory-every",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="publish the OpponentTrajectory every S seconds (1.0)",
+    )
     p.add_argument("--node-name", default="future_pose_estimator", help="ROS node name")
     p.add_argument("--domain-id", type=int, help="ROS 2 domain id (default: ROS_DOMAIN_ID or 0)")
     p.add_argument(
@@ -138,7 +153,7 @@ def _transport(args):
     domain = (
         args.domain_id if args.domain_id is not None else int(os.environ.get("ROS_DOMAIN_ID", 0))
     )
-    return DdsTransport(typestore("ros2"), domain_id=domain)
+    return DdsTransport(typestore("ros2"), domain_id=domain, node_name=args.node_name)
 
 
 def _param(transport, args, flag_value, name, default=None):
@@ -209,6 +224,8 @@ def options_from_args(args, transport):
         raise InputError(
             "fpe node", "--drop-after, --max-tracks or --tf-wait out of range", "positive values"
         )
+    if not (args.markers_every >= 0 and args.trajectory_every >= 0):
+        raise InputError("fpe node", "--markers-every or --trajectory-every negative", ">= 0")
     opts = NodeOptions(
         input=kind,
         topic=topic,
@@ -222,6 +239,8 @@ def options_from_args(args, transport):
         outputs=outputs,
         adapt=args.adapt,
         delay_s=args.delay,
+        markers_every_s=args.markers_every,
+        trajectory_every_s=args.trajectory_every,
     )
     return cfg, xy, opts
 
@@ -246,6 +265,10 @@ def run(args) -> int:
             scene = SceneSink(port=args.foxglove, mcap_path=args.record, frame_id=opts.map_frame)
         node = Node(transport, cfg, xy, opts, scene=scene)
         node.start()
+        # what start-up built (type stores, message classes, the runners' tables) lives as long
+        # as the node: kept out of the collector's full passes, which would otherwise pause the
+        # callbacks for milliseconds
+        gc.freeze()
         print(
             f"fpe node: {transport.flavour}, {opts.input} on {opts.topic}, publishing "
             + ", ".join(f"{k} {v}" for k, v in opts.outputs.items() if v),

@@ -80,7 +80,10 @@ class NodeOptions:
     """What the node reads and writes (the `fpe node` flags).
 
     input: "pose", "tags" or "obstacles"; topic: its topic. outputs: {output name: topic or None
-    (off)} over `OUTPUTS`. The tag input's frames and mount as `fpe fit`'s flags.
+    (off)} over `OUTPUTS`. markers_every_s: each opponent's markers go out at most once in this
+    time, one opponent's per input message (the MarkerArray, a view, is the costliest message to
+    encode); trajectory_every_s: the OpponentTrajectory's period. The tag input's frames and
+    mount as `fpe fit`'s flags.
     """
 
     input: str = "pose"
@@ -97,6 +100,7 @@ class NodeOptions:
     trajectory_every_s: float = 1.0
     adapt: bool = False  # each opponent's runner learns its line and pace (fpe_jax.adapt)
     delay_s: float | None = None  # with adapt and no config: the sensor's detection delay [s]
+    markers_every_s: float = 0.1
     outputs: dict[str, str | None] = field(
         default_factory=lambda: {k: v[0] for k, v in OUTPUTS.items()}
     )
@@ -193,6 +197,7 @@ class Node:
         self._lock = threading.Lock()
         self._pub: dict[str, Callable[[dict], None]] = {}
         self._last_trajectory_ns = -(10**30)
+        self._last_markers_ns: dict[str, int] = {}  # monotonic time of each car's last markers
         self.n_published = 0
         self.update_ns: list[int] = []  # own time of each update (for the latency benchmark)
 
@@ -370,6 +375,7 @@ class Node:
                  if receive_ns - t > self.opt.drop_after_s * 1e9]  # fmt: skip
         for c in stale:
             del self.runners[c], self.last_seen_ns[c]
+            self._last_markers_ns.pop(c, None)
         if updated:
             self._publish(updated)
 
@@ -382,6 +388,11 @@ class Node:
         r = self.runners.get(car)
         if r is None:
             r = self.runners[car] = self._new_runner()
+            # a new opponent's topics are advertised with its first observation, so that
+            # subscribers have matched by its first valid prediction (a few samples later)
+            for name in ("path", "covariance"):
+                if name in self._pub and self._topic(name, car) is not None:
+                    self._publisher(name, car)
         return r
 
     def _observe(self, car: str, ns: int, x: float, y: float, yaw: float, receive_ns: int,
@@ -433,8 +444,9 @@ class Node:
         return [ns + round(k * self.dt_s * 1e9) for k in range(1, self.horizon + 1)]
 
     def _topic(self, name: str, car: str) -> str | None:
-        """Per-opponent topics for the per-car outputs when several opponents are tracked."""
-        return None if self.opt.input != "obstacles" else f"{self.opt.outputs[name]}/{car}"
+        """Per-opponent topics of the per-car outputs when several opponents are tracked:
+        `<topic>/opp_<id>` (a ROS name part must not start with a digit)."""
+        return None if self.opt.input != "obstacles" else f"{self.opt.outputs[name]}/opp_{car}"
 
     def _publisher(self, name: str, car: str):
         sub = self._topic(name, car)
@@ -463,10 +475,7 @@ class Node:
         if "obstacles" in self._pub:
             self._pub["obstacles"](self._obstacle_array(outs[0][1], outs))
         if "markers" in self._pub:
-            markers = [
-                m for car, ns, poses, cov, _ in outs for m in self._markers(car, ns, poses, cov)
-            ]
-            self._pub["markers"]({"markers": markers})
+            self._publish_markers(outs)
         if "covariance" in self._pub:
             for car, ns, poses, cov, _ in outs:
                 if cov is None:
@@ -479,6 +488,19 @@ class Node:
                          "pose": {"pose": _pose(x, y, yaw), "covariance": full}})  # fmt: skip
         self.n_published += len(outs)
         self._publish_trajectory(time.monotonic_ns())
+
+    def _publish_markers(self, outs: list) -> None:
+        """The markers of one opponent per input message: the one whose markers are oldest, if
+        at least markers_every_s old. Every opponent's markers refresh at 1 / markers_every_s
+        while the costliest message to encode stays one opponent's (their lifetime keeps the
+        others' on screen)."""
+        now_ns = time.monotonic_ns()
+        last = self._last_markers_ns
+        car, ns, poses, cov, _ = min(outs, key=lambda o: last.get(o[0], -(10**30)))
+        if now_ns - last.get(car, -(10**30)) < self.opt.markers_every_s * 1e9:
+            return
+        last[car] = now_ns
+        self._pub["markers"]({"markers": self._markers(car, ns, poses, cov)})
 
     def _marker(self, car, ns, ident, kind, points, rgba, width=0.08) -> dict:
         r, g, b, a = rgba

@@ -8,6 +8,9 @@ ROS 2 is DDS with naming and QoS conventions, which this module follows:
 - outputs are reliable, volatile, keep-last 10 (the ROS 2 default profile); inputs are volatile,
   keep-last 10, reliable while every writer on the topic is reliable and best effort once a
   best-effort (sensor data) writer appears, which a reliable reader could not match;
+- TF (tf2_msgs/TFMessage) takes tf2_ros' QoS: keep-last 100, and transient local on topics
+  ending in `_static` (`/tf_static`), so static transforms published before the node started
+  reach it;
 - each endpoint carries `typehash=RIHS01_<sha256 hex>;` in its USER_DATA (ROS 2 Jazzy and later);
 - the node announces its readers and writers on `ros_discovery_info`, so `ros2 node list` shows it.
 
@@ -62,6 +65,8 @@ log = logging.getLogger(__name__)
 
 OUTPUT_DEPTH = 10  # keep-last depth of every writer (ROS 2 default profile)
 INPUT_DEPTH = 10  # keep-last depth of every reader
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+TF_DEPTH = 100  # TF readers and writers, as tf2_ros' (transforms come in bursts)
 SPIN_PERIOD_S = 0.02  # longest time spin() takes to notice that `stop` was set
 WARN_PERIOD_S = 10.0  # one warning per topic and problem in this time
 DISCOVERY_TOPIC = "ros_discovery_info"
@@ -128,6 +133,14 @@ def resolve_domain_id(domain_id: int | None) -> int:
     if isinstance(domain_id, bool) or not 0 <= domain_id <= MAX_DOMAIN_ID:
         raise ValueError(f"{where}={domain_id!r}: expected an integer 0..{MAX_DOMAIN_ID}")
     return domain_id
+
+
+def _durability(topic: str, type_name: str):
+    """Transient local for static TF (as tf2_ros' static broadcasters and listeners), else
+    volatile."""
+    if type_name == TF_TYPE and topic.endswith("_static"):
+        return Policy.Durability.TransientLocal
+    return Policy.Durability.Volatile
 
 
 def type_hash_user_data(typestore: Typestore, type_name: str) -> bytes:
@@ -518,7 +531,8 @@ class DdsTransport:
             self._wake.set(True)  # spin() reads discovery and resolves the type
 
     def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]:
-        """Return publish(msg_dict) for `topic`: a reliable, volatile, keep-last 10 writer.
+        """Return publish(msg_dict) for `topic`: a reliable, volatile, keep-last 10 writer
+        (TF: keep-last 100, transient local on `*_static`).
         publish raises ValueError for a message that does not fit the type (unknown field,
         wrong kind of value, out of range)."""
         topic = _ros_topic(topic)
@@ -535,8 +549,8 @@ class DdsTransport:
             else:
                 qos = Qos(
                     Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)),
-                    Policy.Durability.Volatile,
-                    Policy.History.KeepLast(OUTPUT_DEPTH),
+                    _durability(topic, type_name),
+                    Policy.History.KeepLast(TF_DEPTH if type_name == TF_TYPE else OUTPUT_DEPTH),
                     Policy.DataRepresentation(use_cdrv0_representation=True),
                     Policy.Userdata(type_hash_user_data(self._store, type_name)),
                 )
@@ -673,8 +687,10 @@ class DdsTransport:
             Policy.Reliability.BestEffort
             if best_effort
             else Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)),
-            Policy.Durability.Volatile,
-            Policy.History.KeepLast(INPUT_DEPTH),
+            Policy.Durability.Volatile
+            if best_effort
+            else _durability(entry.topic, entry.type_name),
+            Policy.History.KeepLast(TF_DEPTH if entry.type_name == TF_TYPE else INPUT_DEPTH),
             Policy.Userdata(type_hash_user_data(self._store, entry.type_name)),
         )
         topic = self._topic(dds_topic_name(entry.topic), entry.type_name)
