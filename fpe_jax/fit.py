@@ -112,10 +112,11 @@ BFGS_LOSS_UNIT_M2 = 1.0 / 300
 PRESOLVE_ROWS = 1024
 PRESOLVE_DECREASE_RTOL = 1e-8
 # A minimiser's loss is summed over blocks of this many target rows of each dataset, each block
-# a `jax.checkpoint` in a scan (`_data_loss`): the solver's working memory is then that of one
-# block, whatever the length of the logs, where it grew by ~0.5 GB per hour of 10 Hz logs. The
-# price is one more forward rollout per gradient, so data of fewer than two blocks stay one
-# piece: the benchmark's 10-minute drive (6144 padded rows) runs exactly as before.
+# (and each shorter dataset) a `jax.checkpoint`, a long dataset's blocks in a scan
+# (`_data_loss`): the solver's working memory is then that of one block, whatever the length
+# of the logs, where it grew by ~0.5 GB per hour of 10 Hz logs. The price is one more forward
+# rollout per gradient, so data of fewer than two blocks in all stay one piece: the
+# benchmark's 10-minute drive (6144 padded rows) runs exactly as before.
 FIT_BLOCK_ROWS = 8192
 
 
@@ -193,13 +194,14 @@ def _loss(raw_free, args, block_rows: int | None = None, devices: int = 1):
     forward rollout. A hand-written value-and-gradient derivative would compute the gradient at
     every trial (16-22 % more solve time over seven 10-minute drives, at the same losses).
 
-    With block_rows, a dataset of more rows is summed block by block (`_data_loss`): the
-    linearization then keeps O(block_rows) intermediates instead of O(rows). None, or no
-    dataset of two or more whole blocks: the sum of the squares of `_residuals`, in one piece.
-    devices: over how many of `jax.devices()` the blocks are spread (`_data_loss`).
+    With block_rows, each dataset's loss is summed block by block (`_data_loss`; a dataset of
+    fewer than two blocks is one): the linearization then keeps O(block_rows) intermediates
+    instead of O(rows of all datasets). None, or fewer than two blocks of rows in all: the sum
+    of the squares of `_residuals`, in one piece. devices: over how many of `jax.devices()` the
+    blocks are spread (`_data_loss`).
     """
     raw_fixed, groups, huber_m = args
-    if block_rows is None or all(g[2].shape[0] < 2 * block_rows for g in groups):
+    if block_rows is None or sum(g[2].shape[0] for g in groups) < 2 * block_rows:
         r = _residuals(raw_free, args)
         return 0.5 * jnp.sum(r * r)
     params = constrain(eqx.combine(raw_free, raw_fixed))
@@ -219,7 +221,7 @@ def _block_loss(params: Params, states: State, track: Track, xy_m, mask, huber_m
 
 def _data_loss(params, states, track, xy_m, mask, huber_m, block_rows: int, devices: int = 1):
     """`_block_loss` of N rows summed over blocks of block_rows rows (a scan; the rows past the
-    last whole block as one more, shorter block).
+    last whole block as one more, shorter block; fewer than two blocks' rows as one block).
 
     Each block is a `jax.checkpoint`: the loss's linearization keeps only the block's inputs
     (the data, already held) and recomputes its rollout when transposed, so the solver's
@@ -229,8 +231,9 @@ def _data_loss(params, states, track, xy_m, mask, huber_m, block_rows: int, devi
     `jax.devices()` (`_sharded_sum`)."""
     n = xy_m.shape[0]
     whole = n // block_rows * block_rows
+    one = jax.checkpoint(_block_loss)
     if whole <= block_rows:  # at most one whole block: no scan
-        return _block_loss(params, states, track, xy_m, mask, huber_m)
+        return one(params, states, track, xy_m, mask, huber_m)
     data = (states, xy_m, mask)
     blocks = jax.tree.map(lambda x: x[:whole].reshape(-1, block_rows, *x.shape[1:]), data)
     huber_m = jnp.asarray(huber_m, xy_m.dtype)
@@ -239,7 +242,7 @@ def _data_loss(params, states, track, xy_m, mask, huber_m, block_rows: int, devi
     total = _scan_blocks(params, track, huber_m, blocks)
     if whole < n:
         tail = jax.tree.map(lambda x: x[whole:], data)
-        total = total + _block_loss(params, tail[0], track, tail[1], tail[2], huber_m)
+        total = total + one(params, tail[0], track, tail[1], tail[2], huber_m)
     return total
 
 

@@ -46,11 +46,15 @@ def _objective(drive, model: str):
 
 @pytest.mark.parametrize("model", ["line", "blend"])
 def test_blocked_loss_and_gradient_equal_the_loss_in_one_piece(drive, model):
-    """Several whole blocks and a shorter last one (370 rows in blocks of 64) sum to the
-    one-piece loss to 1e-12 relative, and so does the gradient, under jit, grad and vmap."""
-    y0, args, unravel, data, _ = _objective(drive, model)
+    """Several whole blocks and a shorter last one (370 rows in blocks of 64), next to a
+    dataset shorter than two blocks, sum to the one-piece loss to 1e-12 relative, and so does
+    the gradient, under jit, grad and vmap."""
+    y0, (fixed, groups, huber), unravel, data, _ = _objective(drive, model)
     n = len(data.targets.rows)
     assert n > 2 * BLOCK and n % BLOCK, n  # several blocks and a partial one
+    states, track, xy, mask = groups[0]
+    short = (jax.tree.map(lambda x: x[:100], states), track, xy[:100], mask[:100])
+    args = (fixed, [groups[0], short], huber)
     whole = jax.jit(jax.value_and_grad(lambda y: F._loss(unravel(y), args)))
     blocked = jax.jit(jax.value_and_grad(lambda y: F._loss(unravel(y), args, BLOCK)))
     ys = y0[None, :] + 0.05 * jnp.sin(jnp.arange(1.0, 3 * y0.size + 1)).reshape(3, -1)
@@ -78,16 +82,17 @@ def test_a_fit_over_several_blocks_equals_the_fit_in_one_piece(drive):
             F.fit_params([data], init, block_rows=bad)
 
 
-def _temp_bytes(drive, n_rows: int, block_rows: int | None) -> int:
+def _temp_bytes(drive, n_rows: int, block_rows: int | None, datasets: int = 1) -> int:
     """XLA's temporary buffer size [bytes] of the compiled loss and gradient (what BFGS
-    evaluates) of the line model on n_rows target rows (the drive's rows repeated)."""
+    evaluates) of the line model on `datasets` datasets of n_rows target rows each (the
+    drive's rows repeated)."""
     y0, (fixed, groups, huber), unravel, data, _ = _objective(drive, "line")
     states, track, xy, mask = groups[0]
     big = (pad_rows(states, n_rows), track, pad_rows(xy, n_rows), pad_rows(mask, n_rows))
-    shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(np.shape(x), x.dtype), big)
+    shapes = [jax.tree.map(lambda x: jax.ShapeDtypeStruct(np.shape(x), x.dtype), big)] * datasets
 
     def value_and_grad(y, g):
-        return jax.value_and_grad(lambda v: F._loss(unravel(v), (fixed, [g], huber), block_rows))(y)
+        return jax.value_and_grad(lambda v: F._loss(unravel(v), (fixed, g, huber), block_rows))(y)
 
     compiled = jax.jit(value_and_grad).lower(y0, shapes).compile()
     return compiled.memory_analysis().temp_size_in_bytes
@@ -103,6 +108,16 @@ def test_the_blocked_loss_needs_the_same_memory_for_four_times_the_rows(drive):
     assert blocked[1] <= 1.05 * blocked[0], blocked
     assert whole[1] >= 3.0 * whole[0], whole
     assert blocked[1] < whole[1] / 8, (blocked, whole)
+
+
+def test_the_blocked_loss_needs_the_same_memory_for_four_times_the_datasets(drive):
+    """Many datasets shorter than a block each (a season of short drives): the temporary
+    buffers stay the same from 4 to 16 datasets of 256 rows (blocks of 512), while those of
+    the loss in one piece grow with them."""
+    blocked = [_temp_bytes(drive, 256, 512, k) for k in (4, 16)]
+    whole = [_temp_bytes(drive, 256, None, k) for k in (4, 16)]
+    assert blocked[1] <= 1.05 * blocked[0], blocked
+    assert whole[1] >= 3.0 * whole[0], whole
 
 
 TWO_DEVICES = r"""

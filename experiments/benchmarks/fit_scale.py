@@ -102,7 +102,8 @@ def markdown(rows: list[dict], meta: dict) -> str:
         "# Fit time and peak memory against hours of logs",
         "",
         f"`{meta['command']}` on {meta['machine']} ({meta['when']}, load average"
-        f" {meta['load_avg'][0]:.1f} at the start, {meta['load_avg'][1]:.1f} at the end).",
+        f" {meta['load_avg'][0]:.1f} at the start, {meta['load_avg'][1]:.1f} at the end;"
+        f" {meta['done']} done).",
         "Each row is one fresh process with an empty compilation cache: simulate the hours as"
         f" {DRIVE_MIN:g}-minute 10 Hz drives on the oval, then `fpe_jax.fit.fit` (the line model,"
         " 30 % of each drive held out, report and uncertainty included). Time: `fit` alone,"
@@ -140,9 +141,13 @@ def main() -> None:
         print(json.dumps(child(args.child, args.block_rows)))
         return
     start = os.getloadavg()[0]
+    out = Path(args.out_dir)
+    out.mkdir(parents=True, exist_ok=True)  # before minutes of work, not after
     rows = []
+    # per size the blocked fit, then (when asked) the one-piece fit of the same logs
     plan = [(float(h), None) for h in args.hours.split(",") if h]
     plan += [(float(h), 10**9) for h in args.unblocked_hours.split(",") if h]
+    plan.sort(key=lambda p: (p[0], p[1] is not None))
     for hours, block in plan:
         row = run_child(hours, block)
         rows.append(row)
@@ -151,16 +156,16 @@ def main() -> None:
             f" peak RSS {row['peak_rss_mb']:.0f} MB, loss {row['loss']:.6g}",
             flush=True,
         )
-    meta = {
-        "command": "python experiments/benchmarks/fit_scale.py " + " ".join(sys.argv[1:]),
-        "machine": f"{platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}",
-        "when": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "load_avg": [start, os.getloadavg()[0]],
-    }
-    out = Path(args.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "fit_scale.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
-    (out / "fit_scale.md").write_text(markdown(rows, meta))
+        meta = {
+            "command": "python experiments/benchmarks/fit_scale.py " + " ".join(sys.argv[1:]),
+            "machine": f"{platform.machine()} {os.cpu_count()} CPUs, {platform.python_version()}",
+            "when": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "load_avg": [start, os.getloadavg()[0]],
+            "done": f"{len(rows)} of {len(plan)} sizes",
+        }
+        # written after every size: a long run stopped early keeps what it measured
+        (out / "fit_scale.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+        (out / "fit_scale.md").write_text(markdown(rows, meta))
 
 
 if __name__ == "__main__":
