@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -430,6 +431,24 @@ def _solve(
     return value, sol.stats["num_steps"], presolve_steps, ok, loss
 
 
+def _by_track(datasets: Sequence[Dataset]) -> list[list[Dataset]]:
+    """The datasets grouped by their track (equal arrays and settings), in first-seen order."""
+    parts: dict[str, list[Dataset]] = {}
+    for d in datasets:
+        h = hashlib.sha256(str(jax.tree.structure(d.track)).encode())
+        for leaf in jax.tree.leaves(d.track):
+            h.update(np.ascontiguousarray(leaf).tobytes())
+        parts.setdefault(h.hexdigest(), []).append(d)
+    return list(parts.values())
+
+
+def _joined(trees: list):
+    """Pytrees of equal structure, their leaves (N_i, ...) concatenated as NumPy (sum N_i, ...)."""
+    if len(trees) == 1:
+        return trees[0]
+    return jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *trees)
+
+
 def _free_groups(free, fit, caller: str):
     """The free groups given as `free=`, or as the deprecated `fit=` (one of them)."""
     if fit is None:
@@ -537,17 +556,26 @@ def fit_params(
     raw = unconstrain(init)
     free, fixed = eqx.partition(raw, _free_mask(raw, names))
     # targets and states padded to a bucketed row count (padded targets masked out): drives of
-    # similar length share one compiled solver
-    sizes = [bucket(len(d.targets.rows)) for d in datasets]
+    # similar length share one compiled solver. Data of two or more blocks are solved in row
+    # blocks; then the drives on one track are joined into one row set, so that the program
+    # (and its compilation) does not grow with the number of drives either
+    parts = [[d] for d in datasets]
+    if not _is_least_squares(solver) and sum(len(d.targets.rows) for d in datasets) >= (
+        2 * block_rows
+    ):
+        parts = _by_track(datasets)
+    rows = [sum(len(d.targets.rows) for d in part) for part in parts]
+    sizes = [bucket(n) for n in rows]
     if devices > 1:  # whole blocks, as many on every device
         per = block_rows * devices
         sizes = [-(-n // per) * per if n > block_rows else n for n in sizes]
     targets = [
         (
-            pad_rows(d.targets.xy_m, n),
-            pad_rows(d.targets.mask, n) & (np.arange(n) < len(d.targets.rows))[:, None],
+            pad_rows(np.concatenate([d.targets.xy_m for d in part]), n),
+            pad_rows(np.concatenate([d.targets.mask for d in part]), n)
+            & (np.arange(n) < m)[:, None],
         )
-        for d, n in zip(datasets, sizes)
+        for part, n, m in zip(parts, sizes, rows)
     ]
 
     kalman = uses_filter(init.settings)
@@ -572,15 +600,15 @@ def fit_params(
         block_rows=int(block_rows),
         devices=int(devices),
     )
-    abstract = [(shape_of(xy), d.track, xy, m) for d, (xy, m) in zip(datasets, targets)]
+    abstract = [(shape_of(xy), part[0].track, xy, m) for part, (xy, m) in zip(parts, targets)]
     huber = np.float64(huber_m)
     # the solver's executable (from memory, from disk, or traced and compiled: seconds) is made
     # on a second thread from shapes alone while this one estimates the states
     with ThreadPoolExecutor(1) as pool:
         pending = pool.submit(aot.executable, _solve, free, fixed, abstract, huber, **static)
         groups = [
-            (pad_rows(d.states(init), n), d.track, *tm)
-            for d, n, tm in zip(datasets, sizes, targets)
+            (pad_rows(_joined([d.states(init) for d in part]), n), part[0].track, *tm)
+            for part, n, tm in zip(parts, sizes, targets)
         ]
         compiled = pending.result()
     took = dict(compiled.seconds)

@@ -68,11 +68,12 @@ def test_blocked_loss_and_gradient_equal_the_loss_in_one_piece(drive, model):
 
 
 def test_a_fit_over_several_blocks_equals_the_fit_in_one_piece(drive):
-    """The blocked fit changes only the order of the loss's sum: the same steps, the loss to
-    1e-10 relative, the fitted values to 1e-6."""
+    """The blocked fit (two datasets on one track, joined into one row set in blocks) changes
+    only the order of the loss's sum: the loss to 1e-10 relative, the fitted values to 1e-6."""
     _, _, _, data, init = _objective(drive, "blend")
-    one, one_info = F.fit_params([data], init, block_rows=10**6)
-    many, many_info = F.fit_params([data], init, block_rows=BLOCK)
+    later = E.targets_before(data, data.drive.t_s[-1] - 10.0, init.settings.dt_s)
+    one, one_info = F.fit_params([data, later], init, block_rows=10**6)
+    many, many_info = F.fit_params([data, later], init, block_rows=BLOCK)
     assert one_info["converged"] and many_info["converged"]
     assert many_info["loss"] == pytest.approx(one_info["loss"], rel=1e-10)
     a, b = ravel_pytree(unconstrain(one))[0], ravel_pytree(unconstrain(many))[0]
