@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -111,6 +112,13 @@ BFGS_LOSS_UNIT_M2 = 1.0 / 300
 # local minimum.
 PRESOLVE_ROWS = 1024
 PRESOLVE_DECREASE_RTOL = 1e-8
+# A minimiser's loss is summed over blocks of this many target rows of each dataset, each block
+# (and each shorter dataset) a `jax.checkpoint`, a long dataset's blocks in a scan
+# (`_data_loss`): the solver's working memory is then that of one block, whatever the length
+# of the logs, where it grew by ~0.5 GB per hour of 10 Hz logs. The price is one more forward
+# rollout per gradient, so data of fewer than two blocks in all stay one piece: the
+# benchmark's 10-minute drive (6144 padded rows) runs exactly as before.
+FIT_BLOCK_ROWS = 8192
 
 
 def _huber_scale(err_m, delta_m):
@@ -137,12 +145,25 @@ def robust_residuals(weights, preds, targets, masks, raw_values, huber_m):
     n_targets = sum(jnp.sum(mask) for mask in masks).astype(weights.dtype)
     out = [jnp.sqrt(WEIGHT_SMOOTHING_M2 * n_targets) * jnp.diff(weights)]
     for pred, target, mask in zip(preds, targets, masks):
-        d = pred - target
-        e = jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12)
-        r = jnp.where(mask[..., None], d * _huber_scale(e, huber_m)[..., None], 0.0)
-        out.append(r.reshape(-1))
+        out.append(_data_residuals(pred, target, mask, huber_m).reshape(-1))
     ridge = [jnp.sqrt(RAW_RIDGE) * jnp.ravel(x) for x in raw_values]
     return jnp.concatenate(out + ridge)
+
+
+def _data_residuals(pred, target, mask, huber_m):
+    """(..., H, 2) Huber-scaled position errors [m] of predictions (..., H, 2) at their targets,
+    0 where the mask (..., H) has no target."""
+    d = pred - target
+    e = jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12)
+    return jnp.where(mask[..., None], d * _huber_scale(e, huber_m)[..., None], 0.0)
+
+
+def _filter_prior(params: Params, raw_free) -> list:
+    """The prior's residuals on the filter's values that are free (FILTER_PRIOR_M2); [] when
+    none is."""
+    free_filter = [k for k in FILTER_DEFAULTS if getattr(raw_free, k) is not None]
+    prior = [jnp.log(getattr(params, k) / FILTER_DEFAULTS[k]) for k in free_filter]
+    return [np.sqrt(FILTER_PRIOR_M2) * jnp.stack(prior)] if prior else []
 
 
 def _residuals(raw_free, args):
@@ -155,11 +176,8 @@ def _residuals(raw_free, args):
     out = robust_residuals(
         params.weights, preds, targets, masks, jax.tree.leaves(raw_free), huber_m
     )
-    free_filter = [k for k in FILTER_DEFAULTS if getattr(raw_free, k) is not None]
-    if not free_filter:
-        return out
-    prior = [jnp.log(getattr(params, k) / FILTER_DEFAULTS[k]) for k in free_filter]
-    return jnp.concatenate([out, np.sqrt(FILTER_PRIOR_M2) * jnp.stack(prior)])
+    prior = _filter_prior(params, raw_free)
+    return jnp.concatenate([out, *prior]) if prior else out
 
 
 def _free_mask(params: Params, free: Sequence[str]) -> Params:
@@ -169,15 +187,95 @@ def _free_mask(params: Params, free: Sequence[str]) -> Params:
     return jax.tree_util.tree_map_with_path(lambda path, _: path[0].name in names, params)
 
 
-def _loss(raw_free, args):
-    """The scalar robust loss 1/2 |residuals|^2 (what BFGS minimises).
+def _loss(raw_free, args, block_rows: int | None = None, devices: int = 1):
+    """The scalar robust loss 1/2 |residuals|^2 (what BFGS minimises), in row blocks.
 
     BFGS linearizes it at each trial point and transposes the linearization (reverse mode: the
     gradient) only where its line search accepts the point, so a rejected trial costs one
     forward rollout. A hand-written value-and-gradient derivative would compute the gradient at
-    every trial (16-22 % more solve time over seven 10-minute drives, at the same losses)."""
-    r = _residuals(raw_free, args)
+    every trial (16-22 % more solve time over seven 10-minute drives, at the same losses).
+
+    With block_rows, each dataset's loss is summed block by block (`_data_loss`; a dataset of
+    fewer than two blocks is one): the linearization then keeps O(block_rows) intermediates
+    instead of O(rows of all datasets). None, or fewer than two blocks of rows in all: the sum
+    of the squares of `_residuals`, in one piece. devices: over how many of `jax.devices()` the
+    blocks are spread (`_data_loss`).
+    """
+    raw_fixed, groups, huber_m = args
+    if block_rows is None or sum(g[2].shape[0] for g in groups) < 2 * block_rows:
+        r = _residuals(raw_free, args)
+        return 0.5 * jnp.sum(r * r)
+    params = constrain(eqx.combine(raw_free, raw_fixed))
+    masks = [g[3] for g in groups]
+    rest = robust_residuals(params.weights, (), (), masks, jax.tree.leaves(raw_free), huber_m)
+    rest = jnp.concatenate([rest, *_filter_prior(params, raw_free)])
+    data = [_data_loss(params, *g, huber_m, block_rows, devices) for g in groups]
+    return 0.5 * jnp.sum(rest * rest) + sum(data)
+
+
+def _block_loss(params: Params, states: State, track: Track, xy_m, mask, huber_m):
+    """1/2 the sum of the squared `_data_residuals` of the predictions from states (leading
+    axis N) at their targets xy_m (N, H, 2) [m], mask (N, H)."""
+    r = _data_residuals(predict_poses(params, states, track).xy_m, xy_m, mask, huber_m)
     return 0.5 * jnp.sum(r * r)
+
+
+def _data_loss(params, states, track, xy_m, mask, huber_m, block_rows: int, devices: int = 1):
+    """`_block_loss` of N rows summed over blocks of block_rows rows (a scan; the rows past the
+    last whole block as one more, shorter block; fewer than two blocks' rows as one block).
+
+    Each block is a `jax.checkpoint`: the loss's linearization keeps only the block's inputs
+    (the data, already held) and recomputes its rollout when transposed, so the solver's
+    memory is O(block_rows) in the data, not O(N), at the cost of one more forward rollout
+    per gradient (`FIT_BLOCK_ROWS` says when this applies). With devices > 1 and whole blocks
+    that divide evenly among them, the blocks are spread over the first `devices` of
+    `jax.devices()` (`_sharded_sum`)."""
+    n = xy_m.shape[0]
+    whole = n // block_rows * block_rows
+    one = jax.checkpoint(_block_loss)
+    if whole <= block_rows:  # at most one whole block: no scan
+        return one(params, states, track, xy_m, mask, huber_m)
+    data = (states, xy_m, mask)
+    blocks = jax.tree.map(lambda x: x[:whole].reshape(-1, block_rows, *x.shape[1:]), data)
+    huber_m = jnp.asarray(huber_m, xy_m.dtype)
+    if devices > 1 and whole == n and (n // block_rows) % devices == 0:
+        return _sharded_sum(params, track, huber_m, blocks, devices)
+    total = _scan_blocks(params, track, huber_m, blocks)
+    if whole < n:
+        tail = jax.tree.map(lambda x: x[whole:], data)
+        total = total + one(params, tail[0], track, tail[1], tail[2], huber_m)
+    return total
+
+
+def _scan_blocks(params, track, huber_m, blocks):
+    """The sum of `_block_loss` over blocks (states, xy_m, mask) with a leading block axis, one
+    checkpointed block at a time."""
+    one = jax.checkpoint(_block_loss)
+
+    def block_loss(carry, block):
+        return carry, one(params, block[0], track, block[1], block[2], huber_m)
+
+    _, per_block = jax.lax.scan(block_loss, None, blocks)
+    return jnp.sum(per_block)
+
+
+def _sharded_sum(params, track, huber_m, blocks, devices: int):
+    """`_scan_blocks` with the blocks split evenly over a mesh of the first `devices` JAX
+    devices (`jax.shard_map`): each device scans its own blocks, the partial sums are added
+    (`psum`, whose transpose hands every device the same cotangent), params and track are
+    copied to every device."""
+    from jax.sharding import Mesh
+    from jax.sharding import PartitionSpec as P
+
+    mesh = Mesh(np.array(jax.devices()[:devices]), ("blocks",))
+
+    def local(params, track, huber_m, blocks):
+        return jax.lax.psum(_scan_blocks(params, track, huber_m, blocks), "blocks")
+
+    specs = (P(), P(), P(), P("blocks"))
+    return jax.shard_map(local, mesh=mesh, in_specs=specs, out_specs=P())(
+        params, track, huber_m, blocks
+    )
 
 
 def default_solver():
@@ -247,13 +345,13 @@ def _solver_object(solver):
     return solver
 
 
-def _per_unit(unravel, groups):
-    """The BFGS objective over `groups`: the loss of the flat raw values in units of
-    BFGS_LOSS_UNIT_M2 per target point (at least one), and that unit [m^2], computed once here
-    rather than at every evaluation."""
+def _per_unit(unravel, groups, block_rows: int | None, devices: int = 1):
+    """The BFGS objective over `groups`: the loss of the flat raw values (in row blocks of
+    block_rows over `devices`, `_loss`) in units of BFGS_LOSS_UNIT_M2 per target point (at
+    least one), and that unit [m^2], computed once here rather than at every evaluation."""
     n_points = sum(jnp.sum(mask) for _, _, _, mask in groups)
     unit = BFGS_LOSS_UNIT_M2 * jnp.maximum(n_points, 1).astype(groups[0][2].dtype)
-    return (lambda y, a: _loss(unravel(y), a) / unit), unit
+    return (lambda y, a: _loss(unravel(y), a, block_rows, devices) / unit), unit
 
 
 def _presolve_groups(groups, presolve_rows: int):
@@ -269,7 +367,15 @@ def _presolve_groups(groups, presolve_rows: int):
 
 @aot.fusion_emitters
 def _solve(
-    raw_free, raw_fixed, groups, huber_m, max_steps: int, solver: _Static, presolve_rows: int
+    raw_free,
+    raw_fixed,
+    groups,
+    huber_m,
+    max_steps: int,
+    solver: _Static,
+    presolve_rows: int,
+    block_rows: int | None = None,
+    devices: int = 1,
 ):
     """Run the optimistix solver; returns (raw values, steps, pre-solve steps, converged, loss).
 
@@ -278,7 +384,9 @@ def _solve(
     of a Params of Params, and the 10-minute oval fit's steps took 8.0 instead of 10.5 ms
     (a third less under load), at the same losses on the solver study's drives. The package's
     BFGS (`fpe_jax.bfgs.BFGS`, the default) first solves on a subsample of a long drive's rows
-    (`_presolve_groups`, PRESOLVE_ROWS); max_steps applies to each of the two solves.
+    (`_presolve_groups`, PRESOLVE_ROWS); max_steps applies to each of the two solves. A
+    minimiser's loss runs in row blocks of block_rows (`_loss`, FIT_BLOCK_ROWS), spread over
+    `devices`; a least-squares solver needs the whole residual vector.
     """
     import optimistix as optx
     from jax.flatten_util import ravel_pytree
@@ -293,12 +401,12 @@ def _solve(
     if least_squares:
         run, fn = optx.least_squares, lambda y, a: _residuals(unravel(y), a)
     else:
-        run, (fn, unit) = optx.minimise, _per_unit(unravel, groups)
+        run, (fn, unit) = optx.minimise, _per_unit(unravel, groups, block_rows, devices)
         sub = _presolve_groups(groups, presolve_rows) if isinstance(method, BFGS) else None
         if sub is not None:
             loose = eqx.tree_at(lambda m: m.decrease_rtol, method, PRESOLVE_DECREASE_RTOL)
             first = optx.minimise(
-                _per_unit(unravel, sub)[0],
+                _per_unit(unravel, sub, block_rows, devices)[0],
                 loose,
                 y0,
                 args=(raw_fixed, sub, huber_m),
@@ -319,8 +427,26 @@ def _solve(
     elif not least_squares and hasattr(info, "f"):
         loss = info.f * unit
     else:
-        loss = _loss(value, args)
+        loss = _loss(value, args, None if least_squares else block_rows)
     return value, sol.stats["num_steps"], presolve_steps, ok, loss
+
+
+def _by_track(datasets: Sequence[Dataset]) -> list[list[Dataset]]:
+    """The datasets grouped by their track (equal arrays and settings), in first-seen order."""
+    parts: dict[str, list[Dataset]] = {}
+    for d in datasets:
+        h = hashlib.sha256(str(jax.tree.structure(d.track)).encode())
+        for leaf in jax.tree.leaves(d.track):
+            h.update(np.ascontiguousarray(leaf).tobytes())
+        parts.setdefault(h.hexdigest(), []).append(d)
+    return list(parts.values())
+
+
+def _joined(trees: list):
+    """Pytrees of equal structure, their leaves (N_i, ...) concatenated as NumPy (sum N_i, ...)."""
+    if len(trees) == 1:
+        return trees[0]
+    return jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *trees)
 
 
 def _free_groups(free, fit, caller: str):
@@ -362,6 +488,8 @@ def fit_params(
     max_steps: int | None = None,
     fit: Sequence[str] | None = None,
     presolve_rows: int = PRESOLVE_ROWS,
+    block_rows: int | None = None,
+    devices: int = 1,
 ) -> tuple[Params, dict]:
     """Fit the free raw parameters of `init` over all datasets jointly (optimistix, float64).
 
@@ -379,6 +507,15 @@ def fit_params(
             this many target rows are first fitted on every k-th row, k = rows //
             presolve_rows, and the solve over all rows starts from there (PRESOLVE_ROWS says
             why); 0 solves over all rows from the start.
+        block_rows: a minimiser's loss and gradient are accumulated over blocks of this many
+            target rows of each dataset, so that its memory does not grow with the data
+            (default FIT_BLOCK_ROWS, which says why; a dataset of fewer than twice as many
+            rows is one block). The fitted values depend on it only through the order of the
+            sum.
+        devices: spread a minimiser's row blocks over the first this many of `jax.devices()`
+            (a mesh, `jax.shard_map`); each dataset's rows are then padded to a multiple of
+            block_rows x devices. On the CPU, XLA_FLAGS=--xla_force_host_platform_device_count=N
+            (set before JAX starts) makes N devices of the host's cores.
 
     Returns the fitted Params and solver info: solver (its name: "bfgs", "lm" or the class
     name), steps (over all rows), presolve_steps (over the subsample; 0 without), converged,
@@ -408,17 +545,37 @@ def fit_params(
     whole = isinstance(presolve_rows, int | np.integer) and not isinstance(presolve_rows, bool)
     if not whole or presolve_rows < 0:
         raise InputError("presolve_rows", repr(presolve_rows), "a whole number >= 0 (0: none)")
+    block_rows = FIT_BLOCK_ROWS if block_rows is None else block_rows
+    whole = isinstance(block_rows, int | np.integer) and not isinstance(block_rows, bool)
+    if not whole or block_rows < 1:
+        raise InputError("block_rows", repr(block_rows), "a whole number >= 1")
+    n_devices = len(jax.devices())
+    whole = isinstance(devices, int | np.integer) and not isinstance(devices, bool)
+    if not whole or not 1 <= devices <= n_devices:
+        raise InputError("devices", repr(devices), f"a whole number from 1 to {n_devices}")
     raw = unconstrain(init)
     free, fixed = eqx.partition(raw, _free_mask(raw, names))
     # targets and states padded to a bucketed row count (padded targets masked out): drives of
-    # similar length share one compiled solver
-    sizes = [bucket(len(d.targets.rows)) for d in datasets]
+    # similar length share one compiled solver. Data of two or more blocks are solved in row
+    # blocks; then the drives on one track are joined into one row set, so that the program
+    # (and its compilation) does not grow with the number of drives either
+    parts = [[d] for d in datasets]
+    if not _is_least_squares(solver) and sum(len(d.targets.rows) for d in datasets) >= (
+        2 * block_rows
+    ):
+        parts = _by_track(datasets)
+    rows = [sum(len(d.targets.rows) for d in part) for part in parts]
+    sizes = [bucket(n) for n in rows]
+    if devices > 1:  # whole blocks, as many on every device
+        per = block_rows * devices
+        sizes = [-(-n // per) * per if n > block_rows else n for n in sizes]
     targets = [
         (
-            pad_rows(d.targets.xy_m, n),
-            pad_rows(d.targets.mask, n) & (np.arange(n) < len(d.targets.rows))[:, None],
+            pad_rows(np.concatenate([d.targets.xy_m for d in part]), n),
+            pad_rows(np.concatenate([d.targets.mask for d in part]), n)
+            & (np.arange(n) < m)[:, None],
         )
-        for d, n in zip(datasets, sizes)
+        for part, n, m in zip(parts, sizes, rows)
     ]
 
     kalman = uses_filter(init.settings)
@@ -436,21 +593,29 @@ def fit_params(
     t0 = time.perf_counter()
     kind = "least_squares" if _is_least_squares(solver) else "minimise"
     steps_limit = MAX_STEPS[kind] if max_steps is None else max_steps
-    static = dict(max_steps=steps_limit, solver=_Static(solver), presolve_rows=int(presolve_rows))
-    abstract = [(shape_of(xy), d.track, xy, m) for d, (xy, m) in zip(datasets, targets)]
+    static = dict(
+        max_steps=steps_limit,
+        solver=_Static(solver),
+        presolve_rows=int(presolve_rows),
+        block_rows=int(block_rows),
+        devices=int(devices),
+    )
+    abstract = [(shape_of(xy), part[0].track, xy, m) for part, (xy, m) in zip(parts, targets)]
     huber = np.float64(huber_m)
     # the solver's executable (from memory, from disk, or traced and compiled: seconds) is made
     # on a second thread from shapes alone while this one estimates the states
     with ThreadPoolExecutor(1) as pool:
         pending = pool.submit(aot.executable, _solve, free, fixed, abstract, huber, **static)
         groups = [
-            (pad_rows(d.states(init), n), d.track, *tm)
-            for d, n, tm in zip(datasets, sizes, targets)
+            (pad_rows(_joined([d.states(init) for d in part]), n), part[0].track, *tm)
+            for part, n, tm in zip(parts, sizes, targets)
         ]
         compiled = pending.result()
     took = dict(compiled.seconds)
     t = time.perf_counter()
     out = jax.block_until_ready(compiled(free, fixed, groups, huber, **static))
+    if devices > 1:  # replicated over the mesh: back to the device the rest runs on
+        out = jax.device_put(out, jax.devices()[0])
     value, steps, presolve_steps, ok, loss = out
     took["solve_s"] = time.perf_counter() - t
     fitted = constrain(eqx.combine(value, fixed))
@@ -492,6 +657,7 @@ def fit(
     progress: Callable[[str], None] = lambda msg: None,
     fit: Sequence[str] | None = None,
     estimator: str = LINE_ESTIMATOR,
+    devices: int = 1,
 ) -> FitResult:
     """Fit on the training data, report on held-out data.
 
@@ -518,6 +684,7 @@ def fit(
         estimator: the line model's track-frame state estimator, "kalman" (the default; its
             noise values are the "filter" group) or "theil-sen" (ignored when `init` is a
             line-model Params: its own applies).
+        devices: how many of `jax.devices()` share each solve's row blocks (`fit_params`).
 
     Raises InputError naming the argument (free, model, solver, estimator) for a value it
     cannot use, and
@@ -585,14 +752,14 @@ def fit(
             if p0.settings.model == "line":
                 p0 = dataclasses.replace(p0, **inner_line)
             progress(f"choosing the model: fitting {_label(p0)} on the inner split")
-            p, _ = fit_params(inner_fit, p0, free=groups, solver=solver)
+            p, _ = fit_params(inner_fit, p0, free=groups, solver=solver, devices=devices)
             selection[label] = score(p)
         best = min(selection, key=selection.get)
     else:
         best = next(iter(candidates))
     p0, free = candidates[best]
     progress(f"fitting {_label(p0)} on {sum(len(d.targets.rows) for d in train)} predictions")
-    params, info = fit_params(train, p0, free=free, solver=solver)
+    params, info = fit_params(train, p0, free=free, solver=solver, devices=devices)
     progress(f"estimating uncertainty on {len(train)} training drive(s)")
     uncertainty = fit_uncertainty(params, train)
     progress(f"evaluating the fit on {len(test)} held-out drive(s)")
