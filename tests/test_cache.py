@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fpe_jax import aot, cache
+from fpe_jax.compile import _aot as aot
+from fpe_jax.compile import _cache as cache
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "data" / "samples"

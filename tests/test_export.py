@@ -15,18 +15,12 @@ from test_runner import NO_JAX as BLOCK_JAX  # blocks importing JAX
 
 from fpe_jax import Params, Settings, State, Track, predict_batch, predict_drive
 from fpe_jax.cli import main
-from fpe_jax.config import params_to_config, read_config, write_config
 from fpe_jax.errors import InputError
-from fpe_jax.export import (
-    INPUTS,
-    ROS2_PARAMS,
-    _yaml_scalar,
-    load,
-    to_ros2_yaml,
-)
-from fpe_jax.predict import states_from_drive
-from fpe_jax.runner import Runner
-from fpe_jax.sim import simulate
+from fpe_jax.io.config import params_to_config, read_config, write_config
+from fpe_jax.io.export import INPUTS, ROS2_PARAMS, _yaml_scalar, load, to_ros2_yaml
+from fpe_jax.predict._predict import states_from_drive
+from fpe_jax.runner._runner import Runner
+from fpe_jax.sim._sim import simulate
 from fpe_jax.spec import SCHEMA_VERSION
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -271,8 +265,8 @@ def test_yaml_floats_stay_floats(value):
 def test_line_model_exports_its_profile_to_every_format(case, tmp_path):
     """A line-model config: the ROS 2 file carries the profile arrays, the StableHLO artifact
     and the runner predict what the JAX path does (track-frame inputs given, and omitted)."""
-    from fpe_jax.line import learn_line
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.model._line import learn_line
 
     drive, track = case["drive"], case["track"]
     wp = np.loadtxt(case["tmp"] / "wp.csv", delimiter=",")
@@ -312,8 +306,8 @@ def test_line_model_exports_its_profile_to_every_format(case, tmp_path):
 def test_export_refuses_a_line_config_on_other_waypoints(case, tmp_path, fmt, capsys):
     """Like predict and run: the line was learned on other waypoints -> one line naming both
     files, exit 2, nothing written."""
-    from fpe_jax.line import learn_line
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.model._line import learn_line
 
     wp = np.loadtxt(case["tmp"] / "wp.csv", delimiter=",")
     params = Params.create(Settings(model="line"), **learn_line([case["drive"]], case["track"]))

@@ -1,4 +1,4 @@
-"""Sharding helpers (`fpe_jax.shard`): one device in-process, two CPU devices in a subprocess.
+"""Sharding helpers (`fpe_jax.predict`): one device in-process, two CPU devices in a subprocess.
 
 Several host "devices" need `XLA_FLAGS=--xla_force_host_platform_device_count=2` before JAX
 initialises, so the two-device checks run in a fresh Python process and report JSON.
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from fpe_jax import Track, predict_batch, presets
-from fpe_jax.batch import states_from_array
-from fpe_jax.shard import (
+from fpe_jax.predict._batch import states_from_array
+from fpe_jax.predict._shard import (
     car_mesh,
     leading_size,
     pad_axis0,

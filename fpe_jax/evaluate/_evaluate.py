@@ -17,11 +17,10 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from fpe_jax import aot
+from fpe_jax.compile import _aot as aot
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
-from fpe_jax.history import distinct_mask, history_windows
-from fpe_jax.metrics import (
+from fpe_jax.evaluate._metrics import (
     coverage,
     errors_m,
     fit_covariance,
@@ -30,8 +29,11 @@ from fpe_jax.metrics import (
     summarize,
     track_frame_residuals,
 )
-from fpe_jax.params import Params, Settings
-from fpe_jax.predict import (
+from fpe_jax.geometry._track import Track, project_rollout
+from fpe_jax.model._history import distinct_mask, history_windows
+from fpe_jax.model._params import Params, Settings
+from fpe_jax.model._state import Poses, State
+from fpe_jax.predict._predict import (
     model_states,
     pad_rows,
     predict_rows,
@@ -40,8 +42,6 @@ from fpe_jax.predict import (
     uses_filter,
     variance_rows,
 )
-from fpe_jax.state import Poses, State
-from fpe_jax.track import Track, project_rollout
 
 MIN_HISTORY = 3  # distinct observations needed before a prediction counts
 
@@ -245,7 +245,7 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
     rest of d's drive (CROSS_FOLDS contiguous folds in time): the line fits its own drive's
     truth, so in-sample residuals would understate the error on drives the line was not
     learned on."""
-    from fpe_jax.line import line_from_samples, line_samples
+    from fpe_jax.model._line import line_from_samples, line_samples
 
     # at least MIN_FOLD_S per fold: on a 40 s drive five folds' lines were too good (the oval
     # test's 2-sigma coverage 74.7 %)
@@ -277,7 +277,7 @@ def fit_uncertainty(params: Params, datasets: Sequence[Dataset]) -> dict:
     covariance. With the Kalman filter also the per-prediction terms of
     `metrics.fit_variance_model`, state_scale (H, 2), model_var_m2 (H, 2) [m^2] and correlation
     (H,): a prediction's covariance is then its own state estimate's variance
-    (`fpe_jax.rollout.estimate_variance`) scaled, plus the model's error
+    (`fpe_jax.model.estimate_variance`) scaled, plus the model's error
     (`prediction_covariance`); cov_m2 is their mean over the datasets' predictions.
     """
     line = params.settings.model == "line"

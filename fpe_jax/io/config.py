@@ -38,7 +38,7 @@ from fpe_jax.spec import (
     check_config,
 )
 
-# built-in presets (fpe_jax.params builds them) and their one-line docs: kept here, JAX-free,
+# built-in presets (fpe_jax.model builds them) and their one-line docs: kept here, JAX-free,
 # so that `fpe presets` answers without importing JAX
 PRESET_DOCS = {
     "seed": "the original 2019 node exactly: 1 m/s, 2 m lookahead, reverse goal scan, 0.7^i",
@@ -69,7 +69,7 @@ def read_config(path) -> dict[str, Any]:
 
 def config_to_params(cfg: dict[str, Any]):
     """Params from a checked config dict."""
-    from fpe_jax.params import Params, Settings
+    from fpe_jax.model._params import Params, Settings
 
     settings = Settings(**{k: cfg["settings"][k] for k in SETTING_KEYS})
     keys = PARAM_KEYS + OPTIONAL_PARAM_KEYS + (LINE_KEYS if settings.model == "line" else ())
@@ -81,7 +81,7 @@ def check_waypoints(cfg: dict[str, Any], config_source, waypoints_xy_m, waypoint
     their float64 values): InputError naming both files otherwise. Other models: no check."""
     if cfg["settings"]["model"] != "line":
         return
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
 
     line = cfg["line"]
     if waypoints_sha256(waypoints_xy_m) != line["waypoints_sha256"]:
@@ -127,7 +127,7 @@ def load_params(
     waypoints: optional (file name, (K, 2) array) the params will run on: a line-model config
     must have been fitted on exactly these (`check_waypoints`).
     """
-    from fpe_jax.params import presets
+    from fpe_jax.model._params import presets
 
     settings = {k: v for k, v in (settings or {}).items() if v[1] is not None}
     if config is not None:
@@ -147,7 +147,7 @@ def load_params(
 def apply_settings(params, settings: dict, source: str | None = None):
     """params with {name: (Settings field, value)} applied; a bad value is an InputError naming
     `source` or the flag."""
-    from fpe_jax.params import with_settings
+    from fpe_jax.model._params import with_settings
 
     for name, (field, value) in settings.items():
         ok = _is_number(value) and value > 0

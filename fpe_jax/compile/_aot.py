@@ -32,7 +32,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from fpe_jax import cache
+from fpe_jax.compile import _cache as cache
 
 _MEMO: dict[str, Executable] = {}
 _LOCK = threading.Lock()
@@ -59,7 +59,7 @@ def _fingerprint() -> str:
     from importlib import metadata
 
     h = hashlib.sha256()
-    root = Path(__file__).parent
+    root = Path(__file__).parents[1]  # the fpe_jax package root, not this sub-package
     for f in sorted(root.rglob("*.py")):
         h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes())
     for dist in ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy"):

@@ -5,7 +5,7 @@ The state is [s, ds/dt, d, dd/dt]: arc length [m], along-track speed [m/s], late
 (left positive) and its rate [m/s], each pair a constant-velocity model driven by white
 acceleration that is constant over each interval between observations (noise
 `filter_accel_mps2` along, `filter_lat_accel_mps2` across). The observations are the window's
-positions projected onto the track (`fpe_jax.estimate.track_frame_window`), each with noise
+positions projected onto the track (`fpe_jax.model.track_frame_window`), each with noise
 `filter_obs_m` along and across. The filter starts at the oldest valid observation's stamp from
 the window's robust Theil-Sen lines (a prior that no single outlier moves, so the gate
 judges the first observations too) and runs over the window's stamps as they are
@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from fpe_jax.track import wrap_to
+from fpe_jax.geometry._track import wrap_to
 
 # The prior at the oldest observation: the window's robust (Theil-Sen) lines there, with these
 # sigmas (on top of the observation noise for the positions). Started instead at the oldest
@@ -81,7 +81,7 @@ def kalman_window(
         s_m, d_m: (W,) the observations' arc length [m] and lateral offset [m].
         valid: (W,) which slots hold an observation (at least one must).
         prior: (5,) s [m], ds/dt [m/s], d [m], dd/dt [m/s] at the newest stamp from robust
-            lines through the window (`fpe_jax.estimate.track_frame_lines`), carried back to
+            lines through the window (`fpe_jax.model.track_frame_lines`), carried back to
             the oldest observation (the filter's start), and the lines' speed age [s] (the
             median observation's age).
         accel_mps2, lat_accel_mps2, obs_m, gate_sigma: the noise values and gate (`Params`).

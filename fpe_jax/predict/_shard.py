@@ -17,7 +17,7 @@ One host, several devices (GPUs, or CPU "devices" for testing):
     data = shard_along_axis0(pad_axis0(samples, mesh.devices.size)[0], mesh)
     value = jax.jit(loss)(params, data)
 
-    # big batches, chunked: fpe_jax.batch.predict_chunked(..., mesh=mesh)
+    # big batches, chunked: fpe_jax.predict.predict_chunked(..., mesh=mesh)
 
 To try several devices on a CPU, set `XLA_FLAGS=--xla_force_host_platform_device_count=2`
 before JAX initialises (i.e. in the environment of a fresh process).
@@ -49,10 +49,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from fpe_jax.params import Params
-from fpe_jax.predict import predict_batch
-from fpe_jax.state import State
-from fpe_jax.track import Track
+from fpe_jax.geometry._track import Track
+from fpe_jax.model._params import Params
+from fpe_jax.model._state import State
+from fpe_jax.predict._predict import predict_batch
 
 AXIS = "cars"
 

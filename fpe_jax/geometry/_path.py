@@ -1,6 +1,6 @@
 """Path geometry in NumPy only (no JAX): waypoint cleaning, loop detection, uniform resampling.
 
-`fpe_jax.track.Track` and the JAX-free on-car runner both build their tracks with `build_path`,
+`fpe_jax.geometry.Track` and the JAX-free on-car runner both build their tracks with `build_path`,
 so the two see exactly the same resampled points.
 """
 

@@ -6,7 +6,7 @@ every fitted value stays in its valid range without clipping (lookahead >= min_l
 gain >= 0, weights and speed_weight in [0, 1], delay >= 0, speed_mps >= 0, time constants
 >= MIN_TAU_S, the filter's noise values >= MIN_FILTER_NOISE and its gate >= MIN_GATE_SIGMA).
 The learned line's profile arrays are never fitted by the solver (they are learned from the fit
-drives first, `fpe_jax.line`) and pass through both maps unchanged.
+drives first, `fpe_jax.model`) and pass through both maps unchanged.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fpe_jax import aot
+from fpe_jax.compile import _aot as aot
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported for users of params
 from fpe_jax.spec import (
     DEFAULT_ESTIMATOR,
@@ -59,7 +59,7 @@ class Settings:
         min_lookahead_m: lower bound of the lookahead distance [m].
         history: number of distinct recent observations the state estimator uses.
         estimator: the frenet and line models' track-frame state: "kalman" (a Kalman filter
-            over the history window, `fpe_jax.kalman`; its noise values are fitted) or
+            over the history window, `fpe_jax.model`; its noise values are fitted) or
             "theil-sen" (robust lines through the window, `estimate.track_frame_lines`).
     """
 
@@ -113,7 +113,7 @@ class Params(eqx.Module):
             for every other model.
         line_speed_mps: (P,) line model: along-track speed profile [m/s] on the same points.
         line_coverage: (P,) line model: in [0, 1], how well the fit drives covered each point;
-            where 0 the profile is a prior from the track's curvature (`fpe_jax.line`) and the
+            where 0 the profile is a prior from the track's curvature (`fpe_jax.model`) and the
             rollout keeps the car's own offset from it (slowly decaying), following only its
             change.
         settings: static `Settings`.

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from fpe_jax.fit import FitResult
+    from fpe_jax.fit._fit import FitResult
 
 
 def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:

@@ -20,10 +20,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from fpe_jax import aot
+from fpe_jax.compile import _aot as aot
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
-from fpe_jax.evaluate import (
+from fpe_jax.evaluate._evaluate import (
     Dataset,
     evaluate,
     fit_uncertainty,
@@ -32,8 +32,9 @@ from fpe_jax.evaluate import (
     split_drive,
     targets_before,
 )
-from fpe_jax.metrics import errors_m
-from fpe_jax.params import (
+from fpe_jax.evaluate._metrics import errors_m
+from fpe_jax.geometry._track import Track
+from fpe_jax.model._params import (
     USER_SETTINGS,
     Params,
     Settings,
@@ -42,14 +43,13 @@ from fpe_jax.params import (
     unconstrain,
     with_settings,
 )
-from fpe_jax.predict import WINDOW_FIELDS, bucket, pad_rows, predict_poses, uses_filter
+from fpe_jax.model._state import State
+from fpe_jax.predict._predict import WINDOW_FIELDS, bucket, pad_rows, predict_poses, uses_filter
 from fpe_jax.spec import BLEND_MODES, ESTIMATORS, FILTER_DEFAULTS, LINE_ESTIMATOR
 from fpe_jax.spec import DEFAULT_FIT as DEFAULT_FIT
 from fpe_jax.spec import DEFAULT_SOLVER as DEFAULT_SOLVER
 from fpe_jax.spec import FIT_GROUPS as FIT_GROUPS
 from fpe_jax.spec import SOLVERS as SOLVERS
-from fpe_jax.state import State
-from fpe_jax.track import Track
 
 # the groups each fitted model reads, and its default: the line model has no memorised speed
 MODEL_FIT = {
@@ -96,7 +96,7 @@ SOLVER_NAMES = {"BFGS": "bfgs", "LevenbergMarquardt": "lm"}
 # 60-minute one (units 1e-3, 1/300, 1e-2, 3e-2 m^2): 1/300 took the fewest steps overall, at the
 # same loss to 1e-8 but on Monza (another local minimum, 5e-6 apart). Steps against the raw sum:
 # 10-minute oval 234 -> 85, Levine 124 -> 93 (experiments/results/solvers.md). Rechecked with
-# the flat solve and the predicted-decrease stop (`fpe_jax.bfgs`), over the study's drives and
+# the flat solve and the predicted-decrease stop (`fpe_jax.fit`), over the study's drives and
 # the benchmark's 10-minute one: units 1e-2, 1/300, 1e-3, 1/3000 took 596, 552, 789, 1003 steps.
 BFGS_LOSS_UNIT_M2 = 1.0 / 300
 # On a long drive BFGS first minimises the loss of every k-th target row, k = rows //
@@ -183,14 +183,14 @@ def _loss(raw_free, args):
 def default_solver():
     """BFGS on the scalar robust loss, the default solver (see the solver notes above MAX_STEPS):
     optimistix's, stopping also once its next step is predicted to lower the loss by at most
-    1e-10 of it (`fpe_jax.bfgs.BFGS` says why).
+    1e-10 of it (`fpe_jax.fit.BFGS` says why).
 
     rms_norm in the stopping test: with the default max_norm a solver stops only once every one of
     the ~1e5 residuals and every raw value has settled, which a saturating weight or a gain
     creeping toward its bound never does (LM ran to max_steps on every drive measured)."""
     # imported here: predict, evaluate and plot use this module but not the solver, and
     # optimistix adds ~0.3 s to their start
-    from fpe_jax.bfgs import BFGS
+    from fpe_jax.fit._bfgs import BFGS
 
     return BFGS(rtol=1e-6, atol=1e-8, decrease_rtol=1e-10)
 
@@ -202,7 +202,7 @@ class _Static:
     `eqx.tree_pformat` prints the solver's type and settings with functions by name.
 
     None stands for `default_solver()`, built only when the solve is traced: a warm fit (its
-    solve loaded from the cache, `fpe_jax.aot`) then never imports optimistix (~0.3 s). The
+    solve loaded from the cache, `fpe_jax.compile`) then never imports optimistix (~0.3 s). The
     package's source is part of every key, so a changed default compiles anew."""
 
     def __init__(self, solver=None):
@@ -242,7 +242,7 @@ def _solver_object(solver):
             "solver",
             f"{what} is not an optimistix solver",
             "an optimistix minimiser or least-squares solver such as optx.BFGS(rtol, atol); "
-            "fpe_jax.recipe.solver_named turns the CLI's names (bfgs, lm) into them",
+            "fpe_jax.fit.solver_named turns the CLI's names (bfgs, lm) into them",
         )
     return solver
 
@@ -277,13 +277,13 @@ def _solve(
     groups) rather than on the Params pytree: a BFGS step then updates one small matrix instead
     of a Params of Params, and the 10-minute oval fit's steps took 8.0 instead of 10.5 ms
     (a third less under load), at the same losses on the solver study's drives. The package's
-    BFGS (`fpe_jax.bfgs.BFGS`, the default) first solves on a subsample of a long drive's rows
+    BFGS (`fpe_jax.fit.BFGS`, the default) first solves on a subsample of a long drive's rows
     (`_presolve_groups`, PRESOLVE_ROWS); max_steps applies to each of the two solves.
     """
     import optimistix as optx
     from jax.flatten_util import ravel_pytree
 
-    from fpe_jax.bfgs import BFGS
+    from fpe_jax.fit._bfgs import BFGS
 
     args = (raw_fixed, groups, huber_m)
     y0, unravel = ravel_pytree(raw_free)
@@ -500,7 +500,7 @@ def fit(
         free: the parameter groups to fit (names of FIT_GROUPS; default: the model's,
             `default_groups`). `fit=` is its deprecated name.
         model: "line" (the opponent's line and speed profile, learned from the training
-            drives, `fpe_jax.line`; every training and test drive must share one set of
+            drives, `fpe_jax.model`; every training and test drive must share one set of
             waypoints; the default), "blend" (linear / pure-pursuit blend) or "auto" (each
             candidate, the line model and the blend in each mode of `blend`, is fitted on the
             first 75 % of the training data, the line learned from that part only, and the one
@@ -569,7 +569,7 @@ def fit(
         ]
         score = lambda p: evaluate(p, inner_val)["ade_m"]  # noqa: E731
         if "line" in candidates:
-            from fpe_jax.line import learn_line
+            from fpe_jax.model._line import learn_line
 
             # learned from the inner fit part only: the validation part must be as new to the
             # line as held-out data is (on Levine it lies mostly where the fit never went)
@@ -626,7 +626,7 @@ def baseline(name: str, settings: Settings) -> Params:
 def _row_coverage(coverage, d: Dataset, params: Params) -> np.ndarray:
     """(N,) a line profile's coverage at the arc length of each of d's prediction rows (the
     states of `params`)."""
-    from fpe_jax.rollout import profile_at
+    from fpe_jax.model._rollout import profile_at
 
     s_m = d.states(params).s_m
     at = jax.vmap(profile_at, in_axes=(None, 0, None))
@@ -672,7 +672,7 @@ def _candidates(
     and Catalunya but predicted their test drives worse, FDE 0.975 and 0.868 m against the line's
     0.491 and 0.514 m: the line model is the default.)
     """
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
 
     names = ("line", "blend") if model == "auto" else (model,)
     every_track = list(tracks) + list(test_tracks)
@@ -732,8 +732,8 @@ def _line_init(
     """The line model's starting point: the profile learned from `drives` on the one track
     every drive (fit and test) uses, good unfitted time constants and delay, on the car and
     prediction grid of `car` (its `USER_SETTINGS`)."""
-    from fpe_jax.line import learn_line
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.model._line import learn_line
 
     hashes = {waypoints_sha256(np.asarray(t.raw_xy_m)) for t in tracks}
     if len(hashes) != 1:

@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from fpe_jax.history import MIN_PAIR_DT_S, OUTLIER_M
-from fpe_jax.state import State
-from fpe_jax.track import wrap_angle
+from fpe_jax.geometry._track import wrap_angle
+from fpe_jax.model._history import MIN_PAIR_DT_S, OUTLIER_M
+from fpe_jax.model._state import State
 
 
 def _masked_median(x, mask):

@@ -1,5 +1,5 @@
 """Observation history in NumPy only (no JAX): which rows are new detections, the recent windows
-the state estimator reads, and the estimator's constants. Shared by `fpe_jax.estimate` (JAX) and
+the state estimator reads, and the estimator's constants. Shared by `fpe_jax.model` (JAX) and
 the on-car `fpe_jax.runner` (NumPy), so both see the same rules.
 """
 

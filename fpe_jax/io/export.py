@@ -1,6 +1,6 @@
 """Export a tuned config to the forms on-car runners take.
 
-- JSON: the normalized config (`fpe_jax.config`), the input of the NumPy runner (`fpe_jax.runner`).
+- JSON: the normalized config (`fpe_jax.io`), the input of the NumPy runner (`fpe_jax.runner`).
 - ROS 2: a parameter YAML (`<node>:` / `ros__parameters:`) with flat, documented names.
 - StableHLO: a `jax.export` artifact of the batched predictor with the parameters and the track
   baked in as constants; it takes the cars' states only (see `INPUTS`). `load(path)` runs it.
@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from fpe_jax.config import check_waypoints, read_config, write_config
 from fpe_jax.errors import InputError
+from fpe_jax.io.config import check_waypoints, read_config, write_config
 from fpe_jax.io.writers import check_output_paths, write_bytes
 from fpe_jax.spec import FILTER_DEFAULTS
 
@@ -49,12 +49,12 @@ WINDOW_INPUTS = (
     ("window_prior", "kalman: (b, 5) Theil-Sen s, ds/dt, d, dd/dt at the newest stamp, age"),
 )
 """With the Kalman estimator (frenet / line models) the artifact runs the filter too: after
-INPUTS it takes the history window in the track frame (`fpe_jax.state.State`'s window fields,
+INPUTS it takes the history window in the track frame (`fpe_jax.model.State`'s window fields,
 as `states_from_drive(..., keep_window=True)` gives them); omitted (all slots invalid, prior
 NaN) the track-frame estimate of INPUTS is used as given."""
 
 """The artifact's inputs, in order: each a (b,) float64 array (b >= 1, the batch of cars), the
-fields of `fpe_jax.rollout.State` as `fpe_jax.predict.states_from_drive` estimates them (for the
+fields of `fpe_jax.model.State` as `fpe_jax.predict.states_from_drive` estimates them (for the
 seed model: the current row's position and observed yaw, as recorded). Output: (b, H, 3) float64
 x [m], y [m], yaw [rad] at stamp + h * dt_s, h = 1..H."""
 
@@ -136,7 +136,7 @@ def to_ros2_yaml(
     """The config as a ROS 2 parameter file (text): `node:` / `ros__parameters:` / flat names.
 
     Args:
-        cfg: a config dict as `fpe_jax.config.read_config` returns it.
+        cfg: a config dict as `fpe_jax.io.read_config` returns it.
         node: the node's name (may carry a namespace, `/ns/node`; `/**` matches every node).
         waypoint_file: path written to `waypoint_file` ("" when None: set it on the car).
         source: the config's file name, for the header comment.
@@ -183,8 +183,8 @@ def _predictor(params, track):
     import jax
     import jax.numpy as jnp
 
-    from fpe_jax.predict import predict_batch
-    from fpe_jax.state import State
+    from fpe_jax.model._state import State
+    from fpe_jax.predict._predict import predict_batch
 
     names = [n for n, _ in INPUTS + WINDOW_INPUTS]
 
@@ -223,9 +223,9 @@ def export_stablehlo(
     import jax
     from jax import export
 
-    from fpe_jax.config import config_to_params
-    from fpe_jax.predict import uses_filter
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.io.config import config_to_params
+    from fpe_jax.predict._predict import uses_filter
 
     out = Path(out)
     sidecar = out.with_name(out.name + ".json")
@@ -355,8 +355,8 @@ def provenance_waypoints(config_path) -> Path | None:
     Raises InputError (naming the config or the file) for a malformed entry, a missing file or
     one whose waypoints changed since the fit.
     """
-    from fpe_jax.path import waypoints_sha256
-    from fpe_jax.runner import load_waypoints_xy  # JAX-free
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.runner._runner import load_waypoints_xy  # JAX-free
 
     entry = read_config(config_path)["provenance"].get("waypoints")
     if entry is None:
@@ -410,7 +410,7 @@ def export_config(
     """
     if fmt not in FORMATS:
         raise InputError("fmt", f"unknown format {fmt!r}", f"one of {', '.join(FORMATS)}")
-    from fpe_jax.runner import load_waypoints_xy  # JAX-free
+    from fpe_jax.runner._runner import load_waypoints_xy  # JAX-free
 
     cfg = read_config(config_path)  # every value checked (fpe_jax.spec)
     if fmt in ("stablehlo", "all") and waypoints is None:

@@ -14,9 +14,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from fpe_jax.params import Params
-from fpe_jax.state import Poses, State  # State re-exported: rollouts take a State
-from fpe_jax.track import Track, wrap_angle
+from fpe_jax.geometry._track import Track, wrap_angle
+from fpe_jax.model._params import Params
+from fpe_jax.model._state import Poses, State  # State re-exported: rollouts take a State
 
 
 def _step_times(params: Params) -> Float[Array, " H1"]:
@@ -250,7 +250,7 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
     profile's shape scaled to the car's own: v(t) = v0 (1 + (v_p(s(t)) / v_p(s_ref) - 1)
     (1 - exp(-t / speed_tau_s))), s_ref where the speed was measured, so the car keeps its pace
     and brakes where the profile brakes (a profile speed below MIN_PROFILE_SPEED_MPS: ratio 1).
-    Where the profile's coverage c(s) is 0 (the profile there is `fpe_jax.line`'s prior from the
+    Where the profile's coverage c(s) is 0 (the profile there is `fpe_jax.model`'s prior from the
     track's curvature) the car keeps its own offset and follows only the profile's change:
     target l(s) + (d0 - l(s0)) exp(-t / FALLBACK_TAU_S), held and slowly decaying; in general
     l(s) + (1 - c(s)) (d0 - l(s0)) exp(-t / FALLBACK_TAU_S), which at s0 is c l + (1 - c) d0.

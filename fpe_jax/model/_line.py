@@ -15,7 +15,7 @@ inside); on loops the speed's also on the fastest speed along the car's line wit
 acceleration and braking limits (`limit_speed`, the limits' shape fitted on the covered
 speeds: the corners ahead of the car say where it will brake). There the
 rollout keeps the car's own offset, following only the prior's change, and the prior's speed
-ratio (`fpe_jax.rollout.rollout_frenet`). With less than PRIOR_MIN_COVERED_M covered the prior
+ratio (`fpe_jax.model.rollout_frenet`). With less than PRIOR_MIN_COVERED_M covered the prior
 is the covered mean (no change: the car's offset and speed held).
 
 The profile is tied to the waypoints it was learned on by `waypoints_sha256`.
@@ -29,11 +29,11 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from fpe_jax import aot
+from fpe_jax.compile import _aot as aot
 from fpe_jax.drive import Drive
-from fpe_jax.history import distinct_mask
-from fpe_jax.predict import no_arclength, pad_rows, row_blocks
-from fpe_jax.track import Track, arclength_along
+from fpe_jax.geometry._track import Track, arclength_along
+from fpe_jax.model._history import distinct_mask
+from fpe_jax.predict._predict import no_arclength, pad_rows, row_blocks
 
 PROFILE_DS_M = 0.5  # spacing of the profile's points [m]
 PROFILE_SMOOTH_M = 1.0  # standard deviation of the smoothing kernel [m]
@@ -152,7 +152,7 @@ def learn_line(
         ds_m: profile resolution [m] (P = length / ds_m points, at least 8).
         smooth_m: smoothing kernel's standard deviation [m].
 
-    Returns dict with line_offset_m, line_speed_mps, line_coverage (see `fpe_jax.params.Params`).
+    Returns dict with line_offset_m, line_speed_mps, line_coverage (see `fpe_jax.model.Params`).
     """
     return line_from_samples([line_samples(d, track) for d in drives], track, ds_m, smooth_m)
 

@@ -3,19 +3,19 @@
 Cars (Jetson-class computers) often have no JAX, so this module re-implements, in NumPy and plain
 `math`, exactly what the JAX path does for a drive (`fpe_jax.predict.predict_drive`):
 
-- the distinct-observation history window and robust state estimate of `fpe_jax.estimate`
+- the distinct-observation history window and robust state estimate of `fpe_jax.model`
   (repeated rows skipped, Theil-Sen medians, outlier replacement of the newest position);
 - the track-frame estimators of the frenet and line models: Theil-Sen lines or the Kalman
-  filter of `fpe_jax.kalman`, step for step;
-- the windowed track projection of `fpe_jax.track.arclength_along` (global on the first call);
-- every model of `fpe_jax.rollout`: the position and heading blends, linear, pure pursuit, the
+  filter of `fpe_jax.model`, step for step;
+- the windowed track projection of `fpe_jax.geometry.arclength_along` (global on the first call);
+- every model of `fpe_jax.model`: the position and heading blends, linear, pure pursuit, the
   seed's discrete rules, constant velocity and CTRV, with the fractional delay step.
 
 Parity with the JAX predictor is tested to 1e-6 m. The per-step math works on Python floats:
 for H = 10 scalar steps that is several times faster than NumPy's per-call overhead; NumPy is
 used where a step scans many points (the track window, the seed's waypoint scan).
 
-It imports only `fpe_jax.config`, `fpe_jax.errors`, `fpe_jax.path` and (to read waypoint files)
+It imports only `fpe_jax.io`, `fpe_jax.errors`, `fpe_jax.geometry` and (to read waypoint files)
 `fpe_jax.io`, all JAX-free; a test runs it in a process where importing JAX fails.
 
     runner = Runner.from_config("tuned.json", "waypoints.csv")
@@ -33,25 +33,25 @@ from pathlib import Path
 
 import numpy as np
 
-from fpe_jax.config import LINE_KEYS, check_waypoints, read_config
 from fpe_jax.errors import InputError
-from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
-from fpe_jax.path import build_path
+from fpe_jax.geometry._path import build_path
+from fpe_jax.io.config import LINE_KEYS, check_waypoints, read_config
+from fpe_jax.model._history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported: the runner's modes
 from fpe_jax.spec import FILTER_DEFAULTS, FILTER_KEYS, check_config
 from fpe_jax.spec import MODELS as MODELS
 
-# The same constants as fpe_jax.estimate, fpe_jax.params and fpe_jax.track (which import JAX, so
+# The same constants as fpe_jax.model, fpe_jax.model and fpe_jax.geometry (which import JAX, so
 # they cannot be imported here); tests/test_runner.py checks that they agree.
 WINDOW_BEHIND_M = 2.0
 WINDOW_AHEAD_M = 4.0
 LOCAL_PROJECTION_ITERS = 2
-TRACK_FRAME_ITERS = 3  # fpe_jax.estimate.track_frame_window's project_local iterations
-MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.rollout's
+TRACK_FRAME_ITERS = 3  # fpe_jax.model.track_frame_window's project_local iterations
+MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.model's
 MAX_SPEED_RATIO = 3.0
 FALLBACK_TAU_S = 3.0
 SLOPE_DS_M = 0.5
-INIT_POS_SIGMA_M = 0.3  # fpe_jax.kalman's
+INIT_POS_SIGMA_M = 0.3  # fpe_jax.model's
 INIT_SPEED_SIGMA_MPS = 2.0
 INIT_LAT_RATE_SIGMA_MPS = 0.5
 GATE_SHARPNESS = 4.0
@@ -62,7 +62,7 @@ FloatN = float | np.ndarray  # one car's value, or the (N,) values of N cars (`_
 
 
 def _wrap(a: FloatN, floor=math.floor) -> FloatN:
-    """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.track.wrap_angle
+    """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.geometry.wrap_angle
     (`floor=np.floor` for arrays)."""
     return a - _TWO_PI * floor((a + _PI) * (0.5 / _PI))
 
@@ -89,7 +89,7 @@ def _ops(x):
 
 def _median(values: list[float]) -> float:
     """Median as jnp.nanmedian computes it ((lo + hi) * 0.5); 0 for an empty list, like
-    fpe_jax.estimate's masked median."""
+    fpe_jax.model's masked median."""
     n = len(values)
     if n == 0:
         return 0.0
@@ -98,7 +98,7 @@ def _median(values: list[float]) -> float:
 
 
 class RunnerPath:
-    """The resampled track (same points as fpe_jax.track.Track) with its geometry on floats.
+    """The resampled track (same points as fpe_jax.geometry.Track) with its geometry on floats.
 
     Attributes:
         closed: loop (arc length wraps) or open path (clamps).
@@ -250,12 +250,12 @@ class Runner:
     Attributes:
         horizon: number of predicted steps H.
         dt_s: step between predicted poses [s].
-        model, blend: the config's settings (see fpe_jax.params.Settings).
+        model, blend: the config's settings (see fpe_jax.model.Settings).
     """
 
     def __init__(self, config: dict, waypoints_xy_m, *, source: str = "config"):
         """Args:
-        config: a config dict as `fpe_jax.config.read_config` returns it (schema checked).
+        config: a config dict as `fpe_jax.io.read_config` returns it (schema checked).
         waypoints_xy_m: (K, 2) waypoints x [m], y [m]; resampled exactly as Track does.
         source: names the config in error messages.
         """
@@ -265,7 +265,7 @@ class Runner:
         self.dt_s: float = float(st["dt_s"])
         self.model: str = st["model"]
         self.blend: str = st["blend"]
-        # the frenet and line models' track-frame estimator (fpe_jax.kalman or Theil-Sen)
+        # the frenet and line models' track-frame estimator (fpe_jax.model or Theil-Sen)
         self._kalman = st["estimator"] == "kalman" and self.model in ("frenet", "line")
         self._wheelbase_m = float(st["wheelbase_m"])
         self._max_steer_rad = float(st["max_steer_rad"])
@@ -386,12 +386,12 @@ class Runner:
             out = self._position_blend(est, s_m)
         return np.moveaxis(out, -1, 0) if isinstance(x_m, np.ndarray) else out
 
-    # ---- state estimation (fpe_jax.estimate.estimate_state on the valid slots) ----------------
+    # ---- state estimation (fpe_jax.model.estimate_state on the valid slots) ----------------
 
     def _estimate_motion(self) -> tuple[float, ...]:
         """(x, y, yaw, v, yaw_rate, course) [m, m, rad, m/s, rad/s, rad] from the distinct
         observations no older than MAX_SPAN_S before the newest (the valid slots of
-        fpe_jax.estimate's window)."""
+        fpe_jax.model's window)."""
         t_new = self._history[-1][0]
         obs = [o for o in self._history if t_new - o[0] <= MAX_SPAN_S]
         n = len(obs)
@@ -436,7 +436,7 @@ class Runner:
         return x, y, yaw, math.hypot(vx, vy), rate, course
 
     def _track_frame(self, s_hint_m: float) -> tuple[float, float, float, float]:
-        """(s, ds/dt, d, age) [m, m/s, m, s]: fpe_jax.estimate.track_frame_window, then
+        """(s, ds/dt, d, age) [m, m/s, m, s]: fpe_jax.model.track_frame_window, then
         track_frame_lines."""
         path = self.path
         t_new = self._history[-1][0]
@@ -464,7 +464,7 @@ class Runner:
 
     def _kalman_window(self, ages, ss, ds, prior) -> tuple[float, float, float, float]:
         """(s, ds/dt, d, the speed's age) [m, m/s, m, s] at the newest stamp:
-        fpe_jax.kalman.kalman_window over the valid observations (ages [s], arc lengths ss [m],
+        fpe_jax.model.kalman_window over the valid observations (ages [s], arc lengths ss [m],
         offsets ds [m], oldest first) from the Theil-Sen prior (s, ds/dt, d, dd/dt, age)."""
         accel, lat_accel, obs, gate = self._filter
         q_s, q_d, r2 = accel * accel, lat_accel * lat_accel, obs * obs
@@ -492,10 +492,10 @@ class Runner:
             sx, dx = _kf_update(sx, nu_s, ss_inn, w), _kf_update(dx, nu_d, sd_inn, w)
         return sx[0], sx[1], dx[0], -ux[1]
 
-    # ---- rollouts (fpe_jax.rollout), each -> (H, 3) ----------------------------------------------
+    # ---- rollouts (fpe_jax.model), each -> (H, 3) ----------------------------------------------
 
     def _profile_at(self, values: list[float], s_m: float) -> float:
-        """fpe_jax.rollout.profile_at."""
+        """fpe_jax.model.profile_at."""
         p, length = len(values), self.path.length_m
         if self.path.closed:
             u = s_m * (p / length)
@@ -514,13 +514,13 @@ class Runner:
         return p(offset, s_m), p(coverage, s_m), p(speed, s_m)
 
     def _target_at(self, s_m: float, own_m: float) -> float:
-        """fpe_jax.rollout.rollout_frenet's target offset: the line, where uncovered the car's
+        """fpe_jax.model.rollout_frenet's target offset: the line, where uncovered the car's
         own offset from it (`own_m`) kept."""
         line, c, _ = self._line_at(s_m)
         return line + (1.0 - c) * own_m
 
     def _frenet(self, frame, est) -> np.ndarray:
-        """fpe_jax.rollout.rollout_frenet from the track-frame estimate and the state."""
+        """fpe_jax.model.rollout_frenet from the track-frame estimate and the state."""
         s_fit, v0, d_fit, age = frame
         path = self.path
         # the newest (outlier-free) position's own arc length and offset
@@ -651,13 +651,13 @@ class Runner:
         return np.array(out)
 
     def _seed(self, x: float, y: float, yaw: float, v: float) -> np.ndarray:
-        """The original node's discrete rules (fpe_jax.rollout.rollout_seed)."""
+        """The original node's discrete rules (fpe_jax.model.rollout_seed)."""
         st = (self.dt_s, self._wheelbase_m, self._max_steer_rad)
         return np.array(seed_rollout(self._goal_scan.goal, x, y, yaw, v, self._weights, *st))
 
 
 def _kf_predict(x: list[float], dt: float, q: float) -> list[float]:
-    """fpe_jax.kalman._predict: [position, rate, a, b, c] one constant-velocity step on."""
+    """fpe_jax.model._predict: [position, rate, a, b, c] one constant-velocity step on."""
     p, r, a, b, c = x
     dt2 = dt * dt
     return [
@@ -670,7 +670,7 @@ def _kf_predict(x: list[float], dt: float, q: float) -> list[float]:
 
 
 def _kf_update(x: list[float], nu: float, s_inn: float, w: float) -> list[float]:
-    """fpe_jax.kalman._update: the gate-weighted measurement update of one axis."""
+    """fpe_jax.model._update: the gate-weighted measurement update of one axis."""
     p, r, a, b, c = x
     kp, kr = w * a / s_inn, w * b / s_inn
     return [p + kp * nu, r + kr * nu, a - kp * a, b - kp * b, c - kr * b]
@@ -685,7 +685,7 @@ def _sigmoid(x: float) -> float:
 
 
 def seed_rollout(goal, x_m, y_m, yaw_rad, v_mps, weights, dt_s, wheelbase_m, max_steer_rad):
-    """The original 2019 node's prediction for one car, rule by rule (fpe_jax.rollout.rollout_seed,
+    """The original 2019 node's prediction for one car, rule by rule (fpe_jax.model.rollout_seed,
     ../shared/data/README.md): per step the goal, a steering of 2 sin(phi - yaw) / d used as an
     angle, the headings blended by weights[k], a move.
 
@@ -853,7 +853,7 @@ def benchmark_update(waypoints_xy_m, n_updates: int = 2000, config: dict | None 
     }
 
 
-def _main() -> None:  # python -m fpe_jax.runner WAYPOINTS: print the benchmark
+def _main() -> None:  # python -m fpe_jax.runner WAYPOINTS (runner/__main__.py): print the benchmark
     import sys
 
     print(json.dumps(benchmark_update(load_waypoints_xy(Path(sys.argv[1])))))

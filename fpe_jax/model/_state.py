@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-# a field holds values, or only their shape and dtype (a State to compile for, `fpe_jax.aot`)
+# a field holds values, or only their shape and dtype (a State to compile for, `fpe_jax.compile`)
 Value = ArrayLike | jax.ShapeDtypeStruct
 
 
@@ -37,7 +37,7 @@ class State(eqx.Module):
             median observation's age [s] (the filter's start). None: the track-frame estimate
             above is used as it is.
         filter_cov: (4, 4) the Kalman filter's covariance of its estimate of s [m], ds/dt
-            [m/s], d [m], dd/dt [m/s] at the newest stamp (`fpe_jax.kalman.kalman_window`);
+            [m/s], d [m], dd/dt [m/s] at the newest stamp (`fpe_jax.model.kalman_window`);
             None without the filter.
     """
 

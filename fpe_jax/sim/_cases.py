@@ -46,7 +46,7 @@ class Case:
 
     def track(self):
         """The `Track` built from the waypoints (JAX)."""
-        from fpe_jax.track import Track
+        from fpe_jax.geometry._track import Track
 
         return Track.from_waypoints(self.waypoints_xy_m)
 
@@ -72,7 +72,7 @@ def simulated_case(
         latency_s: detection latency [s] of both drives.
         fit_seed, test_seed: simulator seeds of the two drives.
     """
-    from fpe_jax.sim import simulate
+    from fpe_jax.sim._sim import simulate
 
     kw = dict(latency_s=latency_s, raceline=raceline)
     fit_res = simulate(track, duration_s=fit_s, seed=fit_seed, **kw)
@@ -111,7 +111,7 @@ def levine_case(data_dir: str | Path, *, holdout: float = 0.4) -> Case:
         holdout: fraction of the drive's duration held out at its end.
     """
     from fpe_jax import io
-    from fpe_jax.evaluate import split_drive
+    from fpe_jax.evaluate._evaluate import split_drive
 
     lev = Path(data_dir) / "levine"
     drive = io.load_drive(lev / "actual-poses.csv", rate_hz=10.0)
@@ -177,7 +177,7 @@ def fit_case(
     model, blend, init: as `fpe_jax.fit.fit` takes them (default: the line model; init's
     prediction grid, e.g. a 50-step horizon, is the fit's and the report's); needs float64 as
     `fit` does (the caller enables jax_enable_x64 at start-up)."""
-    from fpe_jax.fit import fit as fit_drives
+    from fpe_jax.fit._fit import fit as fit_drives
 
     track = case.track()
     return fit_drives(

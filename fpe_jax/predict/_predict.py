@@ -10,15 +10,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from fpe_jax import aot
+from fpe_jax.compile import _aot as aot
 from fpe_jax.drive import Drive
-from fpe_jax.estimate import estimate_state, track_frame_lines, track_frame_window
-from fpe_jax.history import history_windows
-from fpe_jax.kalman import kalman_params, kalman_window
-from fpe_jax.params import Params, Settings
-from fpe_jax.rollout import estimate_variance, rollout
-from fpe_jax.state import Poses, State
-from fpe_jax.track import Track, arclength_along
+from fpe_jax.geometry._track import Track, arclength_along
+from fpe_jax.model._estimate import estimate_state, track_frame_lines, track_frame_window
+from fpe_jax.model._history import history_windows
+from fpe_jax.model._kalman import kalman_params, kalman_window
+from fpe_jax.model._params import Params, Settings
+from fpe_jax.model._rollout import estimate_variance, rollout
+from fpe_jax.model._state import Poses, State
 
 # Rows per compiled prediction call: a drive of any length runs in blocks of this size (a
 # 10-million-row log asked XLA for one 13.4 GB block before).
@@ -35,7 +35,7 @@ def uses_filter(settings: Settings) -> bool:
 
 def filtered(params: Params, state: State, track: Track) -> State:
     """One car's state with its track-frame estimate from the Kalman filter over the state's
-    window (`fpe_jax.kalman`) under params' noise values: s_fit_m, sdot_mps, offset_m at the
+    window (`fpe_jax.model`) under params' noise values: s_fit_m, sdot_mps, offset_m at the
     newest stamp, sdot_age_s, the age of the filter's speed, and filter_cov, the estimate's
     covariance. Unchanged where the model does not use the filter or the state carries no
     window."""
@@ -89,7 +89,7 @@ def predict_batch(params: Params, states: State, track: Track) -> Float[Array, "
 
 def predict_variance(params: Params, states: State, track: Track) -> Float[Array, "N H 2"]:
     """(N, H, 2) variance [m^2] along and across the track of N cars' predicted points from
-    their state estimates' uncertainty (`fpe_jax.rollout.estimate_variance`, each car's window
+    their state estimates' uncertainty (`fpe_jax.model.estimate_variance`, each car's window
     filtered first); zeros without the Kalman filter."""
 
     def one(state):

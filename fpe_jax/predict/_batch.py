@@ -31,8 +31,8 @@ How it stays fast and bounded:
   and the cars is cast, and the computation runs under `jax.enable_x64(dtype == float64)`, so
   constants created inside the predictor take the same precision whatever the global flag says.
 
-Several devices: pass `mesh=fpe_jax.shard.car_mesh()`; each chunk is split along the car axis
-across the mesh (see `fpe_jax.shard` for GPUs and several hosts).
+Several devices: pass `mesh=fpe_jax.predict.car_mesh()`; each chunk is split along the car axis
+across the mesh (see `fpe_jax.predict` for GPUs and several hosts).
 """
 
 from __future__ import annotations
@@ -54,10 +54,10 @@ from jaxtyping import Array, Bool, Float, Int
 
 from fpe_jax import spec
 from fpe_jax.errors import InputError
-from fpe_jax.params import Params
-from fpe_jax.predict import pad_rows, predict_batch
-from fpe_jax.state import State
-from fpe_jax.track import Track
+from fpe_jax.geometry._track import Track
+from fpe_jax.model._params import Params
+from fpe_jax.model._state import State
+from fpe_jax.predict._predict import pad_rows, predict_batch
 
 DTYPES = {"float32": np.float32, "float64": np.float64}
 DEFAULT_CHUNK = 1 << 14  # 16384 cars: working set stays in cache (1.3x the rate of 65536 here)
@@ -469,7 +469,7 @@ class BatchPredictor:
             instead (at most log2(chunk) further shapes ever compile; N = 1e5 in chunks of 16384
             would otherwise run 13 % padding).
         grid: a prebuilt `ProjectionGrid` for the track (built here when None).
-        mesh: a 1-D `jax.sharding.Mesh` (`fpe_jax.shard.car_mesh()`) to split each chunk's cars
+        mesh: a 1-D `jax.sharding.Mesh` (`fpe_jax.predict.car_mesh()`) to split each chunk's cars
             across its devices; None runs on the default device.
         workers: chunks in flight at once (threads); default: the CPU count, at most 4.
     """
@@ -485,7 +485,9 @@ class BatchPredictor:
         mesh=None,
         workers: int | None = None,
     ):
-        from fpe_jax import shard  # sharding helpers; imported here to keep this import light
+        from fpe_jax.predict import (
+            _shard as shard,  # sharding helpers; imported here to keep this import light
+        )
 
         self.dtype = _dtype(dtype)
         chunk_size(1, chunk)  # validates it; the size used depends on each call's N
@@ -580,7 +582,7 @@ class BatchPredictor:
         the calling thread (a pool costs ~0.4 ms). At most 2 x workers results wait to be
         consumed, keeping memory bounded.
         """
-        from fpe_jax import shard
+        from fpe_jax.predict import _shard as shard
 
         n = table.shape[0]
 

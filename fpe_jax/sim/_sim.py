@@ -30,9 +30,15 @@ import numpy as np
 
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
-from fpe_jax.path import left_normals, nearest_index, wrap_angle
+from fpe_jax.geometry._path import left_normals, nearest_index, wrap_angle
+from fpe_jax.geometry._tracks import (
+    builtin_track,
+    is_builtin,
+    loop_arclength,
+    loop_curvature,
+    resample_loop,
+)
 from fpe_jax.spec import check_half_width, check_simulation
-from fpe_jax.tracks import builtin_track, is_builtin, loop_arclength, loop_curvature, resample_loop
 
 SIM_VERSION = "1.0"
 DT_S = 0.01  # RK4 and driver step (100 Hz)

@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from fpe_jax.aot import device_array
-from fpe_jax.path import build_path
+from fpe_jax.compile._aot import device_array
+from fpe_jax.geometry._path import build_path
 
 
 class Track(eqx.Module):
@@ -45,7 +45,8 @@ class Track(eqx.Module):
     @classmethod
     def from_waypoints(cls, waypoints_xy_m, **kwargs) -> Track:
         """Build a track from waypoints (K, 2) x [m], y [m]; keyword options as in
-        `fpe_jax.path.build_path` (ds_m, closed, smooth_m, min_step_m, backtrack_tol_m, source)."""
+        `fpe_jax.geometry.build_path` (ds_m, closed, smooth_m, min_step_m, backtrack_tol_m,
+        source)."""
         p = build_path(waypoints_xy_m, **kwargs)
         xy = p["xy_m"]
         tangent = np.stack([np.cos(p["heading_rad"]), np.sin(p["heading_rad"])], axis=1)
@@ -155,7 +156,7 @@ class Track(eqx.Module):
 
 
 def wrap_angle(a):
-    """Wrap angles [rad] to [-pi, pi): the JAX twin of `fpe_jax.path.wrap_angle`.
+    """Wrap angles [rad] to [-pi, pi): the JAX twin of `fpe_jax.geometry.wrap_angle`.
 
     Written with floor instead of %: XLA runs a float remainder element by element on CPU,
     which is slow in a batch rollout.

@@ -52,7 +52,7 @@ def solver_named(name: str, source="solver"):
     """
     S.check_choice(name, S.SOLVERS, source, "solver")
     if name == "bfgs":
-        from fpe_jax.fit import default_solver
+        from fpe_jax.fit._fit import default_solver
 
         return default_solver()
     import optimistix as optx
@@ -150,7 +150,7 @@ def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
     from fpe_jax.io.apriltag import parse_tag_to_base
 
     if "simulate" in entry:
-        from fpe_jax.sim import simulate
+        from fpe_jax.sim._sim import simulate
 
         spec = dict(entry["simulate"])
         track = spec.pop("track", "oval")

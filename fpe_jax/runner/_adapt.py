@@ -1,11 +1,11 @@
 """In-race learning: a runner that learns the opponent's line and speed profile lap by lap.
 
 `AdaptiveRunner` is the NumPy runner (`fpe_jax.runner.Runner`, the line model) whose profile
-(offset d(s) [m], speed v(s) [m/s] and coverage along the track, `fpe_jax.line`'s form) is updated
+(offset d(s) [m], speed v(s) [m/s] and coverage along the track, `fpe_jax.model`'s form) is updated
 from its own filtered observations as the car drives: every new detection's track-frame estimate
 (arc length s, offset d and along-track speed ds/dt, from the Kalman or Theil-Sen estimator the
 prediction itself uses) is spread onto the profile's two nearest points with linear weights, as
-`fpe_jax.line.line_from_samples` spreads a drive's samples.
+`fpe_jax.model.line_from_samples` spreads a drive's samples.
 
 - Recent laps weigh more: a point's sums are multiplied by LAP_DECAY for every lap since the point
   last received a sample (lazily, when it next receives one), so the line the car drives now
@@ -37,15 +37,15 @@ from typing import Any
 
 import numpy as np
 
-from fpe_jax.config import check_waypoints, read_config
 from fpe_jax.errors import InputError
-from fpe_jax.path import build_path, waypoints_sha256
-from fpe_jax.runner import Runner, load_waypoints_xy
+from fpe_jax.geometry._path import build_path, waypoints_sha256
+from fpe_jax.io.config import check_waypoints, read_config
+from fpe_jax.runner._runner import Runner, load_waypoints_xy
 from fpe_jax.spec import LINE_KEYS, SCHEMA_VERSION, check_config
 
-PROFILE_DS_M = 0.5  # fpe_jax.line's profile spacing [m] (a config's own P is kept)
-PROFILE_SMOOTH_M = 1.0  # fpe_jax.line's kernel standard deviation [m]
-# kernel-weighted samples for full coverage: fpe_jax.line needs 1 over whole drives; in the race
+PROFILE_DS_M = 0.5  # fpe_jax.model's profile spacing [m] (a config's own P is kept)
+PROFILE_SMOOTH_M = 1.0  # fpe_jax.model's kernel standard deviation [m]
+# kernel-weighted samples for full coverage: fpe_jax.model needs 1 over whole drives; in the race
 # half of that, so that one lap at 10 Hz covers the loop (the newest lap weighs most)
 MIN_SAMPLES = 0.5
 LAP_DECAY = 0.25  # weight of the samples of one lap before the newest, per lap
@@ -84,12 +84,12 @@ DEFAULT_SETTINGS = {
 
 
 def profile_points(length_m: float, ds_m: float = PROFILE_DS_M) -> int:
-    """fpe_jax.line's number of profile points P on a track of `length_m` [m]."""
+    """fpe_jax.model's number of profile points P on a track of `length_m` [m]."""
     return max(int(round(length_m / ds_m)), 8)
 
 
 def kernel(spacing_m: float, closed: bool, n: int, smooth_m: float = PROFILE_SMOOTH_M):
-    """fpe_jax.line._smooth's Gaussian kernel over points: (2 half + 1,) weights summing to 1."""
+    """fpe_jax.model._smooth's Gaussian kernel over points: (2 half + 1,) weights summing to 1."""
     sigma = smooth_m / spacing_m
     half = min(int(np.ceil(4 * sigma)), n // 2 if closed else (n - 1) // 2)
     k = np.exp(-0.5 * (np.arange(-half, half + 1) / max(sigma, 1e-9)) ** 2)
@@ -308,7 +308,7 @@ class AdaptiveRunner(Runner):
         po, ps, pc = self._prior_offset[j], self._prior_speed[j], self._prior_coverage[j]
         known = c + (1.0 - c) * pc
         self._profile[0][j] = c * offset + (1.0 - c) * po
-        # the speed is read without its coverage (fpe_jax.rollout's ratio to the speed where the
+        # the speed is read without its coverage (fpe_jax.model's ratio to the speed where the
         # car is): weighted by what is known, so that where the prior knows nothing a partly
         # seen point holds the speed seen there, not a mix with the prior's zero
         if known > 0.0:

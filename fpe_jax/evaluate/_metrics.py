@@ -120,7 +120,7 @@ def fit_variance_model(
     Args:
         residuals_m: (N, H, 2) track-frame residuals [m] (along, cross).
         state_var_m2: (N, H, 2) variance [m^2] each prediction's state estimate causes
-            (`fpe_jax.rollout.estimate_variance`).
+            (`fpe_jax.model.estimate_variance`).
         mask: (N, H) which residuals exist.
 
     Returns state_scale (H, 2), model_var_m2 (H, 2) [m^2] and correlation (H,) (of the

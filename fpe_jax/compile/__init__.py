@@ -1,0 +1,49 @@
+"""Compiled executables: the on-disk cache, stored ahead-of-time programs, device arrays."""
+
+import importlib
+
+# public name -> the private module that defines it (imported on first use)
+_LAZY = {
+    "CPU_COMPILER_OPTIONS": "_aot",
+    "Executable": "_aot",
+    "FUSION_EMITTERS": "_aot",
+    "MAGIC": "_cache",
+    "MARKER": "_cache",
+    "MAX_ENTRY_BYTES": "_cache",
+    "O_SAFE_READ": "_cache",
+    "Refused": "_cache",
+    "STALE_TEMP_S": "_cache",
+    "active_dir": "_cache",
+    "clear": "_cache",
+    "cpu_features": "_cache",
+    "device_array": "_aot",
+    "disable": "_cache",
+    "disabled": "_cache",
+    "enable": "_cache",
+    "entry_name": "_cache",
+    "executable": "_aot",
+    "fusion_emitters": "_aot",
+    "info": "_cache",
+    "jit": "_aot",
+    "load_signed": "_cache",
+    "read_regular": "_cache",
+    "root_dir": "_cache",
+    "secret_key": "_cache",
+    "store_signed": "_cache",
+    "subfolder_name": "_cache",
+    "user_key": "_cache",
+    "warn": "_cache",
+}
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'fpe_jax.compile' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

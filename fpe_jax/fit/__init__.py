@@ -1,0 +1,61 @@
+"""Fitting: the loss, solvers (the package's BFGS and optimistix ones), model selection,
+recipes and the fit report."""
+
+import importlib
+
+# public name -> the private module that defines it (imported on first use)
+_LAZY = {
+    "BASELINES": "_fit",
+    "BFGS": "_bfgs",
+    "BFGS_LOSS_UNIT_M2": "_fit",
+    "BLEND_CHOICES": "_fit",
+    "DEFAULT_FIT": "_fit",
+    "DEFAULT_MODEL": "_fit",
+    "DEFAULT_SOLVER": "_fit",
+    "DRIVE_KEYS": "_recipe",
+    "ESTIMATOR_GROUPS": "_fit",
+    "FILTER_PRIOR_M2": "_fit",
+    "FIT_GROUPS": "_fit",
+    "FIT_MODELS": "_fit",
+    "FitResult": "_fit",
+    "HUBER_M": "_fit",
+    "MAX_STEPS": "_fit",
+    "MODEL_FIT": "_fit",
+    "PRESOLVE_DECREASE_RTOL": "_fit",
+    "PRESOLVE_ROWS": "_fit",
+    "RAW_RIDGE": "_fit",
+    "Recipe": "_recipe",
+    "SETTINGS_KEYS": "_recipe",
+    "SIMULATE_KEYS": "_recipe",
+    "SOLVERS": "_fit",
+    "SOLVER_NAMES": "_fit",
+    "TOP_KEYS": "_recipe",
+    "WEIGHT_SMOOTHING_M2": "_fit",
+    "allowed_groups": "_fit",
+    "baseline": "_fit",
+    "default_groups": "_fit",
+    "default_solver": "_fit",
+    "fit": "_fit",
+    "fit_params": "_fit",
+    "format_fitted": "_report",
+    "format_table": "_report",
+    "line_section": "_report",
+    "load_recipe": "_recipe",
+    "md_table": "_report",
+    "provenance": "_report",
+    "robust_residuals": "_fit",
+    "solver_named": "_recipe",
+}
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'fpe_jax.fit' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

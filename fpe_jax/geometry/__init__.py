@@ -1,0 +1,47 @@
+"""Track geometry: path cleaning and resampling, the arc-length track, shipped tracks.
+
+Bottom of the JAX layers: imports only spec and errors."""
+
+import importlib
+
+# public name -> the private module that defines it (imported on first use)
+_LAZY = {
+    "BUILTIN_TRACKS": "_tracks",
+    "MIN_ALONG_SHARE": "_path",
+    "MIN_ON_TRACK_SHARE": "_path",
+    "ON_TRACK_EXTENT": "_path",
+    "ON_TRACK_M": "_path",
+    "SPACING_M": "_tracks",
+    "Track": "_track",
+    "arclength_along": "_track",
+    "build_path": "_path",
+    "builtin_track": "_tracks",
+    "check_on_track": "_path",
+    "is_builtin": "_tracks",
+    "left_normals": "_path",
+    "loop_arclength": "_tracks",
+    "loop_curvature": "_tracks",
+    "map_origin": "_path",
+    "nearest_index": "_path",
+    "nearest_vertex": "_path",
+    "on_track_m": "_path",
+    "project_rollout": "_track",
+    "resample_loop": "_tracks",
+    "track_agreement": "_path",
+    "waypoints_sha256": "_path",
+    "wrap_angle": "_path",
+    "wrap_to": "_track",
+}
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'fpe_jax.geometry' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
