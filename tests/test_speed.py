@@ -294,7 +294,7 @@ def test_predict_shows_progress_unless_quiet(tmp_path, drive_dir):
 
 
 def test_bucket_sizes():
-    from fpe_jax.predict._predict import bucket
+    from fpe_jax.compile._rows import bucket
 
     sizes = [bucket(n) for n in (0, 1, 64, 65, 96, 97, 129, 600, 668, 768, 769, 4696)]
     assert sizes == [64, 64, 64, 80, 96, 112, 160, 640, 768, 768, 896, 5120]

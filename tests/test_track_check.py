@@ -192,8 +192,9 @@ def test_states_from_drive_in_blocks_equal_one_block(monkeypatch):
     track = Track.from_waypoints(res.centerline_xy_m)
     params = presets["default"]
     whole = predict.states_from_drive(params, res.drive, track)
-    monkeypatch.setattr(predict, "PREDICT_CHUNK", 100)
-    assert len(list(predict.row_blocks(len(res.drive.t_s)))) >= 4
+    rows = importlib.import_module("fpe_jax.compile._rows")
+    monkeypatch.setattr(rows, "PREDICT_CHUNK", 100)
+    assert len(list(rows.row_blocks(len(res.drive.t_s)))) >= 4
     blocks = predict.states_from_drive(params, res.drive, track)
     for name in ("x_m", "y_m", "s_m", "s_fit_m", "sdot_mps", "offset_m", "v_mps"):
         np.testing.assert_allclose(getattr(blocks, name), getattr(whole, name), atol=1e-9)

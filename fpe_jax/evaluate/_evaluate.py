@@ -18,6 +18,8 @@ import jax
 import numpy as np
 
 from fpe_jax.compile import _aot as aot
+from fpe_jax.compile._arrays import device_array
+from fpe_jax.compile._rows import pad_rows, row_blocks
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.evaluate._metrics import (
@@ -35,9 +37,7 @@ from fpe_jax.model._params import Params, Settings
 from fpe_jax.model._state import Poses, State
 from fpe_jax.predict._predict import (
     model_states,
-    pad_rows,
     predict_rows,
-    row_blocks,
     states_both,
     uses_filter,
     variance_rows,
@@ -261,9 +261,7 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
         if not fold.any():
             continue
         line = line_from_samples([whole.outside(lo, hi)], d.track)
-        fold_params = dataclasses.replace(
-            params, **{k: aot.device_array(v) for k, v in line.items()}
-        )
+        fold_params = dataclasses.replace(params, **{k: device_array(v) for k, v in line.items()})
         fold_states = jax.tree.map(lambda x, f=fold: x[f], states)
         out[fold] = predict_rows(fold_params, fold_states, d.track).xy_m
     return out

@@ -21,6 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from fpe_jax.compile import _aot as aot
+from fpe_jax.compile._arrays import device_array
+from fpe_jax.compile._rows import bucket, pad_rows
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.evaluate._evaluate import (
@@ -44,7 +46,7 @@ from fpe_jax.model._params import (
     with_settings,
 )
 from fpe_jax.model._state import State
-from fpe_jax.predict._predict import WINDOW_FIELDS, bucket, pad_rows, predict_poses, uses_filter
+from fpe_jax.predict._predict import WINDOW_FIELDS, predict_poses, uses_filter
 from fpe_jax.spec import BLEND_MODES, ESTIMATORS, FILTER_DEFAULTS, LINE_ESTIMATOR
 from fpe_jax.spec import DEFAULT_FIT as DEFAULT_FIT
 from fpe_jax.spec import DEFAULT_SOLVER as DEFAULT_SOLVER
@@ -574,7 +576,7 @@ def fit(
             # learned from the inner fit part only: the validation part must be as new to the
             # line as held-out data is (on Levine it lies mostly where the fit never went)
             line = learn_line([p[0] for p in inner], tracks[0])
-            inner_line = {k: aot.device_array(v) for k, v in line.items()}
+            inner_line = {k: device_array(v) for k, v in line.items()}
             p_line = candidates["line"][0]
             final_cover = float(np.mean(np.asarray(p_line.line_coverage)))
             covered = [_row_coverage(line["line_coverage"], d, p_line) > 0 for d in inner_val]

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from fpe_jax.compile._aot import device_array
+from fpe_jax.compile._arrays import device_array
 from fpe_jax.geometry._path import build_path
 
 

@@ -30,10 +30,10 @@ import jax
 import numpy as np
 
 from fpe_jax.compile import _aot as aot
+from fpe_jax.compile._rows import no_arclength, pad_rows, row_blocks
 from fpe_jax.drive import Drive
 from fpe_jax.geometry._track import Track, arclength_along
 from fpe_jax.model._history import distinct_mask
-from fpe_jax.predict._predict import no_arclength, pad_rows, row_blocks
 
 PROFILE_DS_M = 0.5  # spacing of the profile's points [m]
 PROFILE_SMOOTH_M = 1.0  # standard deviation of the smoothing kernel [m]

@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from fpe_jax.compile import _aot as aot
+from fpe_jax.compile._arrays import device_array
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported for users of params
 from fpe_jax.spec import (
     DEFAULT_ESTIMATOR,
@@ -164,27 +165,27 @@ class Params(eqx.Module):
         if isinstance(weights, jax.Array):
             w = jnp.broadcast_to(jnp.asarray(weights, dtype=float), (settings.horizon,))
         else:
-            w = aot.device_array(np.broadcast_to(np.asarray(weights, float), (settings.horizon,)))
+            w = device_array(np.broadcast_to(np.asarray(weights, float), (settings.horizon,)))
         profiles = (line_offset_m, line_speed_mps, line_coverage)
-        line = [aot.device_array(a, dtype=float).reshape(-1) for a in profiles]
+        line = [device_array(a, dtype=float).reshape(-1) for a in profiles]
         if len({a.shape for a in line}) != 1:
             raise ValueError("Params: line_offset_m, line_speed_mps, line_coverage differ in size")
         if (settings.model == "line") != (line[0].shape[0] > 0):
             raise ValueError("Params: the line model needs a line profile, other models none")
         return cls(
-            lookahead_m=aot.device_array(lookahead_m, dtype=float),
-            lookahead_gain_s=aot.device_array(lookahead_gain_s, dtype=float),
+            lookahead_m=device_array(lookahead_m, dtype=float),
+            lookahead_gain_s=device_array(lookahead_gain_s, dtype=float),
             weights=w,
-            delay_s=aot.device_array(delay_s, dtype=float),
-            speed_weight=aot.device_array(speed_weight, dtype=float),
-            speed_mps=aot.device_array(speed_mps, dtype=float),
-            offset_tau_s=aot.device_array(offset_tau_s, dtype=float),
-            speed_tau_s=aot.device_array(speed_tau_s, dtype=float),
-            position_smoothing=aot.device_array(position_smoothing, dtype=float),
-            filter_accel_mps2=aot.device_array(filter_accel_mps2, dtype=float),
-            filter_lat_accel_mps2=aot.device_array(filter_lat_accel_mps2, dtype=float),
-            filter_obs_m=aot.device_array(filter_obs_m, dtype=float),
-            filter_gate_sigma=aot.device_array(filter_gate_sigma, dtype=float),
+            delay_s=device_array(delay_s, dtype=float),
+            speed_weight=device_array(speed_weight, dtype=float),
+            speed_mps=device_array(speed_mps, dtype=float),
+            offset_tau_s=device_array(offset_tau_s, dtype=float),
+            speed_tau_s=device_array(speed_tau_s, dtype=float),
+            position_smoothing=device_array(position_smoothing, dtype=float),
+            filter_accel_mps2=device_array(filter_accel_mps2, dtype=float),
+            filter_lat_accel_mps2=device_array(filter_lat_accel_mps2, dtype=float),
+            filter_obs_m=device_array(filter_obs_m, dtype=float),
+            filter_gate_sigma=device_array(filter_gate_sigma, dtype=float),
             line_offset_m=line[0],
             line_speed_mps=line[1],
             line_coverage=line[2],

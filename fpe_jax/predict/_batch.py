@@ -53,11 +53,12 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from fpe_jax import spec
+from fpe_jax.compile._rows import pad_rows
 from fpe_jax.errors import InputError
 from fpe_jax.geometry._track import Track
 from fpe_jax.model._params import Params
 from fpe_jax.model._state import State
-from fpe_jax.predict._predict import pad_rows, predict_batch
+from fpe_jax.predict._predict import predict_batch
 
 DTYPES = {"float32": np.float32, "float64": np.float64}
 DEFAULT_CHUNK = 1 << 14  # 16384 cars: working set stays in cache (1.3x the rate of 65536 here)
