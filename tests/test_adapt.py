@@ -320,7 +320,7 @@ class NoJax:
             raise ImportError(name + " is blocked: this process has no JAX")
 sys.meta_path.insert(0, NoJax())
 import numpy as np
-from fpe_jax.adapt import AdaptiveRunner
+from fpe_jax.runner._adapt import AdaptiveRunner
 r = AdaptiveRunner(None, np.load({str(tmp_path / "wp.npy")!r}))
 for t, x, y in np.load({str(tmp_path / "obs.npy")!r}).tolist():
     r.update(t, x, y)

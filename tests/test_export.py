@@ -90,7 +90,7 @@ FRESH = """
 import sys
 import jax
 import numpy as np
-from fpe_jax.export import load
+from fpe_jax.io.export import load
 
 f = load(sys.argv[1])
 inputs = np.load(sys.argv[2])

@@ -243,7 +243,7 @@ def test_runner_works_where_jax_cannot_be_imported(tmp_path, sim_drive):
     np.save(tmp_path / "obs.npy", np.column_stack([drive.t_s, drive.xy_m, drive.yaw_rad]))
     code = """
 import numpy as np
-from fpe_jax.runner import Runner
+from fpe_jax.runner._runner import Runner
 r = Runner.from_config(sys.argv[1] + "/cfg.json", sys.argv[1] + "/wp.csv")
 obs = np.load(sys.argv[1] + "/obs.npy")
 np.save(sys.argv[1] + "/pred.npy", np.stack([r.update(*row) for row in obs]))

@@ -81,8 +81,9 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_numpy_rank_promotion", "raise")
     from fpe_jax import Track, predict_batch, presets, stack_params
-    from fpe_jax.batch import predict_chunked, states_from_array
-    from fpe_jax.shard import car_mesh, pad_axis0, predict_sharded, replicate, shard_along_axis0
+    from fpe_jax.predict._batch import predict_chunked, states_from_array
+    from fpe_jax.predict._shard import car_mesh, pad_axis0, predict_sharded, replicate
+    from fpe_jax.predict._shard import shard_along_axis0
 
     report = {"n_devices": len(jax.devices())}
     mesh = car_mesh()
@@ -136,9 +137,9 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     try:
         import equinox as eqx
         from fpe_jax import sim
-        from fpe_jax.evaluate import Dataset, make_targets
-        from fpe_jax.fit import DEFAULT_FIT, HUBER_M, _free_mask, _residuals
-        from fpe_jax.params import unconstrain
+        from fpe_jax.evaluate._evaluate import Dataset, make_targets
+        from fpe_jax.fit._fit import DEFAULT_FIT, HUBER_M, _free_mask, _residuals
+        from fpe_jax.model._params import unconstrain
     except ImportError as e:
         report["fit_skipped"] = str(e)
     else:

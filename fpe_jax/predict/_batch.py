@@ -4,7 +4,7 @@ A planner weighing overtakes asks "where will each of these 10^5 candidate cars 
 cycle; build a predictor once and call it:
 
     from fpe_jax import Track, presets
-    from fpe_jax.batch import BatchPredictor, predict_chunked
+    from fpe_jax.predict import BatchPredictor, predict_chunked
     track = Track.from_waypoints(waypoints_xy_m)
     predict = BatchPredictor(presets["default"], track)      # casts, places, splits once
     poses = predict(cars)                                     # cars: (N, 4|5) -> (N, H, 3)

@@ -9,7 +9,7 @@ ones up to float rounding of the reduction order (<= 1e-6 here).
 
 One host, several devices (GPUs, or CPU "devices" for testing):
 
-    from fpe_jax.shard import car_mesh, predict_sharded
+    from fpe_jax.predict import car_mesh, predict_sharded
     mesh = car_mesh()                       # all local devices, axis "cars"
     poses = predict_sharded(params, states, track, mesh)   # (N, H, 3), N padded internally
 
