@@ -1,4 +1,7 @@
-"""Evaluation: targets, splits, metrics and uncertainty calibration."""
+"""Evaluation: targets from a drive (`make_targets`, `Dataset`), train/test splits,
+the metrics (ADE/FDE, baselines: `_metrics`) and the uncertainty calibration. Names are
+re-exported lazily from `_evaluate` and `_metrics`.
+"""
 
 import importlib
 

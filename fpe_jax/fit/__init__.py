@@ -1,5 +1,6 @@
-"""Fitting: the loss, solvers (the package's BFGS and optimistix ones), model selection,
-recipes and the fit report."""
+"""Fitting: the loss and its solve (`fit`, `_fit`), the package's BFGS (`_bfgs`), fit recipes
+(`_recipe`: TOML files in fit/) and the fit report (`_report`). Names are re-exported lazily.
+"""
 
 import importlib
 

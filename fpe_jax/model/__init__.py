@@ -1,5 +1,11 @@
-"""The model: parameters and settings, state, the track-frame estimators (Theil-Sen,
-Kalman), the rollouts and their blend, the learned line."""
+"""The model: what a prediction is made of, for one car at a time.
+
+`Params` (fitted values, arrays) and `Settings` (static choices), with `presets`,
+`constrain` / `unconstrain`; `State` and `Poses`; the track-frame estimators (Theil-Sen in
+`_estimate`, Kalman in `_kalman`); the rollouts and their blend (`_rollout`); the learned line
+(`_line`); the observation history (`_history`, NumPy only). Single-sample pure functions;
+`fpe_jax.predict` vmaps them over cars and drives. Names are re-exported lazily.
+"""
 
 import importlib
 

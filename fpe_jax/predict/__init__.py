@@ -1,30 +1,31 @@
-"""Prediction: one car, a batch of cars, sharded batches, a whole drive with its covariance."""
+"""Prediction: one car (`predict`), a batch of cars (`predict_batch`, `BatchPredictor`),
+cars sharded over devices (`predict_sharded`), a whole drive (`predict_drive`,
+`states_from_drive`) with the prediction's variance (`predict_variance`, `variance_rows`).
+
+`fpe_jax.predict` is the function for users (`fpe_jax/__init__.py`); this package is reached by
+`from fpe_jax.predict import ...` or `importlib.import_module("fpe_jax.predict")`. Names are
+re-exported lazily from `_predict`, `_batch`, `_shard`.
+"""
 
 import importlib
 
 # public name -> the private module that defines it (imported on first use)
 _LAZY = {
     "AXIS": "_shard",
-    "BLOCK_ROWS": "_predict",
     "BatchPredictor": "_batch",
     "ChunkPlan": "_batch",
     "DEFAULT_CHUNK": "_batch",
     "DTYPES": "_batch",
     "LATTICE_SIDE": "_batch",
-    "MIN_BUCKET": "_predict",
-    "PREDICT_CHUNK": "_predict",
     "ProjectionGrid": "_batch",
     "WINDOW_FIELDS": "_predict",
-    "bucket": "_predict",
     "car_mesh": "_shard",
     "cast_floats": "_batch",
     "chunk_size": "_batch",
     "filtered": "_predict",
     "leading_size": "_shard",
     "model_states": "_predict",
-    "no_arclength": "_predict",
     "pad_axis0": "_shard",
-    "pad_rows": "_predict",
     "predict": "_predict",
     "predict_batch": "_predict",
     "predict_chunked": "_batch",
@@ -34,7 +35,6 @@ _LAZY = {
     "predict_sharded": "_shard",
     "predict_variance": "_predict",
     "replicate": "_shard",
-    "row_blocks": "_predict",
     "shard_along_axis0": "_shard",
     "stack_params": "_predict",
     "states_both": "_predict",

@@ -1,4 +1,7 @@
-"""Simulated drives (the embedded default data), the demo and the study cases."""
+"""Simulated drives: `simulate` drives a car around a track (the embedded default data, the
+demo's and the tests' drives); `_cases` holds the study cases the experiments run. Names are
+re-exported lazily from `_sim` and `_cases`.
+"""
 
 import importlib
 
