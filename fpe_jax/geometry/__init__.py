@@ -2,9 +2,10 @@
 
 `build_path` cleans and resamples waypoints (NumPy, no JAX: the runner and the readers use it);
 `Track` is the arc-length track as device arrays, with projection of points onto it
-(`project_rollout`, `arclength_along`); `builtin_track` reads the shipped tracks (oval,
-hairpin, random:SEED); `resample_loop` and `loop_curvature` work on closed loops. Names are re-exported lazily from the private modules `_path`, `_track`,
-`_tracks`, so importing this package costs nothing until a name is used.
+(`project_rollout`, `arclength_along`); `builtin_track` reads the shipped tracks (oval, hairpin,
+random:SEED); `resample_loop` and `loop_curvature` work on closed loops. Names are re-exported
+lazily from the private modules `_path`, `_track`, `_tracks`, so importing this package costs
+nothing until a name is used.
 """
 
 import importlib

@@ -1,6 +1,7 @@
 """Export a tuned config to the forms on-car runners take.
 
-- JSON: the normalized config (`fpe_jax.io`), the input of the NumPy runner (`fpe_jax.runner`).
+- JSON: the normalized config (`fpe_jax.io.config`), the input of the NumPy runner
+  (`fpe_jax.runner`).
 - ROS 2: a parameter YAML (`<node>:` / `ros__parameters:`) with flat, documented names.
 - StableHLO: a `jax.export` artifact of the batched predictor with the parameters and the track
   baked in as constants; it takes the cars' states only (see `INPUTS`). `load(path)` runs it.
@@ -136,7 +137,7 @@ def to_ros2_yaml(
     """The config as a ROS 2 parameter file (text): `node:` / `ros__parameters:` / flat names.
 
     Args:
-        cfg: a config dict as `fpe_jax.io.read_config` returns it.
+        cfg: a config dict as `fpe_jax.io.config.read_config` returns it.
         node: the node's name (may carry a namespace, `/ns/node`; `/**` matches every node).
         waypoint_file: path written to `waypoint_file` ("" when None: set it on the car).
         source: the config's file name, for the header comment.

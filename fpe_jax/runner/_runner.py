@@ -15,8 +15,9 @@ Parity with the JAX predictor is tested to 1e-6 m. The per-step math works on Py
 for H = 10 scalar steps that is several times faster than NumPy's per-call overhead; NumPy is
 used where a step scans many points (the track window, the seed's waypoint scan).
 
-It imports only `fpe_jax.io`, `fpe_jax.errors`, `fpe_jax.geometry` and (to read waypoint files)
-`fpe_jax.io`, all JAX-free; a test runs it in a process where importing JAX fails.
+It imports only `fpe_jax.io.config`, `fpe_jax.errors`, `fpe_jax.geometry._path`,
+`fpe_jax.model._history` and (to read waypoint files) `fpe_jax.io`, all JAX-free; a test runs it in
+a process where importing JAX fails.
 
     runner = Runner.from_config("tuned.json", "waypoints.csv")
     poses = runner.update(stamp_s, x_m, y_m, yaw_rad)   # (H, 3) x [m], y [m], yaw [rad]
@@ -255,7 +256,7 @@ class Runner:
 
     def __init__(self, config: dict, waypoints_xy_m, *, source: str = "config"):
         """Args:
-        config: a config dict as `fpe_jax.io.read_config` returns it (schema checked).
+        config: a config dict as `fpe_jax.io.config.read_config` returns it (schema checked).
         waypoints_xy_m: (K, 2) waypoints x [m], y [m]; resampled exactly as Track does.
         source: names the config in error messages.
         """
