@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from fpe_jax.errors import InputError
-from fpe_jax.sim._cases import DELAY_TOLERANCE_S, LATENCY_S, Case, fit_case, simulated_case
+from fpe_jax.fit._cases import DELAY_TOLERANCE_S, LATENCY_S, Case, fit_case, simulated_case
 
 # The demo: a short fit drive and a separate, shorter test drive on the built-in oval. Seeds are
 # fixed so that the printed numbers are reproducible; the checks below hold for them (and were

@@ -100,7 +100,7 @@ def test_line_model_coverage_is_calibrated_on_separate_drives():
     its seed alone (the simulated driver's wander: hairpin 1-sigma 25-49 % over seeds 2-6), so
     calibration is judged on five separate drives of the same track pooled: within 5 points of
     the ideal 39.3 % / 86.5 %."""
-    from fpe_jax.sim._cases import fit_case, simulated_case
+    from fpe_jax.fit._cases import fit_case, simulated_case
 
     case = simulated_case("hairpin")  # the uncertainty study's case
     res = fit_case(case, model="line")
@@ -601,7 +601,7 @@ def test_levine_fit_beats_seed_and_constant_velocity(shared_data):
     rep = res.report
     # the default beats every preset at every step, though the test part lies mostly where the
     # fit part never went (the line model holds the car's own offset there)
-    from fpe_jax.sim._cases import presets_beating_fitted
+    from fpe_jax.fit._cases import presets_beating_fitted
 
     assert presets_beating_fitted(rep) == [], res.info["model"]
     for base in ("seed", "constant-velocity"):

@@ -28,12 +28,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from fpe_jax.fit._cases import LATENCY_S
 from fpe_jax.geometry._path import waypoints_sha256
 from fpe_jax.io.config import params_to_config
 from fpe_jax.progress import Progress
 from fpe_jax.runner._adapt import AdaptiveRunner
 from fpe_jax.runner._runner import Runner, RunnerPath
-from fpe_jax.sim._cases import LATENCY_S
 from fpe_jax.sim._sim import Driver, simulate
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -150,10 +150,10 @@ def fit_circle(xy_m: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
 
 
 def make_case(src: Source, poses: dict, seed: int):
-    """A `fpe_jax.sim.Case`: the trajectory observed through the simulator's detector, split
+    """A `fpe_jax.fit.Case`: the trajectory observed through the simulator's detector, split
     in time (fit on the first 60 %, test on the rest); waypoints from the fit part only."""
     from fpe_jax.evaluate._evaluate import split_drive
-    from fpe_jax.sim._cases import Case
+    from fpe_jax.fit._cases import Case
     from fpe_jax.sim._sim import observe
 
     t = poses["t_s"]

@@ -25,10 +25,10 @@ import numpy as np
 
 from fpe_jax import plots
 from fpe_jax.evaluate._evaluate import heldout_predictions
+from fpe_jax.fit._cases import LATENCY_S, fit_case, real_cases, simulated_case
 from fpe_jax.fit._report import md_table
 from fpe_jax.model._params import presets
 from fpe_jax.progress import Progress
-from fpe_jax.sim._cases import LATENCY_S, fit_case, real_cases, simulated_case
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"

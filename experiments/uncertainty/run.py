@@ -37,10 +37,10 @@ from fpe_jax.evaluate._evaluate import (
     prediction_covariance,
 )
 from fpe_jax.evaluate._metrics import coverage, track_frame_residuals
+from fpe_jax.fit._cases import LATENCY_S, fit_case, real_cases, simulated_case
 from fpe_jax.fit._report import md_table
 from fpe_jax.geometry._path import nearest_index
 from fpe_jax.progress import Progress
-from fpe_jax.sim._cases import LATENCY_S, fit_case, real_cases, simulated_case
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"

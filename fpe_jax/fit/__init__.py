@@ -1,5 +1,6 @@
 """Fitting: the loss and its solve (`fit`, `_fit`), the package's BFGS (`_bfgs`), fit recipes
-(`_recipe`: TOML files in fit/) and the fit report (`_report`). Names are re-exported lazily.
+(`_recipe`: TOML files in fit/), the fit report (`_report`) and the study cases the demo and
+the experiments fit (`_cases`: simulate, split, fit, evaluate). Names are re-exported lazily.
 """
 
 import importlib
@@ -10,16 +11,20 @@ _LAZY = {
     "BFGS": "_bfgs",
     "BFGS_LOSS_UNIT_M2": "_fit",
     "BLEND_CHOICES": "_fit",
+    "Case": "_cases",
     "DEFAULT_FIT": "_fit",
     "DEFAULT_MODEL": "_fit",
     "DEFAULT_SOLVER": "_fit",
+    "DELAY_TOLERANCE_S": "_cases",
     "DRIVE_KEYS": "_recipe",
     "ESTIMATOR_GROUPS": "_fit",
+    "F1TENTH_TRACKS": "_cases",
     "FILTER_PRIOR_M2": "_fit",
     "FIT_GROUPS": "_fit",
     "FIT_MODELS": "_fit",
     "FitResult": "_fit",
     "HUBER_M": "_fit",
+    "LATENCY_S": "_cases",
     "MAX_STEPS": "_fit",
     "MODEL_FIT": "_fit",
     "PRESOLVE_DECREASE_RTOL": "_fit",
@@ -36,16 +41,24 @@ _LAZY = {
     "baseline": "_fit",
     "default_groups": "_fit",
     "default_solver": "_fit",
+    "f1tenth_cases": "_cases",
+    "fde_ratio": "_cases",
     "fit": "_fit",
+    "fit_case": "_cases",
     "fit_params": "_fit",
     "format_fitted": "_report",
     "format_table": "_report",
+    "levine_case": "_cases",
     "line_section": "_report",
     "load_recipe": "_recipe",
     "md_table": "_report",
+    "presets_beating_fitted": "_cases",
     "provenance": "_report",
+    "real_cases": "_cases",
     "robust_residuals": "_fit",
+    "simulated_case": "_cases",
     "solver_named": "_recipe",
+    "study_cases": "_cases",
 }
 __all__ = sorted(_LAZY)
 
