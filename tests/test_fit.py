@@ -191,13 +191,13 @@ def test_auto_model_chooses_on_the_inner_split_and_fits_the_choice_as_named(
 
     fit_d, test_d, track = oval_drives
     learned_until = []
-    real = fpe_jax.model.learn_line
+    real = fpe_jax.model._line.learn_line
 
     def spy(drives, trk, **kw):
         learned_until.append(max(float(d.t_s[-1]) for d in drives))
         return real(drives, trk, **kw)
 
-    monkeypatch.setattr(fpe_jax.model, "learn_line", spy)
+    monkeypatch.setattr(fpe_jax.model._line, "learn_line", spy)
     kw = dict(test_drives=[test_d.drive], test_tracks=[track], blend="position")
     res = F.fit([fit_d.drive], [track], model="auto", **kw)
     sel = res.info["model"]
