@@ -136,7 +136,7 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     # the fit's own objective (fpe_jax.fit._residuals) with its samples split across devices
     try:
         import equinox as eqx
-        from fpe_jax import sim
+        from fpe_jax.sim import _sim as sim
         from fpe_jax.evaluate._evaluate import Dataset, make_targets
         from fpe_jax.fit._fit import DEFAULT_FIT, HUBER_M, _free_mask, _residuals
         from fpe_jax.model._params import unconstrain
