@@ -14,7 +14,7 @@ passes on such a machine, and a rewrite keeps every file that is the same in tha
 changes no tracked file unless a value really moved).
 
 The built-in tracks `oval` and `hairpin` are designed here as straights and arcs and shipped as
-CSV files; `fpe_jax.tracks.builtin_track` reads the copies in fpe_jax/builtin_tracks/ (a test
+CSV files; `fpe_jax.geometry.builtin_track` reads the copies in fpe_jax/builtin_tracks/ (a test
 checks they equal data/tracks/). The simulator reads those files, so the sample drive below
 depends on the shipped tracks, never on this script's arithmetic.
 """
@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fpe_jax import sim
+from fpe_jax.geometry._tracks import SPACING_M, builtin_track, loop_arclength, resample_loop
 from fpe_jax.io import ros_msgs as rm
-from fpe_jax.tracks import SPACING_M, builtin_track, loop_arclength, resample_loop
+from fpe_jax.sim import _sim as sim
 
 DATA = Path(__file__).resolve().parent
 PACKAGE_TRACKS = DATA.parent / "fpe_jax" / "builtin_tracks"

@@ -6,7 +6,7 @@ params = fpe.presets["default"]
 poses = fpe.predict(params, fpe.State(x_m=..., y_m=..., yaw_rad=..., v_mps=...), track)
 
 The public names are imported lazily (module-level `__getattr__`), so that JAX-free modules such as
-`fpe_jax.runner`, `fpe_jax.config` and `fpe_jax.io` can be imported on a car that has no JAX.
+`fpe_jax.runner`, `fpe_jax.io` and `fpe_jax.spec` can be imported on a car that has no JAX.
 """
 
 from __future__ import annotations
@@ -20,17 +20,17 @@ from typing import TYPE_CHECKING
 _LAZY = {
     "Drive": "fpe_jax.drive",
     "InputError": "fpe_jax.errors",
-    "Params": "fpe_jax.params",
-    "Settings": "fpe_jax.params",
-    "constrain": "fpe_jax.params",
-    "presets": "fpe_jax.params",
-    "unconstrain": "fpe_jax.params",
+    "Params": "fpe_jax.model",
+    "Settings": "fpe_jax.model",
+    "constrain": "fpe_jax.model",
+    "presets": "fpe_jax.model",
+    "unconstrain": "fpe_jax.model",
     "predict": "fpe_jax.predict",
     "predict_batch": "fpe_jax.predict",
     "predict_drive": "fpe_jax.predict",
     "stack_params": "fpe_jax.predict",
-    "State": "fpe_jax.rollout",
-    "Track": "fpe_jax.track",
+    "State": "fpe_jax.model",
+    "Track": "fpe_jax.geometry",
 }
 
 __all__ = [
@@ -53,10 +53,10 @@ __version__ = "0.1.0"
 if TYPE_CHECKING:  # static analysers and IDEs see the real imports
     from fpe_jax.drive import Drive
     from fpe_jax.errors import InputError
-    from fpe_jax.params import Params, Settings, constrain, presets, unconstrain
-    from fpe_jax.predict import predict, predict_batch, predict_drive, stack_params
-    from fpe_jax.state import State
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.model._params import Params, Settings, constrain, presets, unconstrain
+    from fpe_jax.model._state import State
+    from fpe_jax.predict._predict import predict, predict_batch, predict_drive, stack_params
 
 
 def __getattr__(name: str):

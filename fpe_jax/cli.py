@@ -108,11 +108,11 @@ def _settings_from_args(args) -> dict:
 
 def _check_on_track(args, drive, track, source: str, name: str) -> None:
     """Exit 2 (InputError) unless the drive's observations follow the track's waypoints (see
-    `fpe_jax.path.check_on_track`); `track` is a Track or `path.build_path`'s dict, in the
+    `fpe_jax.geometry.check_on_track`); `track` is a Track or `path.build_path`'s dict, in the
     drive's frame."""
     import numpy as np
 
-    from fpe_jax.path import check_on_track
+    from fpe_jax.geometry._path import check_on_track
 
     xy, heading = (
         track[k] if isinstance(track, dict) else getattr(track, k) for k in ("xy_m", "heading_rad")
@@ -153,7 +153,7 @@ def _start_jax(args, say, x64: bool = True, executables: bool = True):
 
     if x64:
         jax.config.update("jax_enable_x64", True)
-    from fpe_jax import cache
+    from fpe_jax.compile import _cache as cache
 
     if getattr(args, "no_cache", False):
         cache.disable()
@@ -172,7 +172,7 @@ def _load_predictor(args):
     """(Params, Waypoints) of --preset / --config with the settings flags; a line-model config
     is checked against the --waypoints it will run on."""
     from fpe_jax import io
-    from fpe_jax.config import load_params
+    from fpe_jax.io.config import load_params
 
     wp = io.load_waypoints(args.waypoints)
     settings = _settings_from_args(args)
@@ -384,7 +384,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_export(args) -> int:
-    from fpe_jax.export import export_config, provenance_waypoints
+    from fpe_jax.io.export import export_config, provenance_waypoints
 
     waypoints = args.waypoints
     if waypoints is None:
@@ -400,7 +400,7 @@ def cmd_export(args) -> int:
 
 def cmd_run(args) -> int:
     # NumPy only: this command must work on a car without JAX (tests/test_speed.py checks it)
-    from fpe_jax.runner import Runner, run_stream
+    from fpe_jax.runner._runner import Runner, run_stream
 
     rate_hz = None if args.rate is None else spec.check_rate(args.rate, "--rate", "value")
     if sys.stdin is None:
@@ -408,7 +408,7 @@ def cmd_run(args) -> int:
     if sys.stdout is None:  # started with stdout closed: fail before the work, as a write would
         raise OSError(errno.EBADF, os.strerror(errno.EBADF))
     if args.adapt:
-        from fpe_jax.adapt import AdaptiveRunner
+        from fpe_jax.runner._adapt import AdaptiveRunner
 
         runner = AdaptiveRunner.from_files(args.config, args.waypoints, delay_s=args.delay)
     elif args.config is None:
@@ -422,7 +422,7 @@ def cmd_run(args) -> int:
 def _fit_inputs(args, say=lambda msg: None):
     """(drives, waypoints, descriptions, test drives, test waypoints, options) for `fpe fit`."""
     from fpe_jax import io
-    from fpe_jax.recipe import load_recipe
+    from fpe_jax.fit._recipe import load_recipe
 
     # the flags given override the recipe's values, or the defaults
     flags = dict(holdout=args.holdout, blend=args.blend, model=args.model, solver=args.solver)
@@ -463,7 +463,7 @@ def _fit_inputs(args, say=lambda msg: None):
 def _solver_option(name: str | None):
     """The solver `fit` gets for a --solver (or recipe) name: None for the default (bfgs), so a
     warm fit loads its stored solve without importing optimistix (~0.1-0.3 s, `fit._Static`)."""
-    from fpe_jax.recipe import solver_named
+    from fpe_jax.fit._recipe import solver_named
 
     name = name or SOLVERS[0]
     return None if name == SOLVERS[0] else solver_named(name, "--solver")
@@ -479,7 +479,7 @@ def _local_drives(entries):
 def _waypoint_provenance(path, entries) -> dict | None:
     """{"file": absolute path, "sha256": waypoints_sha256} of the waypoint file every drive of
     `entries` ((drive, waypoints, description)) ran on; None when there is none or they differ."""
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
 
     sha = {waypoints_sha256(wp) for _, wp, _ in entries}
     if path is None or len(sha) != 1:
@@ -489,7 +489,7 @@ def _waypoint_provenance(path, entries) -> dict | None:
 
 def cmd_fit(args) -> int:
     from fpe_jax import io
-    from fpe_jax.config import params_to_config, write_config
+    from fpe_jax.io.config import params_to_config, write_config
 
     fit_names = None if args.fit is None else spec.check_fit_names(args.fit, "--fit", "value")
     if args.holdout is not None:
@@ -506,11 +506,11 @@ def cmd_fit(args) -> int:
             raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
         io.check_output_path(out, args.force, opts["inputs"])
         _start_jax(args, say)
-        from fpe_jax.config import apply_settings
-        from fpe_jax.fit import fit
-        from fpe_jax.params import presets
-        from fpe_jax.report import format_fitted, format_table, line_section, provenance
-        from fpe_jax.track import Track
+        from fpe_jax.fit._fit import fit
+        from fpe_jax.fit._report import format_fitted, format_table, line_section, provenance
+        from fpe_jax.geometry._track import Track
+        from fpe_jax.io.config import apply_settings
+        from fpe_jax.model._params import presets
 
         # the recipe's [settings], then the flags on top
         init = apply_settings(presets["default"], opts["settings"], str(args.logs[0]))
@@ -558,13 +558,13 @@ def cmd_fit(args) -> int:
 def cmd_evaluate(args) -> int:
     import json
 
-    from fpe_jax.config import read_config
+    from fpe_jax.io.config import read_config
 
     with _progress(args) as say:
         _start_jax(args, say)
         from fpe_jax.drive import local_frame
-        from fpe_jax.evaluate import Dataset, evaluate, make_targets
-        from fpe_jax.track import Track
+        from fpe_jax.evaluate._evaluate import Dataset, evaluate, make_targets
+        from fpe_jax.geometry._track import Track
 
         say("reading the drive and waypoints")
         params, waypoints = _load_predictor(args)
@@ -579,7 +579,7 @@ def cmd_evaluate(args) -> int:
             raise InputError(args.log, "no prediction has a target", "a longer drive")
         say(f"predicting {len(data.targets.rows)} observations and scoring them")
         metrics = evaluate(params, [data], uncertainty=unc)
-    from fpe_jax.report import format_table
+    from fpe_jax.fit._report import format_table
 
     name = args.config or args.preset
     if args.json:  # strict JSON: a metric without a value is null, never NaN
@@ -601,7 +601,7 @@ def _coverage_line(metrics: dict) -> str:
 def cmd_cache(args) -> int:
     import json
 
-    from fpe_jax import cache  # JAX-free
+    from fpe_jax.compile import _cache as cache  # JAX-free
 
     summary = cache.clear() if args.action == "clear" else cache.info()
     if args.json:
@@ -629,7 +629,7 @@ def _finite_or_null(v):
 
 
 def cmd_presets(args) -> int:
-    from fpe_jax.config import PRESET_DOCS  # JAX-free
+    from fpe_jax.io.config import PRESET_DOCS  # JAX-free
 
     for name, doc in PRESET_DOCS.items():
         print(f"{name:22s} {doc}")
@@ -640,7 +640,7 @@ def cmd_predict(args) -> int:
     import numpy as np
 
     from fpe_jax import io
-    from fpe_jax.config import read_config
+    from fpe_jax.io.config import read_config
 
     io.check_output_path(args.out, args.force, inputs=(args.log, args.waypoints, args.config))
     if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
@@ -650,10 +650,10 @@ def cmd_predict(args) -> int:
     with _progress(args) as say:
         _start_jax(args, say)
         from fpe_jax.drive import local_frame
-        from fpe_jax.evaluate import covariance_map, path_heading, prediction_covariance
-        from fpe_jax.history import drive_valid
-        from fpe_jax.predict import predict_rows, states_from_drive
-        from fpe_jax.track import Track
+        from fpe_jax.evaluate._evaluate import covariance_map, path_heading, prediction_covariance
+        from fpe_jax.geometry._track import Track
+        from fpe_jax.model._history import drive_valid
+        from fpe_jax.predict._predict import predict_rows, states_from_drive
 
         say("reading the drive and waypoints")
         params, waypoints = _load_predictor(args)
@@ -697,9 +697,9 @@ def cmd_predict(args) -> int:
 def _predict_adaptive(args) -> int:
     """`fpe predict --adapt`: the learning runner over the drive in stream order (no JAX)."""
     from fpe_jax import io
-    from fpe_jax.adapt import predict_drive_adaptive
-    from fpe_jax.config import check_waypoints, read_config, write_config
-    from fpe_jax.path import build_path
+    from fpe_jax.geometry._path import build_path
+    from fpe_jax.io.config import check_waypoints, read_config, write_config
+    from fpe_jax.runner._adapt import predict_drive_adaptive
 
     if not args.adapt:
         flag = "--save-state" if args.save_state else "--delay"
@@ -732,7 +732,7 @@ def _predict_adaptive(args) -> int:
 def _describe_waypoints(path) -> dict:
     """JSON-ready summary of a waypoint file and of the path the predictors build from it."""
     from fpe_jax import io
-    from fpe_jax.path import build_path
+    from fpe_jax.geometry._path import build_path
 
     wp = io.load_waypoints(path)
     p = build_path(wp.xy_m, source=str(path))
@@ -843,7 +843,8 @@ def cmd_convert(args) -> int:
 def cmd_simulate(args) -> int:
     import dataclasses
 
-    from fpe_jax import io, sim
+    from fpe_jax import io
+    from fpe_jax.sim import _sim as sim
 
     out = Path(args.out)
     spec.check_simulation(args.duration, args.latency, args.seed, args.stops_per_min, "simulate")
@@ -888,10 +889,15 @@ def cmd_batch(args) -> int:
     with _progress(args) as say:
         # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
         _start_jax(args, say, x64=False, executables=False)
-        from fpe_jax.batch import off_track_cars, off_track_summary, predict_chunked, with_origin
         from fpe_jax.drive import map_origin
-        from fpe_jax.path import on_track_m
-        from fpe_jax.track import Track
+        from fpe_jax.geometry._path import on_track_m
+        from fpe_jax.geometry._track import Track
+        from fpe_jax.predict._batch import (
+            off_track_cars,
+            off_track_summary,
+            predict_chunked,
+            with_origin,
+        )
 
         say("reading the cars and waypoints")
         params, waypoints = _load_predictor(args)
@@ -929,7 +935,7 @@ def cmd_demo(args) -> int:
     with _progress(args) as say:
         _start_jax(args, say)
         from fpe_jax.demo import run_demo
-        from fpe_jax.report import format_fitted, format_table
+        from fpe_jax.fit._report import format_fitted, format_table
 
         res = run_demo(out, progress=say, force=args.force)
     case, result = res.case, res.result
@@ -966,7 +972,7 @@ def cmd_plot(args) -> int:
         params, waypoints = _load_predictor(args)
         name = args.preset or f"config {Path(args.config).name}"
         drive = _load_drive_from_args(args)
-        from fpe_jax.path import build_path
+        from fpe_jax.geometry._path import build_path
 
         _check_on_track(args, drive, build_path(waypoints.xy_m), args.waypoints, args.log)
         m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log, progress=say)

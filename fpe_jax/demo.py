@@ -2,7 +2,7 @@
 
 `run_demo` simulates, fits, compares with every preset on the test drive, checks the claims and
 writes plots and the config. Not a core module: it may write files and (lazily) import matplotlib
-through `fpe_jax.plots`. The fit/test cases it runs on live in `fpe_jax.cases`.
+through `fpe_jax.plots`. The fit/test cases it runs on live in `fpe_jax.sim`.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from fpe_jax.cases import DELAY_TOLERANCE_S, LATENCY_S, Case, fit_case, simulated_case
 from fpe_jax.errors import InputError
+from fpe_jax.fit._cases import DELAY_TOLERANCE_S, LATENCY_S, Case, fit_case, simulated_case
 
 # The demo: a short fit drive and a separate, shorter test drive on the built-in oval. Seeds are
 # fixed so that the printed numbers are reproducible; the checks below hold for them (and were
@@ -124,12 +124,12 @@ def write_demo_outputs(
 ) -> list[Path]:
     """Config, ROS 2 parameters, waypoints, plots and report.md of a finished demo fit."""
     from fpe_jax import plots
-    from fpe_jax.config import params_to_config, write_config
-    from fpe_jax.evaluate import heldout_predictions
-    from fpe_jax.export import export_config
+    from fpe_jax.evaluate._evaluate import heldout_predictions
+    from fpe_jax.fit._report import line_section, provenance
+    from fpe_jax.io.config import params_to_config, write_config
+    from fpe_jax.io.export import export_config
     from fpe_jax.io.writers import write_text, write_xy_csv
-    from fpe_jax.params import presets
-    from fpe_jax.report import line_section, provenance
+    from fpe_jax.model._params import presets
 
     progress("writing the tuned config and the ROS 2 parameters")
     # every digit: a line-model config is tied to the exact waypoint values (sha256)
@@ -193,7 +193,7 @@ def write_demo_outputs(
 
 def demo_report(case: Case, result, checks) -> str:
     """The demo's Markdown report: what was run, the fitted values, the table, the checks."""
-    from fpe_jax.report import format_fitted, format_table
+    from fpe_jax.fit._report import format_fitted, format_table
 
     p = result.params.physical()
     if result.params.settings.model == "line":

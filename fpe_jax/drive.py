@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from fpe_jax.path import map_origin as map_origin  # re-exported: drives' local frames
+from fpe_jax.geometry._path import map_origin as map_origin  # re-exported: drives' local frames
 
 
 @dataclasses.dataclass(frozen=True)

@@ -70,7 +70,7 @@ def closed(xy_m: np.ndarray) -> np.ndarray:
 
 def track_edges(center_xy_m: np.ndarray, half_width_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Left and right edges (K, 2) [m] of a closed centerline (K, 2) at `half_width_m`."""
-    from fpe_jax.path import left_normals
+    from fpe_jax.geometry._path import left_normals
 
     n = left_normals(np.asarray(center_xy_m, dtype=np.float64))
     return center_xy_m + half_width_m * n, center_xy_m - half_width_m * n
@@ -88,7 +88,7 @@ def bends(xy_m: np.ndarray, baseline_m: float = 1.0, reach_m: float = 3.0):
         bend_1pm: (M,) the curvature of largest magnitude within +-reach_m: a point counts as
             "at a bend" when one is near, so an early turn on the approach is seen too.
     """
-    from fpe_jax.path import build_path, wrap_angle
+    from fpe_jax.geometry._path import build_path, wrap_angle
 
     path = build_path(xy_m)
     p, heading, ds = path["xy_m"], path["heading_rad"], path["ds_m"]
@@ -133,7 +133,7 @@ def draw_actual(ax, drive, label: str = "actual path") -> None:
     if drive.has_truth:
         ax.plot(*drive.truth_xy_m.T, color="black", lw=1.0, label=f"{label} (truth)")
     else:
-        from fpe_jax.history import distinct_mask
+        from fpe_jax.model._history import distinct_mask
 
         xy = drive.xy_m[distinct_mask(drive.xy_m)]
         ax.plot(*xy.T, ".-", color="black", lw=0.6, ms=2.5, label=f"{label} (observed)")
@@ -186,7 +186,7 @@ BEND_FULL_1PM = 0.3  # radius < 3.3 m: full weight
 
 def _bend_geometry(held, name: str, waypoints_xy_m: np.ndarray):
     """(lateral offset [m] of the 1 s point toward the bend's inside, bend curvature [1/m])."""
-    from fpe_jax.path import nearest_index
+    from fpe_jax.geometry._path import nearest_index
 
     p, tangent, _, bend = bends(waypoints_xy_m)
     tgt = held.target_xy_m[:, -1]
@@ -401,9 +401,9 @@ def plot_drive(
         progress: called with a short message at each phase.
     """
     from fpe_jax.errors import InputError
-    from fpe_jax.evaluate import heldout_predictions
-    from fpe_jax.metrics import errors_m, summarize
-    from fpe_jax.track import Track
+    from fpe_jax.evaluate._evaluate import heldout_predictions
+    from fpe_jax.evaluate._metrics import errors_m, summarize
+    from fpe_jax.geometry._track import Track
 
     track = Track.from_waypoints(waypoints_xy_m)
     progress(f"predicting {len(drive.t_s)} observations")

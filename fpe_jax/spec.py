@@ -25,7 +25,7 @@ BLEND_MODES = ("position", "heading")
 MODELS = ("blend", "seed", "cv", "ctrv", "frenet", "line")
 MIN_TAU_S = 0.01  # time constants stay above this: exp(-t / tau) must not underflow to 0/0
 # the track-frame state estimators of the frenet and line models: a Kalman filter over the
-# history window (`fpe_jax.kalman`) or Theil-Sen lines (`fpe_jax.estimate.track_frame_lines`)
+# history window (`fpe_jax.model`) or Theil-Sen lines (`fpe_jax.model.track_frame_lines`)
 ESTIMATORS = ("kalman", "theil-sen")
 DEFAULT_ESTIMATOR = "theil-sen"  # what a config without settings.estimator was fitted with
 # The line model's estimator in a new fit unless told otherwise: the Kalman filter in the track
@@ -163,7 +163,7 @@ PARAM_RULES = (
     Rule("filter_obs_m", lo=MIN_FILTER_NOISE, hi=100.0, unit="m", optional=True),
     Rule("filter_gate_sigma", lo=MIN_GATE_SIGMA, hi=1000.0, optional=True),
 )
-# the line model's profile along the track (`fpe_jax.line`), P values each; required for it
+# the line model's profile along the track (`fpe_jax.model`), P values each; required for it
 LINE_RULES = (
     Rule("line_offset_m", "array", lo=-1000.0, hi=1000.0, unit="m"),
     Rule("line_speed_mps", "array", lo=0.0, hi=MAX_SPEED_MPS, unit="m/s"),

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from fpe_jax import Drive, Params, Settings, presets
-from fpe_jax.sim import simulate
+from fpe_jax.sim._sim import simulate
 
 LEVINE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "levine"
 

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 
 from fpe_jax.cli import main
-from fpe_jax.config import params_to_config, write_config
+from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.io.logs import open_log
+from fpe_jax.model._params import presets
 from fpe_jax.node._core import frenet_to_map
-from fpe_jax.params import presets
-from fpe_jax.runner import Runner, RunnerPath
+from fpe_jax.runner._runner import Runner, RunnerPath
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE_HZ = 40.0

@@ -1,4 +1,4 @@
-"""In-race learning (fpe_jax.adapt): the incremental update against a JAX computation of the
+"""In-race learning (fpe_jax.runner): the incremental update against a JAX computation of the
 same profile, what it learns, its saved state, and the CLI's --adapt."""
 
 import json
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from fpe_jax import Params, Settings, Track, cli, predict_drive, presets
-from fpe_jax.adapt import AdaptiveRunner, kernel, start_config
-from fpe_jax.config import params_to_config, read_config, write_config
 from fpe_jax.errors import InputError
-from fpe_jax.path import waypoints_sha256
-from fpe_jax.runner import Runner
-from fpe_jax.sim import simulate, write_simulation
+from fpe_jax.geometry._path import waypoints_sha256
+from fpe_jax.io.config import params_to_config, read_config, write_config
+from fpe_jax.runner._adapt import AdaptiveRunner, kernel, start_config
+from fpe_jax.runner._runner import Runner
+from fpe_jax.sim._sim import simulate, write_simulation
 
 TOL = 1e-6
 
@@ -105,7 +105,7 @@ def test_the_update_matches_a_jax_computation_of_the_same_profile(laps, start):
     if start == "blend config":
         cfg = params_to_config(presets["default"])
     elif start == "line config":
-        from fpe_jax.line import learn_line
+        from fpe_jax.model._line import learn_line
 
         other = simulate("oval", duration_s=8.0, seed=9).drive  # part of a lap: a partial prior
         profile = learn_line([other], Track.from_waypoints(wp))
@@ -139,9 +139,9 @@ def test_jax_profile_under_jit_and_vmap_equals_one_call(laps):
 
 def test_with_no_decay_and_no_prior_the_profile_is_fpe_line_on_the_same_samples(laps):
     """lap_decay 1, min_samples 1, speeds taken where they were measured: the profile is
-    fpe_jax.line.line_from_samples of the runner's own samples, before its prior (all of the
+    fpe_jax.model.line_from_samples of the runner's own samples, before its prior (all of the
     loop covered)."""
-    from fpe_jax.line import LineSamples, line_from_samples
+    from fpe_jax.model._line import LineSamples, line_from_samples
 
     wp, drive = laps
 
@@ -194,7 +194,7 @@ def test_the_saved_state_is_a_config_the_runner_and_jax_read(laps, tmp_path):
     assert cfg["provenance"]["adapted"]["laps"] == r.laps
     np.testing.assert_array_equal(cfg["params"]["line_offset_m"], r.profile()["line_offset_m"])
     # the offline predictor with that config, and the plain runner, agree on another drive
-    from fpe_jax.config import config_to_params
+    from fpe_jax.io.config import config_to_params
 
     other = simulate("oval", duration_s=6.0, seed=8).drive
     _, pred_jax = predict_drive(config_to_params(cfg), other, Track.from_waypoints(wp))
@@ -236,7 +236,7 @@ def logs(tmp_path_factory):
 
 def test_fpe_predict_adapt_streams_the_learning_runner_and_saves_its_state(logs, tmp_path):
     from fpe_jax import io
-    from fpe_jax.adapt import predict_drive_adaptive
+    from fpe_jax.runner._adapt import predict_drive_adaptive
 
     log, wp = str(logs / "drive.mcap"), str(logs / "waypoints.csv")
     out, state = tmp_path / "p.csv", tmp_path / "state.json"
@@ -320,7 +320,7 @@ class NoJax:
             raise ImportError(name + " is blocked: this process has no JAX")
 sys.meta_path.insert(0, NoJax())
 import numpy as np
-from fpe_jax.adapt import AdaptiveRunner
+from fpe_jax.runner._adapt import AdaptiveRunner
 r = AdaptiveRunner(None, np.load({str(tmp_path / "wp.npy")!r}))
 for t, x, y in np.load({str(tmp_path / "obs.npy")!r}).tolist():
     r.update(t, x, y)

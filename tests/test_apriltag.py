@@ -18,12 +18,13 @@ import pytest
 from rosbags.typesys import Stores
 from test_io import _to_rosbags, shipped_typestore, write_rosbags
 
-from fpe_jax import cli, io, sim
+from fpe_jax import cli, io
 from fpe_jax.errors import InputError
 from fpe_jax.io import apriltag as at
 from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io.tf import Rigid, TfBuffer, quat_from_matrix, quat_rotate, slerp
 from fpe_jax.io.writers import _odom_events, _write_ros2_mcap
+from fpe_jax.sim import _sim as sim
 
 DET = "/tag_detections"
 
@@ -693,7 +694,7 @@ def test_cli_simulate_apriltag_and_convert_for_run(tmp_path, capsys):
     # `fpe run` reads that file on stdin: one prediction per row.
     import io as pyio
 
-    from fpe_jax.runner import BENCH_CONFIG, Runner, run_stream
+    from fpe_jax.runner._runner import BENCH_CONFIG, Runner, run_stream
 
     cfg = tmp_path / "cfg.json"
     cfg.write_text(json.dumps(BENCH_CONFIG))
@@ -705,7 +706,7 @@ def test_cli_simulate_apriltag_and_convert_for_run(tmp_path, capsys):
 
 
 def test_recipe_takes_tag_keys(written, tmp_path):
-    from fpe_jax.recipe import load_recipe
+    from fpe_jax.fit._recipe import load_recipe
 
     cam = sim.Camera()
     recipe = tmp_path / "r.toml"

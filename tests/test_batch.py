@@ -1,4 +1,4 @@
-"""Chunked batch prediction (`fpe_jax.batch`), the projection grid, and `fpe batch`."""
+"""Chunked batch prediction (`fpe_jax.predict`), the projection grid, and `fpe batch`."""
 
 import dataclasses
 import functools
@@ -8,8 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fpe_jax import State, Track, batch, predict_batch, presets, stack_params
-from fpe_jax.batch import (
+from fpe_jax import State, Track, predict_batch, presets, stack_params
+from fpe_jax.cli import main
+from fpe_jax.errors import InputError
+from fpe_jax.io import read_cars, write_poses
+from fpe_jax.predict import _batch as batch
+from fpe_jax.predict._batch import (
     BatchPredictor,
     ProjectionGrid,
     cast_floats,
@@ -17,9 +21,6 @@ from fpe_jax.batch import (
     predict_chunked,
     states_from_array,
 )
-from fpe_jax.cli import main
-from fpe_jax.errors import InputError
-from fpe_jax.io import read_cars, write_poses
 
 # Most tests share these shapes, so each compiled chunk is reused instead of recompiled.
 N_CARS, CHUNK = 70, 32
@@ -470,7 +471,7 @@ def test_state_fields_follow_predict_batch_defaults(loop, loop_grid):
 def test_with_origin_is_the_float64_sum_cast_back(origin):
     """`with_origin` adds the map origin in float64, block by block and in place where the
     poses' dtype can hold the result, exactly as adding it to a float64 copy and casting back."""
-    from fpe_jax.batch import with_origin
+    from fpe_jax.predict._batch import with_origin
 
     rng = np.random.default_rng(3)
     poses = rng.normal(0.0, 30.0, (1001, 10, 3)).astype(np.float32)

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fpe_jax import aot, cache
+from fpe_jax.compile import _aot as aot
+from fpe_jax.compile import _cache as cache
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "data" / "samples"
@@ -25,7 +26,8 @@ import numpy as np
 import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
-from fpe_jax import aot, cache
+from fpe_jax.compile import _aot as aot
+from fpe_jax.compile import _cache as cache
 
 def wave(x):
     return {"y": jnp.cumsum(jnp.sin(3.0 * x) * jnp.exp(-x)) / (1.0 + x * x)}

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from fpe_jax.drive import Drive
-from fpe_jax.params import presets
-from fpe_jax.predict import predict_drive
-from fpe_jax.runner import Runner
-from fpe_jax.track import Track
+from fpe_jax.geometry._track import Track
+from fpe_jax.model._params import presets
+from fpe_jax.predict._predict import predict_drive
+from fpe_jax.runner._runner import Runner
 
 A_M = 15.0  # lobe size of the lemniscate x = a sin t, y = a sin t cos t [m]
 V_MPS = 3.0
@@ -73,7 +73,7 @@ def test_the_crossing_is_where_the_branches_meet():
 
 
 def _runner_poses(params, drive: Drive) -> np.ndarray:
-    from fpe_jax.config import params_to_config
+    from fpe_jax.io.config import params_to_config
 
     runner = Runner(params_to_config(params), figure_eight())
     rows = zip(drive.t_s, drive.xy_m, drive.yaw_rad, strict=True)
@@ -93,7 +93,7 @@ def test_a_drive_starting_at_the_crossing_follows_its_branch(t0, preset, with_ya
 
 
 def test_batch_car_at_the_crossing_drives_on_along_its_heading():
-    from fpe_jax.batch import predict_chunked
+    from fpe_jax.predict._batch import predict_chunked
 
     track = Track.from_waypoints(figure_eight())
     yaw2 = 0.75 * math.pi  # the second branch's heading at the origin

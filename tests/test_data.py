@@ -23,10 +23,11 @@ import numpy as np
 import pytest
 import yaml
 
-from fpe_jax import io, sim
+from fpe_jax import io
+from fpe_jax.geometry._tracks import builtin_track
 from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io.tables import read_table
-from fpe_jax.tracks import builtin_track
+from fpe_jax.sim import _sim as sim
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "data"

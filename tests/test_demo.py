@@ -12,7 +12,7 @@ import pytest
 
 from fpe_jax import cli
 from fpe_jax.demo import demo_checks, run_demo
-from fpe_jax.sim import simulate, write_simulation
+from fpe_jax.sim._sim import simulate, write_simulation
 from fpe_jax.spec import SCHEMA_VERSION
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -52,7 +52,7 @@ def test_demo_pipeline_on_a_short_drive_writes_everything(tmp_path):
     assert cfg["uncertainty"]["frame"] == "track"
     assert cfg["settings"]["model"] == "line" and cfg["line"]["waypoints"].endswith("waypoints.csv")
     # the written waypoints are the ones the line belongs to
-    from fpe_jax.config import check_waypoints
+    from fpe_jax.io.config import check_waypoints
 
     wp = np.loadtxt(tmp_path / "out" / "demo" / "waypoints.csv", delimiter=",", skiprows=1)
     check_waypoints(cfg, "config.json", wp, "waypoints.csv")

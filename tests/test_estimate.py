@@ -9,9 +9,9 @@ import pytest
 from helpers import fd_gradient
 
 from fpe_jax import Drive
-from fpe_jax.estimate import estimate_state
-from fpe_jax.history import distinct_mask, history_windows
-from fpe_jax.path import wrap_angle
+from fpe_jax.geometry._path import wrap_angle
+from fpe_jax.model._estimate import estimate_state
+from fpe_jax.model._history import distinct_mask, history_windows
 
 W = 6
 DT = 0.1
@@ -192,7 +192,7 @@ def test_estimate_state_under_jit_vmap_grad():
 def test_masked_median_is_nanmedian_bitwise():
     """The rank-based median equals jnp.nanmedian of the masked values bit for bit: odd and even
     counts, ties, NaN values (masked out), a single value and an empty mask (0)."""
-    from fpe_jax.estimate import _masked_median
+    from fpe_jax.model._estimate import _masked_median
 
     rng = np.random.default_rng(5)
     x = rng.normal(size=(400, 45))

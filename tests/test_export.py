@@ -16,19 +16,13 @@ from test_runner import NO_JAX as BLOCK_JAX  # blocks importing JAX
 
 from fpe_jax import Params, Settings, State, Track, predict_batch, predict_drive
 from fpe_jax.cli import main
-from fpe_jax.config import params_to_config, read_config, write_config
 from fpe_jax.errors import InputError
-from fpe_jax.export import (
-    INPUTS,
-    ROS2_PARAMS,
-    _yaml_scalar,
-    load,
-    to_ros2_yaml,
-)
-from fpe_jax.path import waypoints_sha256
-from fpe_jax.predict import states_from_drive
-from fpe_jax.runner import Runner, load_waypoints_xy
-from fpe_jax.sim import simulate
+from fpe_jax.geometry._path import waypoints_sha256
+from fpe_jax.io.config import params_to_config, read_config, write_config
+from fpe_jax.io.export import INPUTS, ROS2_PARAMS, _yaml_scalar, load, to_ros2_yaml
+from fpe_jax.predict._predict import states_from_drive
+from fpe_jax.runner._runner import Runner, load_waypoints_xy
+from fpe_jax.sim._sim import simulate
 from fpe_jax.spec import SCHEMA_VERSION
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,7 +92,7 @@ FRESH = """
 import sys
 import jax
 import numpy as np
-from fpe_jax.export import load
+from fpe_jax.io.export import load
 
 f = load(sys.argv[1])
 inputs = np.load(sys.argv[2])
@@ -280,8 +274,8 @@ def test_yaml_floats_stay_floats(value):
 def test_line_model_exports_its_profile_to_every_format(case, tmp_path):
     """A line-model config: the ROS 2 file carries the profile arrays, the StableHLO artifact
     and the runner predict what the JAX path does (track-frame inputs given, and omitted)."""
-    from fpe_jax.line import learn_line
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.model._line import learn_line
 
     drive, track = case["drive"], case["track"]
     wp = np.loadtxt(case["tmp"] / "wp.csv", delimiter=",")
@@ -321,8 +315,8 @@ def test_line_model_exports_its_profile_to_every_format(case, tmp_path):
 def test_export_refuses_a_line_config_on_other_waypoints(case, tmp_path, fmt, capsys):
     """Like predict and run: the line was learned on other waypoints -> one line naming both
     files, exit 2, nothing written."""
-    from fpe_jax.line import learn_line
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.model._line import learn_line
 
     wp = np.loadtxt(case["tmp"] / "wp.csv", delimiter=",")
     params = Params.create(Settings(model="line"), **learn_line([case["drive"]], case["track"]))
@@ -343,7 +337,7 @@ def test_all_failing_midway_leaves_no_partial_export(case, tmp_path, monkeypatch
     existing export exactly as it was: never a mixed or partial set a car could deploy."""
     import errno
 
-    import fpe_jax.export as ex
+    from fpe_jax.io import export as ex
 
     def full_disk(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -368,7 +362,7 @@ def test_ros2_params_file_reads_back_where_it_is_copied(case, tmp_path):
     waypoints; changed waypoints are refused by their hash."""
     import shutil
 
-    from fpe_jax.export import read_ros2_params
+    from fpe_jax.io.export import read_ros2_params
 
     argv = ["export", str(case["tmp"] / "tuned.json"), "--format", "ros2"]
     (tmp_path / "a").mkdir()

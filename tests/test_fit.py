@@ -14,23 +14,24 @@ import pytest
 import yaml
 from test_export import FRESH  # the fresh-process loader script of the export tests
 
-from fpe_jax import aot, io, spec
-from fpe_jax import evaluate as E
-from fpe_jax import fit as F
+from fpe_jax import io, spec
 from fpe_jax.cli import main
-from fpe_jax.config import config_to_params, params_to_config, read_config
+from fpe_jax.compile import _aot as aot
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
-from fpe_jax.export import INPUTS
-from fpe_jax.metrics import coverage, summarize
-from fpe_jax.params import Settings, presets, unconstrain
-from fpe_jax.predict import predict_batch, states_from_drive
-from fpe_jax.recipe import solver_named
-from fpe_jax.report import format_fitted, format_table, md_table
-from fpe_jax.runner import Runner
-from fpe_jax.sim import simulate
+from fpe_jax.evaluate import _evaluate as E
+from fpe_jax.evaluate._metrics import coverage, summarize
+from fpe_jax.fit import _fit as F
+from fpe_jax.fit._recipe import solver_named
+from fpe_jax.fit._report import format_fitted, format_table, md_table
+from fpe_jax.geometry._track import Track
+from fpe_jax.io.config import config_to_params, params_to_config, read_config
+from fpe_jax.io.export import INPUTS
+from fpe_jax.model._params import Settings, presets, unconstrain
+from fpe_jax.predict._predict import predict_batch, states_from_drive
+from fpe_jax.runner._runner import Runner
+from fpe_jax.sim._sim import simulate
 from fpe_jax.spec import FILTER_DEFAULTS
-from fpe_jax.track import Track
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +100,7 @@ def test_line_model_coverage_is_calibrated_on_separate_drives():
     its seed alone (the simulated driver's wander: hairpin 1-sigma 25-49 % over seeds 2-6), so
     calibration is judged on five separate drives of the same track pooled: within 5 points of
     the ideal 39.3 % / 86.5 %."""
-    from fpe_jax.cases import fit_case, simulated_case
+    from fpe_jax.fit._cases import fit_case, simulated_case
 
     case = simulated_case("hairpin")  # the uncertainty study's case
     res = fit_case(case, model="line")
@@ -186,17 +187,17 @@ def test_auto_model_chooses_on_the_inner_split_and_fits_the_choice_as_named(
     """--model auto: the line (learned from the inner fit part only) and the blend are
     scored on the last quarter of the training data; the lower validation
     ADE wins, and the line model is then fitted exactly as `--model line` fits it."""
-    import fpe_jax.line
+    import fpe_jax.model._line
 
     fit_d, test_d, track = oval_drives
     learned_until = []
-    real = fpe_jax.line.learn_line
+    real = fpe_jax.model._line.learn_line
 
     def spy(drives, trk, **kw):
         learned_until.append(max(float(d.t_s[-1]) for d in drives))
         return real(drives, trk, **kw)
 
-    monkeypatch.setattr(fpe_jax.line, "learn_line", spy)
+    monkeypatch.setattr(fpe_jax.model._line, "learn_line", spy)
     kw = dict(test_drives=[test_d.drive], test_tracks=[track], blend="position")
     res = F.fit([fit_d.drive], [track], model="auto", **kw)
     sel = res.info["model"]
@@ -302,7 +303,7 @@ def test_default_bfgs_stops_on_a_negligible_predicted_decrease():
     its solve without importing it)."""
     import optimistix as optx
 
-    from fpe_jax.bfgs import BFGS
+    from fpe_jax.fit._bfgs import BFGS
 
     def f(y, args):  # Rosenbrock's valley, minimum 1 at (1, 1)
         return 1.0 + (1.0 - y[0]) ** 2 + 100.0 * (y[1] - y[0] ** 2) ** 2
@@ -326,7 +327,7 @@ def test_bfgs_starts_from_the_inverse_hessian_it_is_given():
     steps do not."""
     import optimistix as optx
 
-    from fpe_jax.bfgs import BFGS
+    from fpe_jax.fit._bfgs import BFGS
 
     a = jnp.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
     c = jnp.array([1.0, -2.0, 0.5])
@@ -377,7 +378,7 @@ def test_fit_errors_name_the_argument_and_the_cli_names_its_flag(oval_drives, tm
         F.fit([fit_d.drive], [track], model="line", free=("lookahead",))
     with pytest.raises(InputError, match="^model: unknown model 'best'"):
         F.fit([fit_d.drive], [track], model="best")
-    from fpe_jax.sim import write_simulation
+    from fpe_jax.sim._sim import write_simulation
 
     write_simulation(simulate("oval", duration_s=10, seed=3), tmp_path / "sim")
     log, wp = tmp_path / "sim" / "drive.mcap", tmp_path / "sim" / "waypoints.csv"
@@ -474,7 +475,7 @@ def test_config_round_trip_and_bad_configs(tmp_path):
 
 def test_cli_fit_evaluate_predict(tmp_path, capsys):
     a = simulate("oval", duration_s=30, latency_s=0.3, seed=31)
-    from fpe_jax.sim import write_simulation
+    from fpe_jax.sim._sim import write_simulation
 
     write_simulation(a, tmp_path / "sim")
     log, wp = str(tmp_path / "sim" / "drive.mcap"), str(tmp_path / "sim" / "waypoints.csv")
@@ -600,7 +601,7 @@ def test_levine_fit_beats_seed_and_constant_velocity(shared_data):
     rep = res.report
     # the default beats every preset at every step, though the test part lies mostly where the
     # fit part never went (the line model holds the car's own offset there)
-    from fpe_jax.cases import presets_beating_fitted
+    from fpe_jax.fit._cases import presets_beating_fitted
 
     assert presets_beating_fitted(rep) == [], res.info["model"]
     for base in ("seed", "constant-velocity"):
@@ -611,7 +612,7 @@ def test_levine_fit_beats_seed_and_constant_velocity(shared_data):
 def test_blend_from_a_settings_only_start_drives_at_the_measured_speed(oval_drives):
     """`fpe fit` passes the default preset with the flags' settings as `init`: the blend's start
     must still drop the preset's memorised 2 m/s, as the Python API without `init` does."""
-    from fpe_jax.config import apply_settings
+    from fpe_jax.io.config import apply_settings
 
     track = oval_drives[2]
     cli_init = apply_settings(presets["default"], {})  # what cmd_fit passes without flags

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-from fpe_jax import evaluate as E
-from fpe_jax import fit as F
+from fpe_jax.compile._rows import pad_rows
 from fpe_jax.errors import InputError
-from fpe_jax.params import Settings, presets, unconstrain
-from fpe_jax.predict import pad_rows
-from fpe_jax.sim import simulate
-from fpe_jax.track import Track
+from fpe_jax.evaluate import _evaluate as E
+from fpe_jax.fit import _fit as F
+from fpe_jax.geometry._track import Track
+from fpe_jax.model._params import Settings, presets, unconstrain
+from fpe_jax.sim._sim import simulate
 
 BLOCK = 64  # rows per block in these tests: a 40 s drive's ~370 rows are several blocks
 
@@ -119,11 +119,11 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from fpe_jax import evaluate as E
-from fpe_jax import fit as F
-from fpe_jax.params import presets, unconstrain
+from fpe_jax.evaluate import _evaluate as E
+from fpe_jax.fit import _fit as F
+from fpe_jax.model._params import presets, unconstrain
 from fpe_jax.sim import simulate
-from fpe_jax.track import Track
+from fpe_jax.geometry._track import Track
 
 res = simulate("oval", duration_s=40, latency_s=0.3, seed=11)
 track = Track.from_waypoints(res.centerline_xy_m)

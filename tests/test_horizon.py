@@ -10,12 +10,12 @@ import pytest
 from helpers import track_drive
 
 from fpe_jax import Params, Settings, Track, cli, predict_drive, presets
-from fpe_jax.config import params_to_config, read_config
 from fpe_jax.errors import InputError
-from fpe_jax.params import with_settings
-from fpe_jax.path import waypoints_sha256
-from fpe_jax.runner import Runner
-from fpe_jax.sim import simulate, write_simulation
+from fpe_jax.geometry._path import waypoints_sha256
+from fpe_jax.io.config import params_to_config, read_config
+from fpe_jax.model._params import with_settings
+from fpe_jax.runner._runner import Runner
+from fpe_jax.sim._sim import simulate, write_simulation
 from fpe_jax.spec import MAX_HORIZON, check_config
 
 H = 50  # 5 s of 0.1 s steps: what planners read
@@ -43,7 +43,7 @@ def test_runner_matches_jax_at_horizon_50(name):
 
 @pytest.mark.parametrize("estimator", ["theil-sen", "kalman"])
 def test_runner_matches_jax_at_horizon_50_with_the_line_model(estimator):
-    from fpe_jax.line import learn_line
+    from fpe_jax.model._line import learn_line
 
     wp, drive = track_drive("oval")
     track = Track.from_waypoints(wp)
@@ -69,7 +69,7 @@ def test_the_horizon_limit_is_one_rule():
     with pytest.raises(InputError, match="horizon"):
         check_config(cfg, "c")
     with pytest.raises(InputError, match=f"1 to {MAX_HORIZON}"):
-        from fpe_jax.config import apply_settings
+        from fpe_jax.io.config import apply_settings
 
         apply_settings(presets["default"], {"--horizon": ("horizon", MAX_HORIZON + 1)})
 
@@ -121,7 +121,7 @@ def test_every_command_takes_horizon_50(drives, tmp_path, capsys):
     )
     assert json.loads((ex / "config.json").read_text())["settings"]["horizon"] == H
     assert f"horizon: {H}" in (ex / "params.yaml").read_text()
-    from fpe_jax.export import load
+    from fpe_jax.io.export import load
 
     f = load(ex / "predictor.stablehlo")
     assert f.horizon == H

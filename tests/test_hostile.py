@@ -27,10 +27,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fpe_jax import cli, spec
-from fpe_jax.config import params_to_config, write_config
-from fpe_jax.params import presets
-from fpe_jax.recipe import DRIVE_KEYS, SIMULATE_KEYS
-from fpe_jax.runner import Runner
+from fpe_jax.fit._recipe import DRIVE_KEYS, SIMULATE_KEYS
+from fpe_jax.io.config import params_to_config, write_config
+from fpe_jax.model._params import presets
+from fpe_jax.runner._runner import Runner
 
 ROOT = Path(__file__).resolve().parents[1]
 SQUARE_WP = "x,y\n0,0\n10,0\n10,10\n0,10\n"
@@ -288,7 +288,8 @@ class Reached(Exception):
 @hostile
 @given(recipe=RECIPE.map(lambda r: "\n".join(f"{k} = {toml(v)}" for k, v in r.items())))
 def test_recipe(capsys, monkeypatch, recipe):
-    from fpe_jax import fit, sim
+    from fpe_jax.fit import _fit as fit
+    from fpe_jax.sim import _sim as sim
 
     def reached(*args, **kwargs):
         raise Reached
@@ -313,7 +314,7 @@ def test_recipe(capsys, monkeypatch, recipe):
 @pytest.fixture(scope="module")
 def stream_case(tmp_path_factory):
     """(argv, config, waypoints (K, 2), rows (N, 4) t, x, y, yaw) of a 3 s simulated drive."""
-    from fpe_jax.sim import simulate
+    from fpe_jax.sim._sim import simulate
 
     res = simulate("oval", duration_s=3.0, seed=5)
     d = res.drive
@@ -510,7 +511,7 @@ def _interrupt_after_start(cmd: list[str], cwd: Path, wait_for: str | None, dela
 
 
 def test_ctrl_c_mid_fit_and_mid_simulate(tmp_path):
-    from fpe_jax.sim import simulate, write_simulation
+    from fpe_jax.sim._sim import simulate, write_simulation
 
     write_simulation(simulate("oval", duration_s=40.0, seed=1), tmp_path / "sim")
     before = snapshot(tmp_path)

@@ -261,13 +261,13 @@ def test_library_errors_name_the_argument_and_the_cli_its_flag(tmp_path, capsys)
     """The library names its own argument (a Python caller has no flags); the CLI maps it to the
     flag that sets it (argparse itself refuses a --format or --dtype outside its choices)."""
     from fpe_jax import spec
-    from fpe_jax.batch import BatchPredictor
-    from fpe_jax.config import load_params, params_to_config, write_config
-    from fpe_jax.evaluate import split_drive
-    from fpe_jax.export import export_config
-    from fpe_jax.params import presets
-    from fpe_jax.sim import simulate
-    from fpe_jax.track import Track
+    from fpe_jax.evaluate._evaluate import split_drive
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.io.config import load_params, params_to_config, write_config
+    from fpe_jax.io.export import export_config
+    from fpe_jax.model._params import presets
+    from fpe_jax.predict._batch import BatchPredictor
+    from fpe_jax.sim._sim import simulate
 
     drive = simulate("oval", duration_s=5.0).drive
     cfg = tmp_path / "c.json"

@@ -18,13 +18,14 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from fpe_jax import cli, io, sim, spec
+from fpe_jax import cli, io, spec
 from fpe_jax.errors import InputError
 from fpe_jax.io import apriltag as at
 from fpe_jax.io import tables
 from fpe_jax.io.stream import read_observations
 from fpe_jax.io.tf import TfBuffer
 from fpe_jax.io.writers import _odom_events, _pose_msg, _write_ros2_mcap
+from fpe_jax.sim import _sim as sim
 
 S = 1_000_000_000  # ns per second
 EPOCH_NS = 1_700_000_000 * S
@@ -128,7 +129,7 @@ def test_detections_across_an_ego_tf_dropout_are_refused_or_dropped(hairpin, tmp
     rc = cli.main(["convert", str(path), "--out", str(out), "--max-tf-gap", "-1", "--force"])
     assert rc == 2 and "--max-tf-gap" in capsys.readouterr().err
     # a recipe's drive takes the limit too
-    from fpe_jax.recipe import load_recipe
+    from fpe_jax.fit._recipe import load_recipe
 
     np.savetxt(tmp_path / "wp.csv", hairpin.centerline_xy_m, delimiter=",", header="x,y",
                comments="")  # fmt: skip
@@ -192,9 +193,9 @@ def _stamp_text(ns: int) -> str:
 
 def _predict(drive, wp):
     from fpe_jax.drive import local_frame
-    from fpe_jax.params import presets
-    from fpe_jax.predict import predict_rows, states_from_drive
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.model._params import presets
+    from fpe_jax.predict._predict import predict_rows, states_from_drive
 
     params = presets["default"]
     local, wp, _, origin = local_frame(drive, wp)
@@ -237,9 +238,9 @@ def test_epoch_and_zero_based_stamps_predict_the_same(oval, tmp_path):
 
 
 def test_stream_epoch_and_zero_based_stamps_predict_the_same(oval):
-    from fpe_jax.config import params_to_config
-    from fpe_jax.params import presets
-    from fpe_jax.runner import Runner, run_stream
+    from fpe_jax.io.config import params_to_config
+    from fpe_jax.model._params import presets
+    from fpe_jax.runner._runner import Runner, run_stream
 
     wp, t_ns, xy, yaw = oval
     replies = {}
@@ -344,9 +345,9 @@ def _flood(n_bad: int):
 
 def test_run_counts_skipped_lines_in_flat_memory_and_rate_limits_messages(monkeypatch):
     monkeypatch.setattr(spec, "STREAM_MESSAGE_EVERY_S", 1e9)  # no timed message in the test
-    from fpe_jax.config import params_to_config
-    from fpe_jax.params import presets
-    from fpe_jax.runner import Runner, run_stream
+    from fpe_jax.io.config import params_to_config
+    from fpe_jax.model._params import presets
+    from fpe_jax.runner._runner import Runner, run_stream
 
     a = np.linspace(0, 2 * np.pi, 200, endpoint=False)
     wp = np.column_stack([10 * np.cos(a), 10 * np.sin(a)])

@@ -1,4 +1,4 @@
-"""The track-frame Kalman filter (`fpe_jax.kalman`): exact on clean motion over irregular stamps
+"""The track-frame Kalman filter (`fpe_jax.model`): exact on clean motion over irregular stamps
 and gaps, outliers gated, wrap across s = 0, repeats carry no update, jit/vmap/grad, and the
 filter end to end: states, settings, configs and the NumPy runner's parity."""
 
@@ -13,12 +13,12 @@ import pytest
 from helpers import assert_jvp_matches_fd, track_drive
 
 from fpe_jax import Drive, Params, Settings, Track, presets
-from fpe_jax.config import config_to_params, params_to_config, read_config
 from fpe_jax.errors import InputError
-from fpe_jax.estimate import track_frame_lines
-from fpe_jax.kalman import kalman_window
-from fpe_jax.params import FILTER_DEFAULTS, constrain, unconstrain
-from fpe_jax.predict import predict_drive, states_from_drive
+from fpe_jax.io.config import config_to_params, params_to_config, read_config
+from fpe_jax.model._estimate import track_frame_lines
+from fpe_jax.model._kalman import kalman_window
+from fpe_jax.model._params import FILTER_DEFAULTS, constrain, unconstrain
+from fpe_jax.predict._predict import predict_drive, states_from_drive
 
 NOISE = tuple(jnp.asarray(FILTER_DEFAULTS[k]) for k in FILTER_DEFAULTS)
 # a filter whose one-second window outweighs its prior (the defaults lean on the prior more):
@@ -224,7 +224,7 @@ def test_prediction_is_differentiable_in_the_filter_values():
     p = presets["frenet"]
     states = states_from_drive(p, drive, track, keep_window=True)
     rows = jax.tree.map(lambda a: jnp.asarray(a[60:90]), states)
-    from fpe_jax.predict import predict
+    from fpe_jax.predict._predict import predict
 
     raw = unconstrain(p)
 
@@ -301,7 +301,7 @@ def test_config_round_trip_and_old_configs_without_the_keys(tmp_path):
 
 
 def kalman_line(wp, drive) -> Params:
-    from fpe_jax.line import learn_line
+    from fpe_jax.model._line import learn_line
 
     profile = learn_line([drive], Track.from_waypoints(wp))
     return Params.create(
@@ -319,8 +319,8 @@ def kalman_line(wp, drive) -> Params:
 def test_runner_parity_with_outliers_and_gaps():
     from test_runner import assert_parity, run_drive
 
-    from fpe_jax.path import waypoints_sha256
-    from fpe_jax.runner import Runner
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.runner._runner import Runner
 
     wp, drive = track_drive("oval")
     rng = np.random.default_rng(7)
@@ -342,9 +342,9 @@ def test_exports_carry_the_filter(tmp_path):
     filter on the window inputs (and, without them, takes the track-frame inputs as given)."""
     import yaml
 
-    from fpe_jax.export import INPUTS, WINDOW_INPUTS, export_stablehlo, load, to_ros2_yaml
-    from fpe_jax.path import waypoints_sha256
-    from fpe_jax.predict import predict_batch
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.io.export import INPUTS, WINDOW_INPUTS, export_stablehlo, load, to_ros2_yaml
+    from fpe_jax.predict._predict import predict_batch
 
     wp, drive = track_drive("oval")
     track = Track.from_waypoints(wp)

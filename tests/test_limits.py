@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from fpe_jax import cli, spec
-from fpe_jax.config import params_to_config
 from fpe_jax.errors import InputError
-from fpe_jax.params import presets
-from fpe_jax.path import build_path
+from fpe_jax.geometry._path import build_path
+from fpe_jax.io.config import params_to_config
+from fpe_jax.model._params import presets
 
 SQUARE = "x,y\n0,0\n10,0\n10,10\n0,10\n"
 

@@ -1,4 +1,4 @@
-"""The learned line's prior where the fit drives never went (`fpe_jax.line`)."""
+"""The learned line's prior where the fit drives never went (`fpe_jax.model`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fpe_jax.line import (
+from fpe_jax.geometry._track import Track
+from fpe_jax.model._line import (
     PRIOR_FOLDS,
     _shrunk_fit,
     learn_line,
@@ -15,8 +16,7 @@ from fpe_jax.line import (
     line_samples,
     min_curvature_offset,
 )
-from fpe_jax.sim import simulate
-from fpe_jax.track import Track
+from fpe_jax.sim._sim import simulate
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +119,7 @@ def _silverstone_raceline(shared_data):
 def test_prior_carries_a_racing_line_onto_unseen_stretches(shared_data):
     """Silverstone's raceline offsets seen on the first 40 % of the lap: the prior predicts the
     other 60 % within 0.2 m RMS (the centerline-curvature regression: 0.48 m)."""
-    from fpe_jax.line import _prior
+    from fpe_jax.model._line import _prior
 
     track, at, truth, _ = _silverstone_raceline(shared_data)
     coverage = (at < 0.4 * float(track.length_m)).astype(float)
@@ -150,7 +150,7 @@ def test_speed_prior_follows_a_racing_lines_speed_onto_unseen_stretches(shared_d
     first 40 % of the lap: the prior predicts their change over 4 m on the other 60 % within
     0.07 in log speed RMS (0.059; without the grip-limited profile on the prior line 0.082, a
     constant speed 0.125)."""
-    from fpe_jax.line import _prior
+    from fpe_jax.model._line import _prior
 
     track, at, truth_d, truth_v = _silverstone_raceline(shared_data)
     n = len(at)

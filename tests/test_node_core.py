@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from fpe_jax.config import params_to_config
-from fpe_jax.history import drive_valid
+from fpe_jax.io.config import params_to_config
+from fpe_jax.model._history import drive_valid
+from fpe_jax.model._params import presets
 from fpe_jax.node._core import Node, NodeOptions
-from fpe_jax.params import presets
-from fpe_jax.runner import Runner
-from fpe_jax.sim import simulate
+from fpe_jax.runner._runner import Runner
+from fpe_jax.sim._sim import simulate
 
 
 class FakeTransport:
@@ -123,7 +123,7 @@ def test_tag_input_with_bad_detections_and_a_flood_of_obstacles(tmp_path):
 
     from fpe_jax.io.drives import load_drive
     from fpe_jax.io.logs import open_log
-    from fpe_jax.sim import Camera, write_simulation
+    from fpe_jax.sim._sim import Camera, write_simulation
 
     res = simulate("oval", duration_s=8.0, seed=3, camera=Camera())
     write_simulation(res, tmp_path / "sim")
@@ -188,8 +188,8 @@ def test_missing_files_and_mismatched_waypoints_stop_at_start(tmp_path, capsys):
     import argparse
 
     from fpe_jax.cli import main
-    from fpe_jax.config import write_config
     from fpe_jax.errors import InputError
+    from fpe_jax.io.config import write_config
     from fpe_jax.io.writers import write_xy_csv
     from fpe_jax.node import _cli
 
@@ -230,7 +230,7 @@ def test_adapting_node_predicts_as_the_adapting_runner_and_publishes_what_it_lea
     """`fpe node --adapt` without a config: each opponent's runner is an AdaptiveRunner started
     from the waypoints alone; its predictions equal a reference AdaptiveRunner fed the same
     observations, and the OpponentTrajectory carries the line it learned."""
-    from fpe_jax.adapt import AdaptiveRunner
+    from fpe_jax.runner._adapt import AdaptiveRunner
 
     res = simulate("oval", duration_s=30.0, seed=2)
     d = res.drive

@@ -28,7 +28,7 @@ from node_helpers import (
 from ros1_helpers import need_ros1, roscore
 
 from fpe_jax.io.logs import open_log
-from fpe_jax.runner import Runner, load_waypoints_xy
+from fpe_jax.runner._runner import Runner, load_waypoints_xy
 
 # rospy (Debian's) calls threading APIs Python 3.11 deprecates, from its own threads
 # and leaves its connection sockets to the garbage collector

@@ -39,14 +39,14 @@ from node_helpers import (
 )
 from ros2_helpers import LOOPBACK_URI, endpoints, padded, raw_take, rosbags_message
 
-from fpe_jax.config import params_to_config, write_config
+from fpe_jax.geometry._path import waypoints_sha256
+from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.io.logs import open_log
+from fpe_jax.model._params import Params, Settings
 from fpe_jax.node._core import OUTPUTS
 from fpe_jax.node._dds import DdsTransport, dds_topic_name, dds_type_name
 from fpe_jax.node._types import typestore
-from fpe_jax.params import Params, Settings
-from fpe_jax.path import waypoints_sha256
-from fpe_jax.runner import load_waypoints_xy
+from fpe_jax.runner._runner import load_waypoints_xy
 
 
 @pytest.fixture(scope="module")

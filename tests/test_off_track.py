@@ -1,5 +1,5 @@
 """A car far from the track (and from the learned line) is reported by the on-car runner and by
-`fpe batch`, with the offline check's rule (`fpe_jax.path.ON_TRACK_M`); an on-track stream's
+`fpe batch`, with the offline check's rule (`fpe_jax.geometry.ON_TRACK_M`); an on-track stream's
 output stays exactly what the runner predicts, with nothing on stderr."""
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ import pytest
 from test_stream import csv_lines, expected, fpe_run
 
 from fpe_jax.cli import main
-from fpe_jax.config import params_to_config, write_config
 from fpe_jax.errors import InputError
-from fpe_jax.params import presets
-from fpe_jax.path import ON_TRACK_M, build_path, waypoints_sha256
-from fpe_jax.runner import OFF_TRACK_START_OBS, Runner
-from fpe_jax.sim import simulate
+from fpe_jax.geometry._path import ON_TRACK_M, build_path, waypoints_sha256
+from fpe_jax.io.config import params_to_config, write_config
+from fpe_jax.model._params import presets
+from fpe_jax.runner._runner import OFF_TRACK_START_OBS, Runner
+from fpe_jax.sim._sim import simulate
 
 
 @pytest.fixture(scope="module")
@@ -152,7 +152,7 @@ def test_allow_off_track_lets_the_stream_run_with_warnings(monkeypatch, capsys, 
 def test_near_path_raster_gives_the_search_s_answers(oval, max_cells):
     """Many points are judged on a raster (fine or coarse): exactly the answers of searching
     each point's nearest vertex within ON_TRACK_M."""
-    from fpe_jax.path import _vertex_stride, near_path, nearest_vertex
+    from fpe_jax.geometry._path import _vertex_stride, near_path, nearest_vertex
 
     _, wp, _ = oval
     xy = build_path(wp)["xy_m"]

@@ -223,8 +223,8 @@ def test_stack_params_requires_shared_settings():
 
 
 def test_frenet_preset_holds_the_track_speed_and_decays_the_offset():
-    from fpe_jax.rollout import State, rollout
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.model._rollout import State, rollout
 
     p = presets["frenet"]
     assert p.settings.model == "frenet" and float(p.offset_tau_s) == 1.0

@@ -1,4 +1,4 @@
-"""Waypoint cleaning in `fpe_jax.path.build_path`: corners survive, only back-tracking goes.
+"""Waypoint cleaning in `fpe_jax.geometry.build_path`: corners survive, only back-tracking goes.
 
 A turn of 90 degrees or more onto new ground (a square, a hairpin drawn with few points) is part
 of the track. What the cleaning removes is a stretch where the waypoints go back over ground the
@@ -13,7 +13,7 @@ import json
 import numpy as np
 import pytest
 
-from fpe_jax.path import build_path
+from fpe_jax.geometry._path import build_path
 
 
 def square_xy(side_m: float = 10.0, step_m: float = 1.0) -> np.ndarray:

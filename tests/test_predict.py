@@ -21,7 +21,7 @@ from fpe_jax import (
     presets,
     stack_params,
 )
-from fpe_jax.predict import predict_poses
+from fpe_jax.predict._predict import predict_poses
 
 H = 10
 R = 5.0  # circle radius [m]
@@ -160,7 +160,7 @@ def test_public_api_names_the_functions():
     """`fpe_jax.predict` is the function even after its submodule of the same name was imported
     (the lazy package once returned the module here)."""
     import fpe_jax
-    import fpe_jax.predict as _  # noqa: F401  (the import that used to shadow the function)
+    from fpe_jax.predict import _predict as _  # noqa: F401  (binds the package: shadows)
 
     assert fpe_jax.predict is predict and callable(fpe_jax.predict)
     assert fpe_jax.predict_batch is predict_batch

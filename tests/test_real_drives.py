@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import scipy.io
 
-from fpe_jax.sim import Sensor, observe
+from fpe_jax.sim._sim import Sensor, observe
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from fpe_jax import cli
-from fpe_jax.config import params_to_config, read_config
-from fpe_jax.params import presets
-from fpe_jax.runner import Runner
+from fpe_jax.io.config import params_to_config, read_config
+from fpe_jax.model._params import presets
+from fpe_jax.runner._runner import Runner
 
 T_EPOCH_S = 1.7e9  # a ROS time stamp in epoch seconds
 UTM_M = (5e5, 5e6)  # easting, northing of a UTM-like map frame
@@ -23,7 +23,7 @@ Q_S, Q_M = 2.0**-16, 2.0**-8  # stamps and positions on grids that survive the o
 @pytest.fixture(scope="module")
 def drive_rows():
     """(t, x, y, yaw) rows of a short simulated oval drive, and its centerline (K, 2) [m]."""
-    from fpe_jax.sim import simulate
+    from fpe_jax.sim._sim import simulate
 
     res = simulate("oval", duration_s=8.0, seed=3)
     d = res.drive

@@ -11,8 +11,8 @@ import pytest
 from helpers import fd_gradient
 
 from fpe_jax import Params, Settings, State, Track
-from fpe_jax.path import wrap_angle
-from fpe_jax.rollout import (
+from fpe_jax.geometry._path import wrap_angle
+from fpe_jax.model._rollout import (
     FALLBACK_TAU_S,
     _sincos,
     pure_pursuit_steer,
@@ -473,7 +473,7 @@ def test_the_return_to_the_line_starts_at_the_cars_lateral_rate():
 
 
 def test_uncovered_line_follows_the_priors_change_from_the_cars_own_offset():
-    """Where coverage is 0 the profile is `fpe_jax.line`'s prior: the car keeps its own offset
+    """Where coverage is 0 the profile is `fpe_jax.model`'s prior: the car keeps its own offset
     from it (decaying with FALLBACK_TAU_S) and follows its change, and its speed follows the
     prior's ratio."""
     track, p_pts = line_track(0.0), 60

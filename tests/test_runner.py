@@ -1,5 +1,6 @@
 """The NumPy-only runner: parity with the JAX predictor, no JAX imported, streaming CLI, errors."""
 
+import importlib
 import inspect
 import json
 import select
@@ -13,11 +14,13 @@ import numpy as np
 import pytest
 from helpers import CASES, predictor, track_drive
 
-from fpe_jax import Drive, Params, Settings, Track, params, predict_drive, presets, runner
-from fpe_jax.config import params_to_config, write_config
+from fpe_jax import Drive, Params, Settings, Track, predict_drive, presets
 from fpe_jax.errors import InputError
+from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.io.stream import _Skip, parse_line
-from fpe_jax.runner import GoalScan, Runner, RunnerPath, run_stream
+from fpe_jax.model import _params as params
+from fpe_jax.runner import _runner as runner
+from fpe_jax.runner._runner import GoalScan, Runner, RunnerPath, run_stream
 from fpe_jax.spec import SCHEMA_VERSION
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,15 +81,15 @@ def test_mirrored_constants_match_the_jax_modules():
     assert runner.WINDOW_AHEAD_M == window["ahead_m"].default
     local = inspect.signature(Track.project_local).parameters
     assert runner.LOCAL_PROJECTION_ITERS == local["iters"].default
-    from fpe_jax import rollout
+    from fpe_jax.model import _rollout as rollout
 
     assert runner.MIN_PROFILE_SPEED_MPS == rollout.MIN_PROFILE_SPEED_MPS
     assert runner.MAX_SPEED_RATIO == rollout.MAX_SPEED_RATIO
     assert runner.FALLBACK_TAU_S == rollout.FALLBACK_TAU_S
     assert runner.SLOPE_DS_M == rollout.SLOPE_DS_M
-    src = inspect.getsource(__import__("fpe_jax.estimate").estimate.track_frame_window)
+    src = inspect.getsource(importlib.import_module("fpe_jax.model._estimate").track_frame_window)
     assert f"iters={runner.TRACK_FRAME_ITERS}" in src
-    from fpe_jax import kalman
+    from fpe_jax.model import _kalman as kalman
 
     for name in ("INIT_POS_SIGMA_M", "INIT_SPEED_SIGMA_MPS", "INIT_LAT_RATE_SIGMA_MPS"):
         assert getattr(runner, name) == getattr(kalman, name)
@@ -107,7 +110,7 @@ def test_parity_with_the_jax_predictor(track, name):
 def line_params(wp, drive, upto_s: float, estimator: str = "theil-sen") -> Params:
     """A line-model Params learned from the drive's first upto_s seconds (the rest of the track
     uncovered when that is less than a lap: the fallback is tested too)."""
-    from fpe_jax.line import learn_line
+    from fpe_jax.model._line import learn_line
 
     profile = learn_line([drive.slice_time(-np.inf, upto_s)], Track.from_waypoints(wp))
     return Params.create(
@@ -124,7 +127,7 @@ def line_params(wp, drive, upto_s: float, estimator: str = "theil-sen") -> Param
     "case", ["sim", "sim-partial", "levine", "sim-kalman", "sim-partial-kalman", "levine-kalman"]
 )
 def test_parity_of_the_line_model(sim_drive, levine, case):
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
 
     wp, drive = levine if case.startswith("levine") else sim_drive
     estimator = "kalman" if case.endswith("kalman") else "theil-sen"
@@ -240,7 +243,7 @@ def test_runner_works_where_jax_cannot_be_imported(tmp_path, sim_drive):
     np.save(tmp_path / "obs.npy", np.column_stack([drive.t_s, drive.xy_m, drive.yaw_rad]))
     code = """
 import numpy as np
-from fpe_jax.runner import Runner
+from fpe_jax.runner._runner import Runner
 r = Runner.from_config(sys.argv[1] + "/cfg.json", sys.argv[1] + "/wp.csv")
 obs = np.load(sys.argv[1] + "/obs.npy")
 np.save(sys.argv[1] + "/pred.npy", np.stack([r.update(*row) for row in obs]))

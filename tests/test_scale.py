@@ -9,13 +9,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fpe_jax import sim
 from fpe_jax.cli import main
-from fpe_jax.evaluate import _heading_chunk, path_heading
-from fpe_jax.params import presets, with_settings
-from fpe_jax.rollout import State
-from fpe_jax.track import Track
-from fpe_jax.tracks import builtin_track
+from fpe_jax.evaluate._evaluate import _heading_chunk, path_heading
+from fpe_jax.geometry._track import Track
+from fpe_jax.geometry._tracks import builtin_track
+from fpe_jax.model._params import presets, with_settings
+from fpe_jax.model._rollout import State
+from fpe_jax.sim import _sim as sim
 
 # CommonRoad vehicle 2 (a BMW 320i, wheelbase 2.578 m) on grip 1.6, driven at 12-25 m/s
 FULL_SIZE_CAR = sim.Vehicle(
@@ -223,9 +223,9 @@ def test_simulate_duration_is_limited_up_front(tmp_path, capsys, duration):
 def test_runner_honours_a_full_size_cars_settings(full_size_drive, preset):
     """The NumPy runner reads wheelbase, steering limit, step and horizon from the config and
     matches the JAX prediction on a full-size drive (parity 1e-6 m)."""
-    from fpe_jax.config import params_to_config
-    from fpe_jax.predict import predict_drive
-    from fpe_jax.runner import Runner
+    from fpe_jax.io.config import params_to_config
+    from fpe_jax.predict._predict import predict_drive
+    from fpe_jax.runner._runner import Runner
 
     _, res = full_size_drive
     p = with_settings(presets[preset], wheelbase_m=2.578, max_steer_rad=0.5, dt_s=0.05, horizon=24)

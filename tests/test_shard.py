@@ -1,4 +1,4 @@
-"""Sharding helpers (`fpe_jax.shard`): one device in-process, two CPU devices in a subprocess.
+"""Sharding helpers (`fpe_jax.predict`): one device in-process, two CPU devices in a subprocess.
 
 Several host "devices" need `XLA_FLAGS=--xla_force_host_platform_device_count=2` before JAX
 initialises, so the two-device checks run in a fresh Python process and report JSON.
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from fpe_jax import Track, predict_batch, presets
-from fpe_jax.batch import states_from_array
-from fpe_jax.shard import (
+from fpe_jax.predict._batch import states_from_array
+from fpe_jax.predict._shard import (
     car_mesh,
     leading_size,
     pad_axis0,
@@ -81,8 +81,9 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     jax.config.update("jax_numpy_rank_promotion", "raise")
     from fpe_jax import Track, predict_batch, presets, stack_params
-    from fpe_jax.batch import predict_chunked, states_from_array
-    from fpe_jax.shard import car_mesh, pad_axis0, predict_sharded, replicate, shard_along_axis0
+    from fpe_jax.predict._batch import predict_chunked, states_from_array
+    from fpe_jax.predict._shard import car_mesh, pad_axis0, predict_sharded, replicate
+    from fpe_jax.predict._shard import shard_along_axis0
 
     report = {"n_devices": len(jax.devices())}
     mesh = car_mesh()
@@ -135,10 +136,10 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     # the fit's own objective (fpe_jax.fit._residuals) with its samples split across devices
     try:
         import equinox as eqx
-        from fpe_jax import sim
-        from fpe_jax.evaluate import Dataset, make_targets
-        from fpe_jax.fit import DEFAULT_FIT, HUBER_M, _free_mask, _residuals
-        from fpe_jax.params import unconstrain
+        from fpe_jax.sim import _sim as sim
+        from fpe_jax.evaluate._evaluate import Dataset, make_targets
+        from fpe_jax.fit._fit import DEFAULT_FIT, HUBER_M, _free_mask, _residuals
+        from fpe_jax.model._params import unconstrain
     except ImportError as e:
         report["fit_skipped"] = str(e)
     else:

@@ -10,8 +10,8 @@ import pytest
 
 from fpe_jax import cli, io
 from fpe_jax.errors import InputError
-from fpe_jax.sim import Driver, Sensor, SimResult, simulate
-from fpe_jax.tracks import builtin_track, loop_arclength, loop_curvature, resample_loop
+from fpe_jax.geometry._tracks import builtin_track, loop_arclength, loop_curvature, resample_loop
+from fpe_jax.sim._sim import Driver, Sensor, SimResult, simulate
 
 BUILTINS = ["oval", "hairpin", "random:0", "random:6"]
 

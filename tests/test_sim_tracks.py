@@ -12,7 +12,7 @@ import pytest
 
 from fpe_jax.cli import main
 from fpe_jax.errors import InputError
-from fpe_jax.sim import Vehicle, check_drivable, simulate
+from fpe_jax.sim._sim import Vehicle, check_drivable, simulate
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -66,7 +66,7 @@ def test_the_turning_rule_is_the_car_s_turning_circle(tmp_path):
 
 @pytest.mark.parametrize("name", ["oval", "hairpin", "random:3"])
 def test_builtin_tracks_pass(name):
-    from fpe_jax.sim import builtin_track
+    from fpe_jax.sim._sim import builtin_track
 
     check_drivable(builtin_track(name)[0], Vehicle(), name)
 

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fpe_jax import cache
-from fpe_jax.config import PRESET_DOCS
-from fpe_jax.params import presets, with_settings
+from fpe_jax.compile import _cache as cache
+from fpe_jax.io.config import PRESET_DOCS
+from fpe_jax.model._params import presets, with_settings
 from fpe_jax.progress import Progress
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,7 +60,7 @@ print("JAX-IMPORTED" if "jax" in sys.modules else "no-jax", rc, file=sys.stderr)
 
 
 def test_fast_commands_import_no_jax(tmp_path, drive_dir):
-    from fpe_jax.config import params_to_config, write_config
+    from fpe_jax.io.config import params_to_config, write_config
 
     write_config(tmp_path / "c.json", params_to_config(presets["default"]))
     mcap, wp = str(drive_dir / "drive.mcap"), str(drive_dir / "waypoints.csv")
@@ -141,7 +141,7 @@ def test_stored_executables_run_in_later_processes(tmp_path, drive_dir):
 def test_executables_are_kept_by_shape_and_reloaded_from_disk(tmp_path, monkeypatch):
     import jax.numpy as jnp
 
-    from fpe_jax import aot
+    from fpe_jax.compile import _aot as aot
 
     monkeypatch.setattr(cache, "_ACTIVE", [tmp_path])
 
@@ -179,7 +179,7 @@ def _spy_compile_options(monkeypatch) -> list:
 def test_executables_compile_with_the_cpu_loop_emitters(monkeypatch):
     import jax.numpy as jnp
 
-    from fpe_jax import aot
+    from fpe_jax.compile import _aot as aot
 
     seen = _spy_compile_options(monkeypatch)
     x = np.linspace(0.0, 1.0, 11)
@@ -192,7 +192,7 @@ def test_executables_compile_with_the_cpu_loop_emitters(monkeypatch):
 def test_a_jaxlib_without_the_compiler_option_compiles_with_its_defaults(monkeypatch):
     import jax.numpy as jnp
 
-    from fpe_jax import aot
+    from fpe_jax.compile import _aot as aot
 
     monkeypatch.setattr(aot, "CPU_COMPILER_OPTIONS", {"xla_cpu_no_such_option": False})
     seen = _spy_compile_options(monkeypatch)
@@ -206,7 +206,8 @@ def test_the_fit_solver_compiles_with_xla_default_emitters(monkeypatch):
     """The solver's steps are repeated work: its program keeps XLA's default emitters."""
     import jax.numpy as jnp
 
-    from fpe_jax import aot, fit
+    from fpe_jax.compile import _aot as aot
+    from fpe_jax.fit import _fit as fit
 
     monkeypatch.setattr(aot, "FUSION_EMITTERS", set(aot.FUSION_EMITTERS))  # this test's lambda
     seen = _spy_compile_options(monkeypatch)
@@ -293,7 +294,7 @@ def test_predict_shows_progress_unless_quiet(tmp_path, drive_dir):
 
 
 def test_bucket_sizes():
-    from fpe_jax.predict import bucket
+    from fpe_jax.compile._rows import bucket
 
     sizes = [bucket(n) for n in (0, 1, 64, 65, 96, 97, 129, 600, 668, 768, 769, 4696)]
     assert sizes == [64, 64, 64, 80, 96, 112, 160, 640, 768, 768, 896, 5120]
@@ -320,9 +321,9 @@ def test_drives_of_similar_length_share_executables():
     """Two drives in one bucket: the second predict traces and compiles nothing new."""
     import jax
 
-    from fpe_jax import sim
-    from fpe_jax.predict import predict_drive
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.predict._predict import predict_drive
+    from fpe_jax.sim import _sim as sim
 
     a = sim.simulate("oval", duration_s=62.0, seed=1)
     b = sim.simulate("oval", duration_s=66.0, seed=2)
@@ -352,9 +353,9 @@ def test_both_estimators_states_come_from_one_executable():
     compiled program gives both, so the second estimator's states compile nothing."""
     import jax
 
-    from fpe_jax import sim
-    from fpe_jax.evaluate import make_datasets
-    from fpe_jax.track import Track
+    from fpe_jax.evaluate._evaluate import make_datasets
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.sim import _sim as sim
 
     res = sim.simulate("oval", duration_s=20.0, seed=5)
     track = Track.from_waypoints(res.centerline_xy_m)
@@ -384,11 +385,11 @@ def test_a_model_without_the_kalman_filter_never_runs_it(monkeypatch):
     and run), unless a Dataset is told that a Kalman model will follow (kalman=True)."""
     import importlib
 
-    from fpe_jax import sim
-    from fpe_jax.evaluate import Dataset, make_targets
-    from fpe_jax.track import Track
+    from fpe_jax.evaluate._evaluate import Dataset, make_targets
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.sim import _sim as sim
 
-    pr = importlib.import_module("fpe_jax.predict")  # the package's `predict` is the function
+    pr = importlib.import_module("fpe_jax.predict._predict")  # fpe_jax.predict is the function
     res = sim.simulate("oval", duration_s=20.0, seed=8)
     track = Track.from_waypoints(res.centerline_xy_m)
     # a history no other test uses: nothing compiled earlier hides a trace of the filter
@@ -413,10 +414,10 @@ def test_a_model_without_the_kalman_filter_never_runs_it(monkeypatch):
 def test_a_dataset_estimates_its_states_once_for_every_model(monkeypatch):
     """The fitted line model, the seed preset (whose states are the recorded rows) and the
     other presets read one estimate of a dataset's states (kalman=True: as `fit` makes them)."""
-    import fpe_jax.evaluate as ev
-    from fpe_jax import sim
-    from fpe_jax.params import Settings
-    from fpe_jax.track import Track
+    import fpe_jax.evaluate._evaluate as ev
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.model._params import Settings
+    from fpe_jax.sim import _sim as sim
 
     res = sim.simulate("oval", duration_s=20.0, seed=6)
     track = Track.from_waypoints(res.centerline_xy_m)

@@ -13,9 +13,9 @@ import dataclasses
 import jax
 import pytest
 
-from fpe_jax.fit import fit
-from fpe_jax.sim import Driver, simulate
-from fpe_jax.track import Track
+from fpe_jax.fit._fit import fit
+from fpe_jax.geometry._track import Track
+from fpe_jax.sim._sim import Driver, simulate
 
 # Measured on this test's short drives: slow fit FDE 0.429 m, fast fit 0.351 m (ratio 1.22),
 # frenet 1.72 m. The 1.15 holds on the 60 s drives of experiments/speed_shift but not

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from fpe_jax import cli
-from fpe_jax.config import params_to_config, write_config
+from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.io.stream import read_observations
-from fpe_jax.params import presets
-from fpe_jax.runner import Runner
+from fpe_jax.model._params import presets
+from fpe_jax.runner._runner import Runner
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def oval():
     """(config dict, centerline (K, 2) [m], rows (N, 4) t [s], x, y [m], yaw [rad]) of a short
     simulated oval drive."""
-    from fpe_jax.sim import simulate
+    from fpe_jax.sim._sim import simulate
 
     res = simulate("oval", duration_s=6.0, seed=3)
     d = res.drive

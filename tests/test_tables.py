@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from fpe_jax import io
-from fpe_jax.config import params_to_config
+from fpe_jax.io.config import params_to_config
 from fpe_jax.io.tables import read_table
-from fpe_jax.params import presets
-from fpe_jax.runner import Runner, run_stream
+from fpe_jax.model._params import presets
+from fpe_jax.runner._runner import Runner, run_stream
 
 BOM = "\ufeff"
 

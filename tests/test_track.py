@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from fpe_jax import Track
-from fpe_jax.path import wrap_angle
-from fpe_jax.track import arclength_along
+from fpe_jax.geometry._path import wrap_angle
+from fpe_jax.geometry._track import arclength_along
 
 F1TENTH = ("Austin", "Catalunya", "Monza", "Silverstone", "Spielberg")
 

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from fpe_jax import cli
-from fpe_jax.config import params_to_config, write_config
 from fpe_jax.errors import InputError
-from fpe_jax.params import presets
-from fpe_jax.path import build_path, check_on_track, nearest_vertex, track_agreement
-from fpe_jax.sim import simulate
+from fpe_jax.geometry._path import build_path, check_on_track, nearest_vertex, track_agreement
+from fpe_jax.io.config import params_to_config, write_config
+from fpe_jax.model._params import presets
+from fpe_jax.sim._sim import simulate
 
 
 def test_nearest_vertex_equals_the_exhaustive_search():
@@ -137,7 +137,7 @@ def test_allow_off_track_overrides(files, tmp_path, capsys):
 
 
 def _config_with_provenance(tmp_path, wp_file, sha=None):
-    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.geometry._path import waypoints_sha256
 
     sha = sha or waypoints_sha256(np.loadtxt(wp_file, delimiter=",", skiprows=1))
     prov = {"waypoints": {"file": str(wp_file), "sha256": sha}}
@@ -184,16 +184,17 @@ def test_states_from_drive_in_blocks_equal_one_block(monkeypatch):
     """A long log runs in blocks (bounded memory); the projection continues across them."""
     import importlib
 
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
 
-    predict = importlib.import_module("fpe_jax.predict")  # the module (fpe_jax.predict is a name)
+    predict = importlib.import_module("fpe_jax.predict._predict")  # fpe_jax.predict is a name
 
     res = simulate("hairpin", duration_s=40.0, seed=4)
     track = Track.from_waypoints(res.centerline_xy_m)
     params = presets["default"]
     whole = predict.states_from_drive(params, res.drive, track)
-    monkeypatch.setattr(predict, "PREDICT_CHUNK", 100)
-    assert len(list(predict.row_blocks(len(res.drive.t_s)))) >= 4
+    rows = importlib.import_module("fpe_jax.compile._rows")
+    monkeypatch.setattr(rows, "PREDICT_CHUNK", 100)
+    assert len(list(rows.row_blocks(len(res.drive.t_s)))) >= 4
     blocks = predict.states_from_drive(params, res.drive, track)
     for name in ("x_m", "y_m", "s_m", "s_fit_m", "sdot_mps", "offset_m", "v_mps"):
         np.testing.assert_allclose(getattr(blocks, name), getattr(whole, name), atol=1e-9)
@@ -214,8 +215,8 @@ def test_projection_grid_grows_with_track_length_not_area():
 
     import jax
 
-    from fpe_jax.batch import ProjectionGrid
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.predict._batch import ProjectionGrid
 
     sizes = {}
     for aspect in (1.0, 12.0):
@@ -265,7 +266,7 @@ def _racing_line_drive(center_xy_m, seed=0):
 
 
 def test_a_racing_line_on_a_full_size_track_is_on_it_and_wrong_frames_are_caught():
-    from fpe_jax.path import ON_TRACK_M, on_track_m
+    from fpe_jax.geometry._path import ON_TRACK_M, on_track_m
 
     center = _speedway()
     xy = _racing_line_drive(center)

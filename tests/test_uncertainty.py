@@ -1,6 +1,6 @@
 """Per-prediction uncertainty: the Kalman filter's covariance carried through the rollout
-(`fpe_jax.rollout.estimate_variance`), the fitted scale and model error on top
-(`fpe_jax.metrics.fit_variance_model`), and what a fit, a config and `fpe predict` make of it."""
+(`fpe_jax.model.estimate_variance`), the fitted scale and model error on top
+(`fpe_jax.evaluate.fit_variance_model`), and what a fit, a config and `fpe predict` make of it."""
 
 import dataclasses
 import json
@@ -12,13 +12,13 @@ import pytest
 from helpers import track_drive
 
 from fpe_jax import Drive, Track, presets
-from fpe_jax import evaluate as E
-from fpe_jax.config import params_to_config, read_config
 from fpe_jax.errors import InputError
-from fpe_jax.metrics import coverage, fit_variance_model, row_covariance
-from fpe_jax.predict import states_from_drive, variance_rows
-from fpe_jax.rollout import estimate_variance
-from fpe_jax.state import State
+from fpe_jax.evaluate import _evaluate as E
+from fpe_jax.evaluate._metrics import coverage, fit_variance_model, row_covariance
+from fpe_jax.io.config import params_to_config, read_config
+from fpe_jax.model._rollout import estimate_variance
+from fpe_jax.model._state import State
+from fpe_jax.predict._predict import states_from_drive, variance_rows
 
 P_COV = np.array(
     [

@@ -27,7 +27,7 @@ from pathlib import Path
 import jax
 
 from fpe_jax import plots
-from fpe_jax.cases import (
+from fpe_jax.fit._cases import (
     LATENCY_S,
     STUDY_FIT_S,
     STUDY_FIT_SEED,
@@ -38,9 +38,9 @@ from fpe_jax.cases import (
     presets_beating_fitted,
     study_cases,
 )
-from fpe_jax.fit import DEFAULT_MODEL
+from fpe_jax.fit._fit import DEFAULT_MODEL
+from fpe_jax.fit._report import format_fitted
 from fpe_jax.progress import Progress
-from fpe_jax.report import format_fitted
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"

@@ -43,8 +43,10 @@ def child(hours: float, block_rows: int | None) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from fpe_jax import cache, fit, sim
-    from fpe_jax.track import Track
+    from fpe_jax.compile import _cache as cache
+    from fpe_jax.fit import _fit as fit
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.sim import _sim as sim
 
     cache.enable()
     n_drives = max(1, round(hours * 60.0 / DRIVE_MIN))

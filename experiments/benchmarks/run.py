@@ -4,7 +4,7 @@ original algorithm. Writes results.json, results.md and throughput.png next to t
 Sections (each records its own timings; every rate is a median over >= 5 runs, steady state
 after compilation, with compile time reported separately):
 
-1. batch   `fpe_jax.batch.predict_chunked` on the Levine track (2720 raw waypoints), N = 1, 1e3,
+1. batch   `fpe_jax.predict.predict_chunked` on the Levine track (2720 raw waypoints), N = 1, 1e3,
            1e5, 1e6 cars, float32 and float64: cars in as a NumPy (N, 5) array without arc-length
            hints (the grid projects them), poses out as NumPy (N, 10, 3): the whole public path.
            Also the core `predict_batch` alone (hints given, arrays already on the device).
@@ -161,8 +161,8 @@ def bench_batch(track, sizes, dtypes) -> list[dict]:
     """A `BatchPredictor` built once per (dtype, N), then called repeatedly (a planner's use)."""
     import jax
 
-    from fpe_jax.batch import BatchPredictor, ProjectionGrid, chunk_size
-    from fpe_jax.params import presets
+    from fpe_jax.model._params import presets
+    from fpe_jax.predict._batch import BatchPredictor, ProjectionGrid, chunk_size
 
     params = presets[PRESET]
     t0 = time.perf_counter()
@@ -214,9 +214,9 @@ def bench_core(track, sizes, dtypes) -> list[dict]:
     import jax
     import jax.numpy as jnp
 
-    from fpe_jax.batch import cast_floats, states_from_array
-    from fpe_jax.params import presets
-    from fpe_jax.predict import predict_batch
+    from fpe_jax.model._params import presets
+    from fpe_jax.predict._batch import cast_floats, states_from_array
+    from fpe_jax.predict._predict import predict_batch
 
     project = jax.jit(jax.vmap(lambda t, q: t.project(q), in_axes=(None, 0)))
     hinted = {}
@@ -294,8 +294,8 @@ def bench_paired_ratio(track, n: int, pairs: int) -> dict:
     """
     import jax
 
-    from fpe_jax.batch import BatchPredictor
-    from fpe_jax.params import presets
+    from fpe_jax.model._params import presets
+    from fpe_jax.predict._batch import BatchPredictor
 
     cars = make_cars(track, n)
     with jax.enable_x64(False):
@@ -337,7 +337,7 @@ def seed_predict_python(
     the last row backwards for the first one within the lookahead (row 0 when none is), every
     step. (The runner buckets the waypoints instead; this is the algorithm as it was.)
     """
-    from fpe_jax.runner import seed_rollout
+    from fpe_jax.runner._runner import seed_rollout
 
     def goal(x, y):
         for k in range(len(waypoints) - 1, -1, -1):
@@ -354,9 +354,9 @@ def bench_seed_loop(track, waypoints_xy, n_pred: int) -> dict:
     import jax
     import jax.numpy as jnp
 
-    from fpe_jax.batch import states_from_array
-    from fpe_jax.params import presets
-    from fpe_jax.predict import predict_batch
+    from fpe_jax.model._params import presets
+    from fpe_jax.predict._batch import states_from_array
+    from fpe_jax.predict._predict import predict_batch
 
     wps = [tuple(map(float, p)) for p in waypoints_xy]
     cars = make_cars(track, n_pred, seed=1)
@@ -410,7 +410,7 @@ def scipy_objective(groups, raw, free):
     Args:
         groups: list of (states dict of (N,) float64 arrays x_m, y_m, yaw_rad, v_mps, s_m,
             the blend model's `Runner` on the drive's track, targets (N, H, 2) [m], mask (N, H)).
-        raw: the starting point's raw values (`fpe_jax.params.unconstrain`).
+        raw: the starting point's raw values (`fpe_jax.model.unconstrain`).
         free: the fitted field names (the rest stay at their raw value).
 
     Returns (loss(vector) -> float, the start vector, the fitted field names in vector order).
@@ -418,8 +418,8 @@ def scipy_objective(groups, raw, free):
     import jax
     import jax.numpy as jnp
 
-    from fpe_jax.fit import HUBER_M, robust_residuals
-    from fpe_jax.params import constrain
+    from fpe_jax.fit._fit import HUBER_M, robust_residuals
+    from fpe_jax.model._params import constrain
 
     names = [f.name for f in dataclasses.fields(raw) if f.name in set(free)]
     shapes = [np.shape(getattr(raw, f)) for f in names]
@@ -457,14 +457,14 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
 
     jax.config.update("jax_enable_x64", True)
     if os.environ.get("FPE_CACHE_DIR"):  # the parent's cold (empty) or warm cache folder
-        from fpe_jax import cache
+        from fpe_jax.compile import _cache as cache
 
         cache.enable()
-    from fpe_jax import sim
-    from fpe_jax.evaluate import Dataset, make_targets
-    from fpe_jax.fit import DEFAULT_FIT, FIT_GROUPS, fit_params
-    from fpe_jax.params import presets, unconstrain
-    from fpe_jax.track import Track
+    from fpe_jax.evaluate._evaluate import Dataset, make_targets
+    from fpe_jax.fit._fit import DEFAULT_FIT, FIT_GROUPS, fit_params
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.model._params import presets, unconstrain
+    from fpe_jax.sim import _sim as sim
 
     res = sim.simulate(
         FIT_TRACK, duration_s=60.0 * minutes, seed=7, sensor=sim.Sensor(**FIT_SENSOR)
@@ -492,8 +492,8 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
     if with_scipy:
         from scipy.optimize import minimize
 
-        from fpe_jax.config import params_to_config
-        from fpe_jax.runner import Runner
+        from fpe_jax.io.config import params_to_config
+        from fpe_jax.runner._runner import Runner
 
         st = data.states(init)
         states = {k: np.asarray(getattr(st, k)) for k in ("x_m", "y_m", "yaw_rad", "v_mps", "s_m")}
@@ -755,7 +755,7 @@ def commands_markdown(cmd: dict, fit: dict, summary: dict) -> list[str]:
 
 
 def bench_runner(waypoints_xy) -> dict:
-    from fpe_jax.runner import benchmark_update
+    from fpe_jax.runner._runner import benchmark_update
 
     res = dict(benchmark_update(waypoints_xy, n_updates=2000))
     res["load_avg"] = load_average()
@@ -788,9 +788,9 @@ def peak_memory_child(n: int, dtype: str) -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from fpe_jax.batch import predict_chunked
-    from fpe_jax.params import presets
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.model._params import presets
+    from fpe_jax.predict._batch import predict_chunked
 
     track = Track.from_waypoints(load_levine())
     cars = make_cars(track, n)
@@ -838,9 +838,9 @@ def fullsize_drive(out_dir: Path) -> dict:
     and detector's lengths scaled with the track (x6). Truth is thinned to 25 Hz (the rate of a
     full-size car's odometry).
     """
-    from fpe_jax import sim
+    from fpe_jax.geometry._tracks import resample_loop
     from fpe_jax.io import load_waypoints
-    from fpe_jax.tracks import resample_loop
+    from fpe_jax.sim import _sim as sim
 
     k = FULLSIZE["scale"]
     center, _ = resample_loop(load_waypoints(AUSTIN).xy_m * k, FULLSIZE["waypoint_spacing_m"])
@@ -1277,7 +1277,7 @@ def main() -> None:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # float64 available; float32 runs under a context
-    from fpe_jax.track import Track
+    from fpe_jax.geometry._track import Track
 
     sizes = [1, 1_000, 10_000] if args.quick else [1, 1_000, 100_000, 1_000_000]
     core_sizes = [1_000, 10_000] if args.quick else [1_000, 100_000]

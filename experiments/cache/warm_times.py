@@ -47,7 +47,8 @@ def load_times_ms(cache_dir: Path, n: int = 20) -> list[dict]:
 
     jax.config.update("jax_enable_x64", True)
     os.environ["FPE_CACHE_DIR"] = str(cache_dir)
-    from fpe_jax import aot, cache
+    from fpe_jax.compile import _aot as aot
+    from fpe_jax.compile import _cache as cache
 
     secret = cache.secret_key()
     rows = []

@@ -28,8 +28,8 @@ sys.path.insert(0, str(HERE.parent / "approaches"))
 import run as approaches  # noqa: E402  (the approaches study: its predictors and tables)
 
 from fpe_jax import plots  # noqa: E402
-from fpe_jax.cases import fit_case, study_cases  # noqa: E402
-from fpe_jax.params import presets, with_settings  # noqa: E402
+from fpe_jax.fit._cases import fit_case, study_cases  # noqa: E402
+from fpe_jax.model._params import presets, with_settings  # noqa: E402
 from fpe_jax.progress import Progress  # noqa: E402
 
 RESULTS = approaches.RESULTS

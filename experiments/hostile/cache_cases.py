@@ -30,7 +30,7 @@ HERE = Path(__file__).resolve().parent
 DATA = HERE.parents[1] / "data"
 FLIPS = 6  # single-bit flips, each at a random bit of a random stored executable
 TIMEOUT_S = 120.0
-MARKER = ".fpe-jax-cache"  # fpe_jax.cache.MARKER: this study imports nothing from the package
+MARKER = ".fpe-jax-cache"  # fpe_jax.compile.MARKER: this study imports nothing from the package
 
 
 def _sha(path: Path) -> str:

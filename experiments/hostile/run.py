@@ -74,9 +74,9 @@ def _csv(path: Path, header: str, rows, fmt="%.17g") -> Path:
 
 def setup(work: Path) -> None:
     """The scratch inputs: simulated drives and their waypoints, configs, recipes, cars."""
-    from fpe_jax.config import params_to_config, write_config
-    from fpe_jax.params import presets
-    from fpe_jax.sim import simulate, write_simulation
+    from fpe_jax.io.config import params_to_config, write_config
+    from fpe_jax.model._params import presets
+    from fpe_jax.sim._sim import simulate, write_simulation
 
     res = simulate("oval", duration_s=30.0, seed=3)
     write_simulation(res, work / "oval")
@@ -461,9 +461,9 @@ def _io_setup(work: Path) -> dict:
     """AprilTag logs (intact, a 3 s ego TF dropout, unset detection stamps, a tag seen twice, a
     static mount published 1,501 ways, a TF tree 3,000 frames deep), drives and streams with
     stamps off every binary grid, from zero and from epoch."""
-    from fpe_jax import sim
     from fpe_jax.io import apriltag as at
     from fpe_jax.io.writers import _odom_events, _write_ros2_mcap
+    from fpe_jax.sim import _sim as sim
 
     res = sim.simulate("hairpin", duration_s=20.0, seed=2, camera=sim.Camera())
     d = res.drive
@@ -526,8 +526,8 @@ def _io_setup(work: Path) -> dict:
                 zip(t_ns, o.xy_m.tolist(), o.yaw_rad.tolist())]  # fmt: skip
         (work / f"ns_{name}.csv").write_text("t,x,y,yaw\n" + "\n".join(rows) + "\n")
     _csv(work / "ns_wp.csv", "x,y", oval.centerline_xy_m)
-    from fpe_jax.config import params_to_config, write_config
-    from fpe_jax.params import presets
+    from fpe_jax.io.config import params_to_config, write_config
+    from fpe_jax.model._params import presets
 
     write_config(work / "default.json", params_to_config(presets["default"]))
     return {"n_gap": n_gap, "n_det": len(d.t_s)}
@@ -792,8 +792,8 @@ def main() -> int:
 def _offtrack_setup(work: Path) -> None:
     """Inputs of the off-track section: the oval drive shifted 100 m (all of it, or from row 40
     on), cars partly off the track, a figure-eight with a drive from its crossing, bad tracks."""
-    from fpe_jax.config import params_to_config, write_config
-    from fpe_jax.params import presets
+    from fpe_jax.io.config import params_to_config, write_config
+    from fpe_jax.model._params import presets
 
     rows = np.loadtxt(work / "drive.csv", delimiter=",", skiprows=1)
     shifted = rows.copy()

@@ -3,7 +3,7 @@
 Own drives (must pass): simulated drives on the built-in and F1TENTH tracks (noisy detectors and
 stops included), the AprilTag test drive, the Levine lap, the full-size bench case. Wrong ones
 (must trip): another track, reversed waypoints, waypoints shifted by 50 m. Writes
-track_check.md here; thresholds: `fpe_jax.path.MIN_ON_TRACK_SHARE`, `MIN_ALONG_SHARE`.
+track_check.md here; thresholds: `fpe_jax.geometry.MIN_ON_TRACK_SHARE`, `MIN_ALONG_SHARE`.
 
     .venv/bin/python experiments/hostile/track_check.py     # about 3 minutes
 """
@@ -24,8 +24,8 @@ DATA = HERE.parents[2] / "shared" / "data"
 def main() -> None:
     import run as bench  # experiments/benchmarks/run.py: the full-size case
 
-    from fpe_jax import io, sim
-    from fpe_jax.path import (
+    from fpe_jax import io
+    from fpe_jax.geometry._path import (
         MIN_ALONG_SHARE,
         MIN_ON_TRACK_SHARE,
         ON_TRACK_EXTENT,
@@ -33,6 +33,7 @@ def main() -> None:
         build_path,
         track_agreement,
     )
+    from fpe_jax.sim import _sim as sim
 
     monza, austin = (str(DATA / f"tracks/{n}_centerline.csv") for n in ("Monza", "Austin"))
     own = {}

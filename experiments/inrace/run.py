@@ -1,4 +1,4 @@
-"""In-race learning (`fpe_jax.adapt.AdaptiveRunner`) against configs fitted offline.
+"""In-race learning (`fpe_jax.runner.AdaptiveRunner`) against configs fitted offline.
 
 (a) No fit drive at all: the adapting runner starts from the waypoints alone (the line model's
     defaults, the ego sensor's known detection delay) and drives the opponent's race; its FDE at
@@ -28,13 +28,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from fpe_jax.adapt import AdaptiveRunner
-from fpe_jax.cases import LATENCY_S
-from fpe_jax.config import params_to_config
-from fpe_jax.path import waypoints_sha256
+from fpe_jax.fit._cases import LATENCY_S
+from fpe_jax.geometry._path import waypoints_sha256
+from fpe_jax.io.config import params_to_config
 from fpe_jax.progress import Progress
-from fpe_jax.runner import Runner, RunnerPath
-from fpe_jax.sim import Driver, simulate
+from fpe_jax.runner._adapt import AdaptiveRunner
+from fpe_jax.runner._runner import Runner, RunnerPath
+from fpe_jax.sim._sim import Driver, simulate
 
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "experiments" / "results"
@@ -87,8 +87,8 @@ def errors_at(runner, drive, lead_s: float = AHEAD_S) -> np.ndarray:
 
 def fitted_config(drive, wp: np.ndarray, say) -> dict:
     """A line-model config fitted offline (`fpe fit`'s default) on one whole drive."""
-    from fpe_jax.fit import fit
-    from fpe_jax.track import Track
+    from fpe_jax.fit._fit import fit
+    from fpe_jax.geometry._track import Track
 
     track = Track.from_waypoints(wp)
     res = fit([drive], [track], test_drives=[drive], test_tracks=[track], progress=say)
@@ -190,7 +190,7 @@ def markdown(out: dict, wall_s: float) -> str:
         "Median distance [m] between the prediction 1 s ahead and the true position then, per "
         "lap of the opponent. Simulated drives on the built-in tracks, detection latency "
         f"{LATENCY_S} s, every prediction from the NumPy runners (`fpe_jax.runner.Runner`, "
-        "`fpe_jax.adapt.AdaptiveRunner`, lap decay 0.25). Offline fits: `fpe fit`'s default "
+        "`fpe_jax.runner.AdaptiveRunner`, lap decay 0.25). Offline fits: `fpe fit`'s default "
         f"(line model) on a separate {FIT_S:g} s drive.",
         "",
         "## (a) No fit drive: learning from the first lap",

@@ -150,11 +150,11 @@ def fit_circle(xy_m: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
 
 
 def make_case(src: Source, poses: dict, seed: int):
-    """A `fpe_jax.cases.Case`: the trajectory observed through the simulator's detector, split
+    """A `fpe_jax.fit.Case`: the trajectory observed through the simulator's detector, split
     in time (fit on the first 60 %, test on the rest); waypoints from the fit part only."""
-    from fpe_jax.cases import Case
-    from fpe_jax.evaluate import split_drive
-    from fpe_jax.sim import observe
+    from fpe_jax.evaluate._evaluate import split_drive
+    from fpe_jax.fit._cases import Case
+    from fpe_jax.sim._sim import observe
 
     t = poses["t_s"]
     fit_rows = t <= t[0] + (1 - HOLDOUT) * (t[-1] - t[0])
@@ -187,10 +187,10 @@ def run_case(case, estimator: str | None = None) -> dict:
     case's fit drive; median final errors at 1 s and 3 s of the fitted predictor and every
     baseline on its test drive, coverage and the on-track check."""
     from fpe_jax.errors import InputError
-    from fpe_jax.evaluate import heldout_predictions
-    from fpe_jax.fit import BASELINES, baseline, fit
-    from fpe_jax.params import presets, with_settings
-    from fpe_jax.path import check_on_track
+    from fpe_jax.evaluate._evaluate import heldout_predictions
+    from fpe_jax.fit._fit import BASELINES, baseline, fit
+    from fpe_jax.geometry._path import check_on_track
+    from fpe_jax.model._params import presets, with_settings
 
     track = case.track()
     try:
@@ -255,8 +255,8 @@ def markdown(rows, skipped, wall_s: float, peak_mib: float, png: str | None) -> 
         f"on the last {HOLDOUT:.0%} against the recorded poses. One fit per drive with a "
         f"{HORIZON}-step (3 s) horizon; '1 s' is step 10 of the same predictions. FDE = median "
         "over predictions of the final-step error. Ratio = fitted / best baseline on that drive. "
-        "On track = `fpe_jax.path.check_on_track` passes on every detection of the drive without "
-        "`--allow-off-track`.",
+        "On track = `fpe_jax.geometry.check_on_track` passes on every detection of the drive "
+        "without `--allow-off-track`.",
         "",
         "What the sources are and are not: skid-pad runs (constant commanded speed and steering "
         "on a circle, several laps, about 15 s each) of a 1:10 car under motion capture, not "

@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fpe_jax.plots import closed, track_edges  # noqa: E402
-from fpe_jax.sim import SimResult, simulate  # noqa: E402
+from fpe_jax.sim._sim import SimResult, simulate  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 TRACKS = HERE.parents[1].parent / "shared" / "data" / "tracks"

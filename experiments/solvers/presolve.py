@@ -21,10 +21,10 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from fpe_jax.cases import f1tenth_cases, simulated_case  # noqa: E402
-from fpe_jax.evaluate import make_datasets  # noqa: E402
-from fpe_jax.fit import PRESOLVE_ROWS, fit_params  # noqa: E402
-from fpe_jax.params import presets  # noqa: E402
+from fpe_jax.evaluate._evaluate import make_datasets  # noqa: E402
+from fpe_jax.fit._cases import f1tenth_cases, simulated_case  # noqa: E402
+from fpe_jax.fit._fit import PRESOLVE_ROWS, fit_params  # noqa: E402
+from fpe_jax.model._params import presets  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 TRACKS = ROOT.parent / "shared" / "data" / "tracks"

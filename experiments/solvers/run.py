@@ -21,11 +21,11 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from fpe_jax.cases import simulated_case, study_cases  # noqa: E402
-from fpe_jax.evaluate import evaluate, make_datasets  # noqa: E402
-from fpe_jax.fit import PRESOLVE_ROWS, SOLVERS, fit_params  # noqa: E402
-from fpe_jax.params import presets  # noqa: E402
-from fpe_jax.recipe import solver_named  # noqa: E402
+from fpe_jax.evaluate._evaluate import evaluate, make_datasets  # noqa: E402
+from fpe_jax.fit._cases import simulated_case, study_cases  # noqa: E402
+from fpe_jax.fit._fit import PRESOLVE_ROWS, SOLVERS, fit_params  # noqa: E402
+from fpe_jax.fit._recipe import solver_named  # noqa: E402
+from fpe_jax.model._params import presets  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"

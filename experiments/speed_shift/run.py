@@ -29,7 +29,7 @@ FIT_S, TEST_S = 60.0, 40.0
 def drives(track: str, fit_s: float = FIT_S, test_s: float = TEST_S):
     """(centerline, slow fit drive (fit_s), slow fit drive over the fast one's distance, fast fit
     drive, fast test drive) on one track."""
-    from fpe_jax.sim import Driver, simulate
+    from fpe_jax.sim._sim import Driver, simulate
 
     kw = {}
     if track not in ("oval", "hairpin"):
@@ -53,8 +53,8 @@ def drives(track: str, fit_s: float = FIT_S, test_s: float = TEST_S):
 
 def speed_shift(track: str, **kw) -> dict:
     """FDE [m] on the fast test drive of the configs fitted slow and fast, and of `frenet`."""
-    from fpe_jax.fit import fit
-    from fpe_jax.track import Track
+    from fpe_jax.fit._fit import fit
+    from fpe_jax.geometry._track import Track
 
     wp, slow, far, fast, test = drives(track, **kw)
     trk = Track.from_waypoints(wp)

@@ -24,11 +24,11 @@ import jax
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.cases import LATENCY_S, fit_case, real_cases, simulated_case
-from fpe_jax.evaluate import heldout_predictions
-from fpe_jax.params import presets
+from fpe_jax.evaluate._evaluate import heldout_predictions
+from fpe_jax.fit._cases import LATENCY_S, fit_case, real_cases, simulated_case
+from fpe_jax.fit._report import md_table
+from fpe_jax.model._params import presets
 from fpe_jax.progress import Progress
-from fpe_jax.report import md_table
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"

@@ -29,18 +29,18 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.cases import LATENCY_S, fit_case, real_cases, simulated_case
-from fpe_jax.evaluate import (
+from fpe_jax.evaluate._evaluate import (
     covariance_map,
     evaluate,
     heldout_predictions,
     make_datasets,
     prediction_covariance,
 )
-from fpe_jax.metrics import coverage, track_frame_residuals
-from fpe_jax.path import nearest_index
+from fpe_jax.evaluate._metrics import coverage, track_frame_residuals
+from fpe_jax.fit._cases import LATENCY_S, fit_case, real_cases, simulated_case
+from fpe_jax.fit._report import md_table
+from fpe_jax.geometry._path import nearest_index
 from fpe_jax.progress import Progress
-from fpe_jax.report import md_table
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"

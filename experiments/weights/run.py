@@ -20,9 +20,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from fpe_jax import plots
-from fpe_jax.cases import DELAY_TOLERANCE_S, fde_ratio, fit_case, real_cases, simulated_case
+from fpe_jax.fit._cases import DELAY_TOLERANCE_S, fde_ratio, fit_case, real_cases, simulated_case
+from fpe_jax.fit._report import md_table
 from fpe_jax.progress import Progress
-from fpe_jax.report import md_table
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "data"

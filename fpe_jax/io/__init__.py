@@ -9,6 +9,11 @@ Writers: `write_predictions` (CSV / MCAP), `write_drive_mcap` (simulated drives)
 `check_output_path` (and `check_not_input`: never an input); every file goes through the one
 atomic writer `atomic_output` (`write_text`, `write_bytes`). AprilTag detections plus the log's
 TF are composed into map-frame poses by `fpe_jax.io.apriltag` (TF math: `fpe_jax.io.tf`).
+Configs: `fpe_jax.io.config` reads, checks and writes tuned configs (JSON; `read_config` needs no
+JAX, `config_to_params` builds the model's Params). Exports: `fpe_jax.io.export` writes a config
+in the forms on-car runners take (JSON, ROS 2 parameter YAML, StableHLO; only StableHLO imports
+JAX, inside its functions). Both are imported by name, not by `import fpe_jax.io`, which stays
+NumPy-only.
 Every bad input raises `fpe_jax.errors.InputError`.
 """
 

@@ -299,7 +299,7 @@ def write_predictions(
         track_xy_m: optional (K, 2) track line x [m], y [m] (the waypoints); MCAP only.
         track_closed: whether the track is a loop (its line is drawn closed).
         valid: optional (N,) bool, whether each prediction had enough history
-            (`fpe_jax.history.history_valid`): CSV a last column `valid` (1 / 0); MCAP the
+            (`fpe_jax.model.history_valid`): CSV a last column `valid` (1 / 0); MCAP the
             markers of an invalid prediction in the namespace `future_pose/invalid`, grey, and
             its path and ellipses left out (`fpe_jax.io.scene`). Default: all valid.
         force: replace an existing file.

@@ -167,8 +167,8 @@ def _param(transport, args, flag_value, name, default=None):
 def _preset_config(name: str) -> dict:
     """A built-in preset as a config dict (builds it with JAX: on a car without JAX, export a
     config where JAX runs and give --config)."""
-    from fpe_jax.config import params_to_config
-    from fpe_jax.params import presets
+    from fpe_jax.io.config import params_to_config
+    from fpe_jax.model._params import presets
 
     if name not in presets:
         raise InputError("--preset", f"unknown preset {name!r}", f"one of {', '.join(presets)}")
@@ -178,15 +178,15 @@ def _preset_config(name: str) -> dict:
 def options_from_args(args, transport):
     """(config dict, waypoints (K, 2), NodeOptions) from the flags and the ROS parameters.
     Raises InputError for a missing or mismatched config / waypoint file."""
-    from fpe_jax.config import check_waypoints, read_config
+    from fpe_jax.io.config import check_waypoints, read_config
     from fpe_jax.node._core import NodeOptions
     from fpe_jax.node._types import OUTPUTS
-    from fpe_jax.runner import load_waypoints_xy
+    from fpe_jax.runner._runner import load_waypoints_xy
 
     config = _param(transport, args, args.config, "config")
     waypoints = _param(transport, args, args.waypoints, "waypoints")
     if args.params_file is not None:
-        from fpe_jax.export import read_ros2_params
+        from fpe_jax.io.export import read_ros2_params
 
         cfg, wp_file = read_ros2_params(args.params_file)
         waypoints = waypoints or wp_file

@@ -43,7 +43,7 @@ from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io.apriltag import parse_tag_to_base, place_tag, tag_frame_name, tag_mount
 from fpe_jax.io.tf import STATIC_SUFFIX, Rigid, TfBuffer
 from fpe_jax.node._types import OUTPUTS
-from fpe_jax.runner import Runner
+from fpe_jax.runner._runner import Runner
 
 MARKER_LINE_LIST = 5
 MARKER_LINE_STRIP = rm.MARKER_LINE_STRIP
@@ -98,7 +98,7 @@ class NodeOptions:
     max_tracks: int = 16
     warn_every_s: float = 5.0
     trajectory_every_s: float = 1.0
-    adapt: bool = False  # each opponent's runner learns its line and pace (fpe_jax.adapt)
+    adapt: bool = False  # each opponent's runner learns its line and pace (fpe_jax.runner)
     delay_s: float | None = None  # with adapt and no config: the sensor's detection delay [s]
     markers_every_s: float = 0.1
     outputs: dict[str, str | None] = field(
@@ -146,7 +146,7 @@ class Node:
 
     Args:
         transport: the middleware.
-        config: a tuned config dict (`fpe_jax.config.read_config`), checked against
+        config: a tuned config dict (`fpe_jax.io.config.read_config`), checked against
             `waypoints_xy_m` by the caller; None only with `options.adapt` (learn from the
             waypoints and the shape prior alone).
         waypoints_xy_m: (K, 2) waypoints [m] in the map frame.
@@ -162,7 +162,7 @@ class Node:
         self.flavour = transport.flavour
         self.opt = options
         if options.adapt:  # config may be None: the waypoints and the shape prior alone
-            from fpe_jax.adapt import AdaptiveRunner
+            from fpe_jax.runner._adapt import AdaptiveRunner
 
             start = config
 

@@ -87,12 +87,12 @@ class Predicted:
 def predict_log(args, say) -> Predicted:
     """`fpe predict`'s computation (the same library calls) for the parsed flags."""
     from fpe_jax import cli
-    from fpe_jax.config import read_config
     from fpe_jax.drive import local_frame
-    from fpe_jax.evaluate import covariance_map, path_heading, prediction_covariance
+    from fpe_jax.evaluate._evaluate import covariance_map, path_heading, prediction_covariance
+    from fpe_jax.geometry._track import Track
     from fpe_jax.io import ros_msgs as rm
-    from fpe_jax.predict import predict_rows, states_from_drive
-    from fpe_jax.track import Track
+    from fpe_jax.io.config import read_config
+    from fpe_jax.predict._predict import predict_rows, states_from_drive
 
     say("reading the drive and waypoints")
     params, waypoints = cli._load_predictor(args)
