@@ -77,27 +77,6 @@ def _settings_from_args(args) -> dict:
     return {f: (k, getattr(args, f[2:].replace("-", "_"))) for f, k in SETTINGS_FLAGS.items()}
 
 
-def _check_on_track(args, drive, track, source: str, name: str) -> None:
-    """Exit 2 (InputError) unless the drive's observations follow the track's waypoints (see
-    `fpe_jax.path.check_on_track`); `track` is a Track or `path.build_path`'s dict, in the
-    drive's frame."""
-    import numpy as np
-
-    from fpe_jax.path import check_on_track
-
-    xy, heading = (
-        track[k] if isinstance(track, dict) else getattr(track, k) for k in ("xy_m", "heading_rad")
-    )
-    check_on_track(
-        drive.xy_m,
-        np.asarray(xy),
-        np.asarray(heading),
-        source=source,
-        drive=name,
-        allow=args.allow_off_track,
-    )
-
-
 def _add_run_flags(p: argparse.ArgumentParser, off_track: bool = False) -> None:
     """Flags of every command that compiles with JAX; with off_track, --allow-off-track of those
     that check a drive against its waypoints."""
@@ -115,41 +94,15 @@ def _add_run_flags(p: argparse.ArgumentParser, off_track: bool = False) -> None:
         )
 
 
-def _start_jax(args, say, x64: bool = True, executables: bool = True):
-    """Import JAX for a command (telling `say`): float64 unless told, the compilation cache
-    unless --no-cache (of whole executables, or with executables=False of JAX's XLA output:
-    `cache.enable`)."""
-    say("loading JAX")
-    import jax
-
-    if x64:
-        jax.config.update("jax_enable_x64", True)
-    from fpe_jax import cache
-
-    if getattr(args, "no_cache", False):
-        cache.disable()
-    else:
-        cache.enable(executables)
-    return jax
-
-
 def _progress(args):
     from fpe_jax.progress import Progress
 
     return Progress(quiet=getattr(args, "quiet", False))
 
 
-def _load_predictor(args):
-    """(Params, Waypoints) of --preset / --config with the settings flags; a line-model config
-    is checked against the --waypoints it will run on."""
-    from fpe_jax import io
-    from fpe_jax.config import load_params
-
-    wp = io.load_waypoints(args.waypoints)
-    settings = _settings_from_args(args)
-    where = (args.waypoints, wp.xy_m)
-    params = load_params(preset=args.preset, config=args.config, settings=settings, waypoints=where)
-    return params, wp
+def _predictor_options(args) -> dict:
+    """The pipeline's predictor arguments of `_add_predictor_flags`."""
+    return dict(preset=args.preset, config=args.config, settings=_settings_from_args(args))
 
 
 def _log_options(args) -> dict:
@@ -165,15 +118,17 @@ def _log_options(args) -> dict:
     )
 
 
-def _load_drive_from_args(args):
-    from fpe_jax import io
+def _drive_options(args) -> dict:
+    """`io.load_drive`'s options from the `_add_log_flags` values."""
+    return _log_options(args) | dict(log_time=args.log_time, drop_outside_tf=args.drop_outside_tf)
 
-    return io.load_drive(
-        args.log,
-        log_time=args.log_time,
-        drop_outside_tf=args.drop_outside_tf,
-        **_log_options(args),
-    )
+
+def _run_options(args, say) -> dict:
+    """The pipeline's options of `_add_run_flags`, with progress shown by `say`."""
+    opts = dict(cache=not getattr(args, "no_cache", False), progress=say)
+    if hasattr(args, "allow_off_track"):
+        opts["allow_off_track"] = args.allow_off_track
+    return opts
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -366,173 +321,58 @@ def cmd_run(args) -> int:
     return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr, rate_hz)
 
 
-def _fit_inputs(args, say=lambda msg: None):
-    """(drives, waypoints, descriptions, test drives, test waypoints, options) for `fpe fit`."""
-    from fpe_jax import io
-    from fpe_jax.recipe import load_recipe
-
-    # the flags given override the recipe's values, or the defaults
-    flags = dict(holdout=args.holdout, blend=args.blend, model=args.model, solver=args.solver)
-    flags["estimator"] = args.estimator
-    flags = {k: v for k, v in flags.items() if v is not None}
-    if len(args.logs) == 1 and args.logs[0].endswith(".toml"):
-        r = load_recipe(args.logs[0])
-        opts = dict(
-            holdout=r.holdout,
-            fit=r.fit,
-            blend=r.blend,
-            model=r.model,
-            solver=r.solver,
-            estimator=r.estimator,
-            settings=r.settings,
-            waypoints=r.waypoints,
-        )
-        return r.drives, r.test_drives, args.out or r.out, opts | flags
-    if not args.waypoints:
-        raise InputError("--waypoints", "missing", "a waypoint file for the drives")
-    wp = io.load_waypoints(args.waypoints).xy_m
-
-    def read(logs, what):
-        entries = []
-        for i, log in enumerate(logs, 1):
-            say(f"reading {what} {i}/{len(logs)}: {log}")
-            args.log = log
-            entries.append((_load_drive_from_args(args), wp, log))
-        return entries
-
-    drives, tests = read(args.logs, "drive"), read(args.test or [], "test drive")
-    opts = dict(holdout=0.3, fit=None, blend="auto", model=None, solver=None, settings={})
-    opts["estimator"] = None
-    return drives, tests, args.out, opts | {"waypoints": args.waypoints} | flags
-
-
-def _solver_option(name: str | None):
-    """The solver `fit` gets for a --solver (or recipe) name: None for the default (bfgs), so a
-    warm fit loads its stored solve without importing optimistix (~0.1-0.3 s, `fit._Static`)."""
-    from fpe_jax.recipe import solver_named
-
-    name = name or SOLVERS[0]
-    return None if name == SOLVERS[0] else solver_named(name, "--solver")
-
-
-def _local_drives(entries):
-    """(drive, waypoints, description) entries in their local frames (see drive.local_frame)."""
-    from fpe_jax.drive import local_frame
-
-    return [(*local_frame(d, wp)[:2], desc) for d, wp, desc in entries]
-
-
-def _waypoint_provenance(path, entries) -> dict | None:
-    """{"file": absolute path, "sha256": waypoints_sha256} of the waypoint file every drive of
-    `entries` ((drive, waypoints, description)) ran on; None when there is none or they differ."""
-    from fpe_jax.path import waypoints_sha256
-
-    sha = {waypoints_sha256(wp) for _, wp, _ in entries}
-    if path is None or len(sha) != 1:
-        return None
-    return {"file": str(Path(path).resolve()), "sha256": sha.pop()}
-
-
 def cmd_fit(args) -> int:
-    from fpe_jax import io
-    from fpe_jax.config import params_to_config, write_config
+    from fpe_jax import pipeline
 
-    fit_names = None if args.fit is None else spec.check_fit_names(args.fit, "--fit", "value")
-    if args.holdout is not None:
-        spec.check_fraction(args.holdout, "--holdout", "value")
-    if args.out is None and not args.logs[0].endswith(".toml"):
-        raise InputError("--out", "missing", "CONFIG.json to write")
-    if args.out:
-        io.check_output_path(args.out, args.force)
     with _progress(args) as say:
-        say("reading drives")
-        drives, tests, out, opts = _fit_inputs(args, say)
-        drives, tests = _local_drives(drives), _local_drives(tests)
-        if out is None:
-            raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
-        io.check_output_path(out, args.force)
-        _start_jax(args, say)
-        from fpe_jax.config import apply_settings
-        from fpe_jax.fit import fit
-        from fpe_jax.params import presets
-        from fpe_jax.report import format_fitted, format_table, line_section, provenance
-        from fpe_jax.track import Track
-
-        # the recipe's [settings], then the flags on top
-        init = apply_settings(presets["default"], opts["settings"], str(args.logs[0]))
-        flags = {k: v for k, v in _settings_from_args(args).items() if v[1] is not None}
-        init = apply_settings(init, flags)
-
-        tracks = [Track.from_waypoints(wp) for _, wp, _ in drives]
-        test_tracks = [Track.from_waypoints(wp) for _, wp, _ in tests] or None
-        wp_source = args.waypoints or f"{args.logs[0]}: the waypoints"
-        for (d, _, desc), tr in zip(drives + tests, tracks + (test_tracks or []), strict=True):
-            _check_on_track(args, d, tr, wp_source, desc)
-        result = fit(
-            [d for d, _, _ in drives],
-            tracks,
-            free=fit_names or opts["fit"] or None,
-            model=opts["model"] or "line",
-            blend=opts["blend"],
-            holdout=opts["holdout"],
-            test_drives=[d for d, _, _ in tests] or None,
-            test_tracks=test_tracks,
-            solver=_solver_option(opts["solver"]),
-            estimator=opts["estimator"] or spec.LINE_ESTIMATOR,
-            init=init,
-            progress=say,
+        res = pipeline.fit_logs(
+            args.logs,
+            args.waypoints,
+            out=args.out,
+            test=args.test,
+            holdout=args.holdout,
+            fit=args.fit,
+            model=args.model,
+            estimator=args.estimator,
+            blend=args.blend,
+            solver=args.solver,
+            settings=_settings_from_args(args),
+            force=args.force,
+            log_options=_drive_options(args),
+            **_run_options(args, say),
         )
-    meta = drives[0][0].meta
-    topics = {"pose": meta.get("pose_topic"), "truth": meta.get("truth_topic")}
-    sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
-    prov = provenance(result, sources, topics)
-    wp_file = _waypoint_provenance(opts["waypoints"], drives + tests)
-    if wp_file is not None:  # what `fpe export` uses when --waypoints is omitted
-        prov["waypoints"] = wp_file
-    line = line_section(result, None if wp_file is None else wp_file["file"])
-    cfg = params_to_config(
-        result.params, uncertainty=result.uncertainty, provenance=prov, line=line
-    )
-    write_config(out, cfg, force=args.force)
+    from fpe_jax.report import format_fitted, format_table
+
+    result = res.result
     print(format_fitted(result))
     print("\nheld-out:\n" + format_table(result.report))
     print("\n" + _coverage_line(result.report["fitted"]))
-    print(f"wrote {out}")
+    print(f"wrote {res.out}")
     return 0
 
 
 def cmd_evaluate(args) -> int:
     import json
 
-    from fpe_jax.config import read_config
+    from fpe_jax import pipeline
 
     with _progress(args) as say:
-        _start_jax(args, say)
-        from fpe_jax.drive import local_frame
-        from fpe_jax.evaluate import Dataset, evaluate, make_targets
-        from fpe_jax.track import Track
-
-        say("reading the drive and waypoints")
-        params, waypoints = _load_predictor(args)
-        cfg = read_config(args.config) if args.config else {}
-        unc = cfg.get("uncertainty")
-        # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
-        drive, wp, _, _ = local_frame(_load_drive_from_args(args), waypoints.xy_m)
-        track = Track.from_waypoints(wp)
-        _check_on_track(args, drive, track, args.waypoints, args.log)
-        data = Dataset(drive, track, make_targets(drive, params.settings))
-        if len(data.targets.rows) == 0:
-            raise InputError(args.log, "no prediction has a target", "a longer drive")
-        say(f"predicting {len(data.targets.rows)} observations and scoring them")
-        metrics = evaluate(params, [data], uncertainty=unc)
+        res = pipeline.evaluate_log(
+            args.log,
+            args.waypoints,
+            **_predictor_options(args),
+            log_options=_drive_options(args),
+            **_run_options(args, say),
+        )
     from fpe_jax.report import format_table
 
+    metrics = res.metrics
     name = args.config or args.preset
     if args.json:  # strict JSON: a metric without a value is null, never NaN
         print(json.dumps(_finite_or_null(metrics), indent=2, allow_nan=False))
     else:
         print(format_table({name: metrics}))
-        if unc is not None:
+        if res.predictor.uncertainty is not None:
             print(_coverage_line(metrics))
     return 0
 
@@ -583,71 +423,21 @@ def cmd_presets(args) -> int:
 
 
 def cmd_predict(args) -> int:
-    import numpy as np
+    from fpe_jax import pipeline
 
-    from fpe_jax import io
-    from fpe_jax.config import read_config
-
-    io.check_output_path(args.out, args.force)
-    if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
-        raise InputError(args.out, "unknown output format", ".csv or .mcap")
     with _progress(args) as say:
-        _start_jax(args, say)
-        from fpe_jax.drive import local_frame
-        from fpe_jax.evaluate import covariance_map, path_heading, prediction_covariance
-        from fpe_jax.predict import predict_rows, states_from_drive
-        from fpe_jax.track import Track
-
-        say("reading the drive and waypoints")
-        params, waypoints = _load_predictor(args)
-        unc = read_config(args.config).get("uncertainty") if args.config else None
-        drive = _load_drive_from_args(args)
-        # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
-        local, wp, t0_s, origin = local_frame(drive, waypoints.xy_m)
-        track = Track.from_waypoints(wp)
-        _check_on_track(args, local, track, args.waypoints, args.log)
-        say(f"predicting {len(drive.t_s)} observations")
-        states = states_from_drive(params, local, track)
-        poses = predict_rows(params, states, track)
-        cov = None
-        if unc is not None:  # the config's ellipses, turned into the map frame
-            cov_track = prediction_covariance(params, states, track, unc)
-            cov = covariance_map(cov_track, path_heading(track, poses.xy_m, states))
-        stamps_s = local.t_s + t0_s
-        poses = np.array(poses.packed(), dtype=np.float64)  # a writable copy
-        poses[..., :2] += origin
-        say(f"writing {args.out}")
-        dt_s = params.settings.dt_s
-        io.write_predictions(
-            args.out, stamps_s, poses, dt_s, drive=drive, cov_m2=cov, force=args.force
+        res = pipeline.predict_log(
+            args.log,
+            args.waypoints,
+            **_predictor_options(args),
+            out=args.out,
+            force=args.force,
+            log_options=_drive_options(args),
+            **_run_options(args, say),
         )
-    print(
-        f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr
-    )
+    n, h = res.poses_m.shape[:2]
+    print(f"wrote {n} predictions x {h} steps to {args.out}", file=sys.stderr)
     return 0
-
-
-def _describe_waypoints(path) -> dict:
-    """JSON-ready summary of a waypoint file and of the path the predictors build from it."""
-    from fpe_jax import io
-    from fpe_jax.path import build_path
-
-    wp = io.load_waypoints(path)
-    p = build_path(wp.xy_m, source=str(path))
-    return {
-        "source": str(path),
-        "format": wp.format,
-        "n_waypoints": len(wp.xy_m),
-        "closed": p["closed"],
-        "length_m": p["length_m"],
-        "n_points": len(p["xy_m"]),
-        "ds_m": p["ds_m"],
-        "min_step_m": p["min_step_m"],
-        "removed": {
-            "near_duplicate_idx": p["removed_close_idx"].tolist(),
-            "backtracking_idx": p["removed_backtrack_idx"].tolist(),
-        },
-    }
 
 
 def _index_ranges(idx: list[int]) -> str:
@@ -664,13 +454,9 @@ def _index_ranges(idx: list[int]) -> str:
 def cmd_info(args) -> int:
     import json
 
-    from fpe_jax import io
+    from fpe_jax import pipeline
 
-    if args.log is None and args.waypoints is None:
-        raise InputError("LOG", "missing", "a drive log, or --waypoints W to describe waypoints")
-    info = {} if args.log is None else io.describe_log(args.log, **_log_options(args))
-    if args.waypoints is not None:
-        info["waypoints"] = _describe_waypoints(args.waypoints)
+    info = pipeline.describe(args.log, args.waypoints, _log_options(args))
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -727,92 +513,58 @@ def _print_tf(info: dict) -> None:
 
 
 def cmd_convert(args) -> int:
-    from fpe_jax import io
+    from fpe_jax import pipeline
 
-    io.check_output_path(args.out, args.force)
-    if Path(args.out).suffix.lower() != ".csv":
-        raise InputError(args.out, "unknown output format", ".csv")
-    drive = _load_drive_from_args(args)
-    io.write_drive_csv(args.out, drive, force=args.force)
+    drive = pipeline.convert_log(
+        args.log, args.out, force=args.force, log_options=_drive_options(args)
+    )
     print(f"wrote {len(drive.t_s)} poses to {args.out}", file=sys.stderr)
     return 0
 
 
 def cmd_simulate(args) -> int:
-    import dataclasses
+    from fpe_jax import pipeline
 
-    from fpe_jax import io, sim
-
-    out = Path(args.out)
-    spec.check_simulation(args.duration, args.latency, args.seed, args.stops_per_min, "simulate")
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "is a file", "a folder to write the simulated drive into")
-    if out.is_dir() and any(out.iterdir()) and not args.force:  # fail before simulating
-        raise InputError(out, "exists and is not empty; pass --force to write into it")
-    if not out.exists():
-        io.check_output_path(out, False)  # its parent exists and is writable
-    res = sim.simulate(
+    res = pipeline.simulate_to(
+        args.out,
         args.track,
         duration_s=args.duration,
         latency_s=args.latency,
         seed=args.seed,
         raceline=args.raceline,
         half_width_m=args.half_width,
-        driver=dataclasses.replace(sim.Driver(), stops_per_min=args.stops_per_min),
-        camera=sim.Camera() if args.sensor == "apriltag" else None,
+        stops_per_min=args.stops_per_min,
+        sensor=args.sensor,
+        force=args.force,
     )
-    sim.write_simulation(res, out, force=args.force)
     d = res.drive
     print(
         f"wrote {len(d.t_s)} detections, {len(d.truth_t_s)} truth poses "
-        f"({args.duration:g} s on {res.scenario['track']}) to {out}/",
+        f"({args.duration:g} s on {res.scenario['track']}) to {Path(args.out)}/",
         file=sys.stderr,
     )
     return 0
 
 
 def cmd_batch(args) -> int:
-    import time
+    from fpe_jax import pipeline
 
-    import numpy as np
-
-    from fpe_jax import io
-
-    out = io.check_output_path(args.out, args.force)
-    if out.suffix.lower() not in (".npy", ".csv"):
-        raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
-    spec.check_chunk(args.chunk)
     with _progress(args) as say:
-        # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
-        _start_jax(args, say, x64=False, executables=False)
-        from fpe_jax.batch import predict_chunked
-        from fpe_jax.drive import map_origin
-        from fpe_jax.track import Track
-
-        say("reading the cars and waypoints")
-        params, waypoints = _load_predictor(args)
-        wp = waypoints.xy_m
-        origin = map_origin(wp)  # removed in float64 before the (float32) computation
-        track = Track.from_waypoints(wp - origin)
-        cars = np.array(io.read_cars(args.states), dtype=np.float64)
-        cars[:, :2] -= origin
-        say(f"predicting {len(cars)} cars")
-        t0 = time.perf_counter()
-        progress = lambda done, n: say.count("predicting cars", done, n)
-        poses = predict_chunked(
-            params, cars, track, dtype=args.dtype, chunk=args.chunk, progress=progress
+        res = pipeline.predict_cars(
+            args.states,
+            args.waypoints,
+            **_predictor_options(args),
+            out=args.out,
+            dtype=args.dtype,
+            chunk=args.chunk,
+            force=args.force,
+            on_chunk=lambda done, n: say.count("predicting cars", done, n),
+            **_run_options(args, say),
         )
-        wall_s = time.perf_counter() - t0
-        # float32 cannot hold coordinates beyond a kilometre to the millimetre: write float64 then
-        dtype = poses.dtype if np.abs(origin).max() <= 1000.0 else np.float64
-        poses = np.array(poses, dtype=np.float64)  # a writable copy
-        poses[..., :2] += origin
-        poses = poses.astype(dtype)
-        say(f"writing {out}")
-        io.write_poses(out, poses, params.settings.dt_s, force=args.force)
+    n, h = res.poses_m.shape[:2]
     print(
-        f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
-        f"({args.dtype}, {wall_s:.2f} s incl. compilation)",
+        f"wrote {n} cars x {h} steps to {Path(args.out)} "
+        f"({args.dtype}, {res.wall_s:.2f} s incl. compilation)",
         file=sys.stderr,
     )
     return 0
@@ -823,7 +575,9 @@ def cmd_demo(args) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
     with _progress(args) as say:
-        _start_jax(args, say)
+        from fpe_jax import pipeline
+
+        pipeline.start_jax(say, cache=not args.no_cache)
         from fpe_jax.demo import run_demo
         from fpe_jax.report import format_fitted, format_table
 
@@ -848,26 +602,21 @@ def cmd_demo(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from fpe_jax import io
-    from fpe_jax.plots import FIGURE_SUFFIXES
+    from fpe_jax import pipeline
 
-    out = io.check_output_path(args.out, args.force)
-    if out.suffix.lower() not in FIGURE_SUFFIXES:
-        raise InputError(out, f"unknown figure type {out.suffix!r}", " or ".join(FIGURE_SUFFIXES))
     with _progress(args) as say:
-        _start_jax(args, say)
-        from fpe_jax.plots import plot_drive
-
-        say("reading the drive and waypoints")
-        params, waypoints = _load_predictor(args)
-        name = args.preset or f"config {Path(args.config).name}"
-        drive = _load_drive_from_args(args)
-        from fpe_jax.path import build_path
-
-        _check_on_track(args, drive, build_path(waypoints.xy_m), args.waypoints, args.log)
-        m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log, progress=say)
+        res = pipeline.plot_log(
+            args.log,
+            args.waypoints,
+            args.out,
+            **_predictor_options(args),
+            force=args.force,
+            log_options=_drive_options(args),
+            **_run_options(args, say),
+        )
+    m = res.metrics
     print(
-        f"wrote {out}: {m['n_predictions']} predictions, ADE {m['ade_m']:.3f} m, "
+        f"wrote {res.out}: {m['n_predictions']} predictions, ADE {m['ade_m']:.3f} m, "
         f"FDE {m['fde_m']:.3f} m",
         file=sys.stderr,
     )
