@@ -1,9 +1,11 @@
-"""What several test files share: tree closeness, finite-difference checks, and the catalogue of
-tracks x predictors that parity tests run over."""
+"""What several test files share: the in-process CLI runner, tree closeness, finite-difference
+checks, and the catalogue of tracks x predictors that parity tests run over."""
 
 from __future__ import annotations
 
 import functools
+import io
+import sys
 from pathlib import Path
 
 import jax
@@ -14,6 +16,28 @@ from fpe_jax import Drive, Params, Settings, presets
 from fpe_jax.sim import simulate
 
 LEVINE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "levine"
+
+
+# ---- the CLI ----------------------------------------------------------------------------------
+
+
+def cli_runner(
+    capsys, argv, *, stdin: str | None = None, monkeypatch=None, expect=(0, 2)
+) -> tuple[int, str, str]:
+    """In-process `fpe ARGV` (items turned into str): (exit status, stdout, stderr). The status
+    must be one of `expect` (an int for exactly one) and stderr must hold no traceback; `stdin`
+    (with monkeypatch) is what the command reads."""
+    from fpe_jax import cli
+
+    if stdin is not None:
+        monkeypatch.setattr(sys, "stdin", io.StringIO(stdin))
+    capsys.readouterr()
+    rc = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err, err
+    expect = (expect,) if isinstance(expect, int) else tuple(expect)
+    assert rc in expect, (rc, expect, err)
+    return rc, out, err
 
 
 # ---- trees -------------------------------------------------------------------------------------
