@@ -22,9 +22,16 @@ from fpe_jax.spec import ESTIMATORS, FIT_MODELS, FIT_NAMES, SOLVERS
 def _add_log_flags(p: argparse.ArgumentParser) -> None:
     """Flags shared by every command that reads a drive log."""
     p.add_argument("--pose-topic", help="topic with the observed poses (default: the only one)")
-    p.add_argument("--truth-topic", help="optional ground-truth topic (e.g. the car's odometry)")
     p.add_argument(
-        "--rate", type=float, metavar="HZ", help="sample rate of a header-less x,y,z CSV"
+        "--truth-topic",
+        help="ground-truth topic, e.g. the car's odometry (default: the only Odometry topic "
+        "other than the pose topic, if there is one)",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        metavar="HZ",
+        help="sample rate of a header-less x,y,z CSV (default: none; required for such a file)",
     )
     p.add_argument("--log-time", action="store_true", help="use recording time, not header.stamp")
     p.add_argument("--tf-parent", default="map", help="TF parent frame (default: map)")
@@ -50,8 +57,12 @@ def _add_predictor_flags(p: argparse.ArgumentParser, *, required: bool) -> None:
     """--waypoints and exactly one of --preset / --config (optional: the 'default' preset)."""
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     src = p.add_mutually_exclusive_group(required=required)
-    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
-    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    src.add_argument(
+        "--preset", help="a built-in preset (see `fpe presets`; default: 'default' unless --config)"
+    )
+    src.add_argument(
+        "--config", help="a tuned config JSON written by `fpe fit` (default: none, a preset)"
+    )
     _add_settings_flags(p, "with --preset")
 
 
@@ -66,10 +77,17 @@ SETTINGS_FLAGS = {
 
 def _add_settings_flags(p: argparse.ArgumentParser, when: str) -> None:
     g = p.add_argument_group(f"car and prediction settings ({when}; default: the preset's)")
-    g.add_argument("--wheelbase", type=float, metavar="M", help="wheelbase [m] (F1TENTH 0.325)")
-    g.add_argument("--max-steer", type=float, metavar="RAD", help="steering limit [rad]")
-    g.add_argument("--dt", type=float, metavar="S", help="prediction step [s] (0.1)")
-    g.add_argument("--horizon", type=int, metavar="N", help="number of steps (10)")
+    g.add_argument(
+        "--wheelbase", type=float, metavar="M", help="wheelbase [m] (default: 0.325, F1TENTH)"
+    )
+    g.add_argument(
+        "--max-steer",
+        type=float,
+        metavar="RAD",
+        help="steering limit [rad] (default: 0.4189; seed presets 0.5236)",
+    )
+    g.add_argument("--dt", type=float, metavar="S", help="prediction step [s] (default: 0.1)")
+    g.add_argument("--horizon", type=int, metavar="N", help="number of steps (default: 10)")
 
 
 def _settings_from_args(args) -> dict:
@@ -131,19 +149,52 @@ def _run_options(args, say) -> dict:
     return opts
 
 
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Help that keeps the example's layout and says every option's default: an option whose
+    help does not is marked "(required)", "(default: off)" for a switch, or "(default: VALUE)"."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if not action.option_strings or "default" in text or action.default == argparse.SUPPRESS:
+            return text
+        if action.required:
+            return f"{text} (required)"
+        if isinstance(action, argparse._StoreTrueAction):
+            return f"{text} (default: off)"
+        if action.default is None:
+            return text
+        return f"{text} (default: {action.default})"
+
+
 def _build_parser() -> argparse.ArgumentParser:
+    from fpe_jax import __version__  # the package root imports nothing eagerly
+
     parser = argparse.ArgumentParser(
-        prog="fpe", description="Near-future pose prediction for race cars, fitted to your drives."
+        prog="fpe",
+        description="Near-future pose prediction for race cars, fitted to your drives.",
+        epilog="example:\n  fpe demo",
+        formatter_class=_HelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    def command(name: str, help: str) -> argparse.ArgumentParser:
-        """The subparser of `fpe NAME`, which runs `cmd_NAME`."""
-        p = sub.add_parser(name, help=help)
+    def command(name: str, help: str, example: str) -> argparse.ArgumentParser:
+        """The subparser of `fpe NAME`, which runs `cmd_NAME`; its help ends with `example`."""
+        p = sub.add_parser(
+            name,
+            help=help,
+            description=help,
+            epilog=f"example:\n  {example}",
+            formatter_class=_HelpFormatter,
+        )
         p.set_defaults(func=globals()[f"cmd_{name}"])
         return p
 
-    p = command("predict", "predict every observation of a drive log")
+    p = command(
+        "predict",
+        "predict every observation of a drive log",
+        "fpe predict drive.mcap --waypoints track.csv --config tuned.json --out pred.csv",
+    )
     p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
     _add_predictor_flags(p, required=False)
     p.add_argument("--out", required=True, help="PRED.csv or PRED.mcap")
@@ -152,13 +203,21 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_run_flags(p, off_track=True)
 
     p = command(
-        "fit", "learn the car's line and fit the predictor to drives; report held-out metrics"
+        "fit",
+        "learn the car's line and fit the predictor to drives; report held-out metrics",
+        "fpe fit lap1.mcap lap2.mcap --waypoints track.csv --out tuned.json",
     )
     p.add_argument("logs", nargs="+", metavar="LOG", help="drive logs, or one recipe .toml")
-    p.add_argument("--waypoints", help="waypoint / centerline / raceline file")
-    p.add_argument("--out", help="CONFIG.json to write (a recipe may name it)")
-    p.add_argument("--holdout", type=float, help="held-out fraction at each drive's end (0.3)")
-    p.add_argument("--test", nargs="+", metavar="LOG", help="separate held-out drives instead")
+    p.add_argument(
+        "--waypoints", help="waypoint / centerline / raceline file (default: the recipe's)"
+    )
+    p.add_argument("--out", help="CONFIG.json to write (default: the recipe's out)")
+    p.add_argument(
+        "--holdout", type=float, help="held-out fraction at each drive's end (default: 0.3)"
+    )
+    p.add_argument(
+        "--test", nargs="+", metavar="LOG", help="separate held-out drives instead (default: none)"
+    )
     p.add_argument(
         "--model",
         choices=FIT_MODELS,
@@ -177,7 +236,9 @@ def _build_parser() -> argparse.ArgumentParser:
         help="the line model's state estimator: kalman (default; a Kalman filter in the track "
         "frame) or theil-sen (robust lines through the recent observations)",
     )
-    p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
+    p.add_argument(
+        "--blend", choices=("auto", "position", "heading"), help="blend mode (default: auto)"
+    )
     _add_settings_flags(p, "saved in the config; a recipe may set them in [settings]")
     p.add_argument(
         "--solver",
@@ -188,43 +249,64 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
-    p = command("evaluate", "metrics of a config or preset on a drive log")
+    p = command(
+        "evaluate",
+        "metrics of a config or preset on a drive log",
+        "fpe evaluate test.mcap --waypoints track.csv --config tuned.json",
+    )
     p.add_argument("log", help="drive log (any supported format)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
-    p = command("cache", "the compilation cache: its path, size and entries; clear it")
+    p = command(
+        "cache", "the compilation cache: its path, size and entries; clear it", "fpe cache info"
+    )
     p.add_argument("action", choices=("info", "clear"), help="info: path, size; clear: empty it")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
-    command("presets", "list the built-in presets")
+    command("presets", "list the built-in presets", "fpe presets")
 
     p = command(
-        "info", "topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path"
+        "info",
+        "topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path",
+        "fpe info drive.mcap --waypoints track.csv",
     )
     p.add_argument(
         "log", nargs="?", help="drive log: .mcap, rosbag2 folder, .bag or CSV (or --waypoints)"
     )
     p.add_argument(
         "--waypoints",
-        help="describe this waypoint file too: loop or open, length, what cleaning removed",
+        help="describe this waypoint file too: loop or open, length, what cleaning removed "
+        "(default: none)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_log_flags(p)
 
-    p = command("simulate", "simulate a leading car's drive and its detections")
+    p = command(
+        "simulate",
+        "simulate a leading car's drive and its detections",
+        "fpe simulate --track hairpin --duration 120 --out sim/",
+    )
     p.add_argument(
         "--track",
         default="oval",
         help="oval | hairpin | random:SEED | a centerline/waypoint file (default: oval)",
     )
-    p.add_argument("--raceline", help="optional raceline file (with speeds) the driver follows")
+    p.add_argument(
+        "--raceline",
+        help="raceline file (with speeds) the driver follows (default: none, the centerline)",
+    )
     p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds (def. 60)")
     p.add_argument("--latency", type=float, default=0.3, metavar="S", help="detection latency")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    p.add_argument("--half-width", type=float, metavar="M", help="track half-width in metres")
+    p.add_argument(
+        "--half-width",
+        type=float,
+        metavar="M",
+        help="track half-width [m] (default: the built-in track's, else 1.1)",
+    )
     p.add_argument("--stops-per-min", type=float, default=0.0, help="mean stops per minute")
     p.add_argument(
         "--sensor",
@@ -236,13 +318,21 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="folder for drive.mcap, waypoints.csv, scenario")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty folder")
 
-    p = command("convert", "write a drive log's observed poses as CSV t,x,y,yaw")
+    p = command(
+        "convert",
+        "write a drive log's observed poses as CSV t,x,y,yaw",
+        "fpe convert drive.mcap --out drive.csv",
+    )
     p.add_argument("log", help="drive log: .mcap, rosbag2 folder, .bag or CSV")
     p.add_argument("--out", required=True, help="DRIVE.csv (what `fpe run` reads on stdin)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
 
-    p = command("batch", "predict many cars at once (chunked, compiled once)")
+    p = command(
+        "batch",
+        "predict many cars at once (chunked, compiled once)",
+        "fpe batch cars.csv --waypoints track.csv --config tuned.json --out poses.npy",
+    )
     p.add_argument("states", help="cars: CSV with header x,y,yaw,v[,yaw_rate], or .npy (N, 4|5)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="OUT.npy (N, H, 3) or OUT.csv")
@@ -251,7 +341,11 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_run_flags(p)
 
-    p = command("export", "export a tuned config for the car: JSON, ROS 2, StableHLO")
+    p = command(
+        "export",
+        "export a tuned config for the car: JSON, ROS 2, StableHLO",
+        "fpe export tuned.json --format all --out car/",
+    )
     p.add_argument("config", help="a tuned config JSON written by `fpe fit`")
     p.add_argument(
         "--format",
@@ -268,22 +362,35 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="overwrite existing files")
 
-    p = command("run", "stream predictions: observations on stdin, JSON lines out")
+    p = command(
+        "run",
+        "stream predictions: observations on stdin, JSON lines out",
+        "fpe run --config tuned.json --waypoints track.csv < drive.csv",
+    )
     p.add_argument("--config", required=True, help="a tuned config JSON")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     p.add_argument(
         "--rate",
         type=float,
         metavar="HZ",
-        help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
+        help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses "
+        "(default: none, stamps from each line)",
     )
 
-    p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
+    p = command(
+        "demo",
+        "simulate, fit, compare with every preset, plot and export (~1 min)",
+        "fpe demo --out out/demo",
+    )
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
     _add_run_flags(p)
     p.add_argument("--force", action="store_true", help="replace the demo's files in --out")
 
-    p = command("plot", "draw a drive with its 1 s predictions (trajectory overlay)")
+    p = command(
+        "plot",
+        "draw a drive with its 1 s predictions (trajectory overlay)",
+        "fpe plot drive.mcap --waypoints track.csv --config tuned.json --out drive.png",
+    )
     p.add_argument("log", help="drive log (any supported format)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="FIG.png (or .pdf, .svg)")
