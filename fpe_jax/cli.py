@@ -379,7 +379,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     p = command(
         "demo",
-        "simulate, fit, compare with every preset, plot and export (~1 min)",
+        "simulate, fit, compare with every preset, plot and export",
         "fpe demo --out out/demo",
     )
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
