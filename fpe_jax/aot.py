@@ -9,6 +9,12 @@ the cache folder's `aot/`. Within one process every executable is made once. Wit
 (`--no-cache`, or `cache.enable` never called) executables are only kept in memory. JAX's own
 cache must be off while executables are stored (`cache.enable` says why).
 
+An entry cannot be made safe by its format: `serialize_executable` pickles the executable with
+its shardings, and the executable itself is machine code, so whoever can change an entry can run
+code as the user. An entry is unpickled only when `cache.load_signed` accepts it (a regular file
+of bounded size, authenticated with the user's own key); anything else gives one warning and a
+compile, whose result replaces it.
+
 Arguments follow `equinox.filter_jit`: arrays (NumPy or JAX) and `jax.ShapeDtypeStruct`s are
 traced, every other leaf is static. `executable(f, *args)` with shapes alone compiles ahead of the
 data (fit compiles its solver while the states are estimated).
@@ -110,28 +116,26 @@ class Executable:
         return jax.tree.unflatten(self._out, out)
 
 
-def _load(path: Path, traced: list[int]) -> Executable | None:
+def _load(path: Path, secret: bytes, traced: list[int]) -> Executable | None:
+    """The executable stored at `path`, or None (absent, or refused with one warning): only an
+    authenticated entry (`cache.load_signed`) is unpickled."""
     from jax.experimental import serialize_executable
 
     t0 = time.perf_counter()
-    try:
-        blob = path.read_bytes()
-    except FileNotFoundError:
-        return None
-    except OSError as e:
-        cache.warn("unreadable", f"{path.name}: {e.strerror or e}")
+    body = cache.load_signed(path, secret)
+    if body is None:
         return None
     try:
-        payload, in_tree, out_tree, skeleton = pickle.loads(blob)
+        payload, in_tree, out_tree, skeleton = pickle.loads(body)
         compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
         seconds = {"load_s": time.perf_counter() - t0}
         return Executable(compiled, jax.tree.structure(skeleton), traced, **seconds)
-    except Exception as e:  # noqa: BLE001 -- any damage to the file means: compile again
+    except Exception as e:  # noqa: BLE001 -- an executable of an incompatible jaxlib: compile
         cache.warn("unreadable", f"{path.name}: {type(e).__name__}: {e}")
         return None
 
 
-def _build(fun, leaves, treedef, traced, path: Path | None) -> Executable:
+def _build(fun, leaves, treedef, traced, store: tuple[Path, bytes] | None) -> Executable:
     out_treedef = []
 
     def flat(*traced_leaves):
@@ -153,8 +157,8 @@ def _build(fun, leaves, treedef, traced, path: Path | None) -> Executable:
     compiled = _compile(lowered, None if fun in FUSION_EMITTERS else CPU_COMPILER_OPTIONS)
     seconds = {"trace_s": t1 - t0, "compile_s": time.perf_counter() - t1}
     exe = Executable(compiled, out_treedef[0], traced, **seconds)
-    if path is not None:
-        _store(path, compiled, out_treedef[0])
+    if store is not None:
+        _store(*store, compiled, out_treedef[0])
     return exe
 
 
@@ -171,23 +175,30 @@ def _compile(lowered, cpu_options: dict | None):
         return lowered.compile()
 
 
-def _store(path: Path, compiled, out_treedef) -> None:
+def _store(path: Path, secret: bytes, compiled, out_treedef) -> None:
+    """Store the executable at `path`, authenticated by `secret` (`cache.store_signed`)."""
     from jax.experimental import serialize_executable
 
     try:
         payload, in_tree, out_tree = serialize_executable.serialize(compiled)
         # the output tree as a skeleton of zeros: treedefs of equinox Modules do not pickle
         skeleton = jax.tree.unflatten(out_treedef, [0] * out_treedef.num_leaves)
-        blob = pickle.dumps((payload, in_tree, out_tree, skeleton))
+        body = pickle.dumps((payload, in_tree, out_tree, skeleton))
     except Exception:  # noqa: BLE001 -- not serializable (e.g. constants): kept in memory only
         return
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".tmp{threading.get_ident()}")
-        tmp.write_bytes(blob)
-        tmp.replace(path)  # atomic: a concurrent reader sees the old file or the whole new one
-    except OSError as e:
-        cache.warn("unwritable", f"{path.parent}: {e.strerror or e}")
+    cache.store_signed(path, secret, body)
+
+
+def _entry(key: str) -> tuple[Path, bytes] | None:
+    """Where the executable of `key` is stored and this user's key that authenticates it; None
+    when the cache is off or the key is refused (one warning: executables stay in memory)."""
+    folder = cache.active_dir()
+    if folder is None:
+        return None
+    secret = cache.user_key()
+    if secret is None:
+        return None
+    return folder / "aot" / f"{cache.entry_name(secret, key)}.exe", secret
 
 
 def executable(fun, *args, **kwargs) -> Executable:
@@ -198,10 +209,9 @@ def executable(fun, *args, **kwargs) -> Executable:
         exe = _MEMO.get(key)
     if exe is not None:  # made earlier in this process: it cost this call nothing
         return Executable(exe._compiled, exe._out, exe._traced)
-    folder = cache.active_dir()
-    path = None if folder is None else folder / "aot" / f"{key}.exe"
-    exe = (_load(path, traced) if path is not None else None) or _build(
-        fun, leaves, treedef, traced, path
+    store = _entry(key)
+    exe = (_load(*store, traced) if store is not None else None) or _build(
+        fun, leaves, treedef, traced, store
     )
     with _LOCK:
         return _MEMO.setdefault(key, exe)

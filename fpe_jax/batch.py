@@ -55,6 +55,7 @@ from jaxtyping import Array, Bool, Float, Int
 from fpe_jax import spec
 from fpe_jax.errors import InputError
 from fpe_jax.params import Params
+from fpe_jax.path import BRANCH_COS, BRANCH_M, ON_TRACK_M, off_track
 from fpe_jax.predict import pad_rows, predict_batch
 from fpe_jax.state import State
 from fpe_jax.track import Track
@@ -247,8 +248,12 @@ class ProjectionGrid(eqx.Module):
         row = jnp.searchsorted(self.keys, key).astype(jnp.int32)  # <= R: the sentinel's row
         return row, inside & (self.keys[row] == key)
 
-    def project(self, p_m: Float[Array, "2"]) -> tuple[Float[Array, ""], Bool[Array, ""]]:
-        """Arc length [m] of the nearest track point to p (2,) [m], and whether it is exact.
+    def project(
+        self, p_m: Float[Array, "2"], heading_rad=None
+    ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
+        """Arc length [m] of the nearest track point to p (2,) [m], and whether it is exact;
+        given the car's heading [rad], of the nearest branch that agrees with it where the track
+        crosses itself (`Track.project`'s rule, judged by the segments' chords).
 
         Equal to `track.project(p)` where the second value is True (up to float rounding; where
         two segments are equally near within rounding either may win); where it is False (p off
@@ -262,11 +267,18 @@ class ProjectionGrid(eqx.Module):
         ex, ey = dx - t * abx, dy - t * aby
         d2 = ex * ex + ey * ey
         s = s_a + t * self.ds_m
+        d2_min = _chained_min(d2)
+        if heading_rad is not None:
+            agree = abx * jnp.cos(heading_rad) + aby * jnp.sin(heading_rad)
+            d2_agree = jnp.where(agree >= BRANCH_COS * self.ds_m, d2, jnp.inf)
+            d2_agree_min = _chained_min(d2_agree)
+            use = d2_agree_min <= BRANCH_M * BRANCH_M
+            d2, d2_min = jnp.where(use, d2_agree, d2), jnp.where(use, d2_agree_min, d2_min)
         # The nearest distance, then the least s at it: among equal distances the smallest s is
         # the lowest index, as argmin picks in Track.project. Not argmin (XLA CPU runs it as a
         # slow variadic reduce, 2.4x slower here), and the minima as chains of K elementwise
         # minimums rather than reductions over a trailing axis of K (1.2x faster vmapped).
-        return _chained_min(jnp.where(d2 <= _chained_min(d2), s, jnp.inf)), ok
+        return _chained_min(jnp.where(d2 <= d2_min, s, jnp.inf)), ok
 
 
 LATTICE_SIDE = 9  # lattice points per cell side in the build's fine candidate test
@@ -402,9 +414,10 @@ def _car_table(cars, dtype) -> tuple[tuple[str, ...], np.ndarray]:
 
 
 @eqx.filter_jit
-def _project_exhaustive(track: Track, xy_m):
-    """Exhaustive projection of a small batch (B, 2) -> (B,) [m] (the off-grid fallback)."""
-    return jax.vmap(track.project)(xy_m)
+def _project_exhaustive(track: Track, xy_m, heading_rad):
+    """Exhaustive projection of a small batch (B, 2), headings (B,) [rad] -> (B,) [m] (the
+    off-grid fallback)."""
+    return jax.vmap(track.project)(xy_m, heading_rad)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
@@ -429,7 +442,7 @@ def _predict_block(names: tuple[str, ...], static, dynamic, block):
     s_grid, exact = jax.lax.cond(
         jnp.all(known),
         lambda: (cols["s_m"], known),
-        lambda: jax.vmap(grid.project)(p),
+        lambda: jax.vmap(grid.project)(p, cols["yaw_rad"]),
     )
     cols["s_m"] = jnp.where(known, cols["s_m"], s_grid)
     return predict_batch(params, State(**cols), track), known | exact
@@ -619,10 +632,12 @@ class BatchPredictor:
 
     def _exhaustive(self, table, names, rows) -> np.ndarray:
         xy = table[rows][:, [names.index("x_m"), names.index("y_m")]]
+        yaw = table[rows][:, names.index("yaw_rad")]
         s = np.empty(len(rows), dtype=self.dtype)
         for start in range(0, len(rows), _SLOW_BATCH):
             pts = pad_rows(xy[start : start + _SLOW_BATCH], _SLOW_BATCH)
-            res = np.asarray(_project_exhaustive(self._track, jnp.asarray(pts)))
+            h = pad_rows(yaw[start : start + _SLOW_BATCH], _SLOW_BATCH)
+            res = np.asarray(_project_exhaustive(self._track, jnp.asarray(pts), jnp.asarray(h)))
             s[start : start + _SLOW_BATCH] = res[: min(_SLOW_BATCH, len(rows) - start)]
         return s
 
@@ -660,3 +675,53 @@ def _store(out: np.ndarray, start: int, stop: int, result, n_sets) -> None:
         out[start:stop] = res[: stop - start]
     else:
         out[:, start:stop] = res[:, : stop - start]
+
+
+def off_track_cars(params: Params, cars_xy_m, track: Track) -> np.ndarray:
+    """(N,) bool: the cars (N, 2) [m] (in the track's frame) that lie farther than
+    `fpe_jax.path.on_track_m` of the track from its line and, for the line model, from the learned
+    line: the rule of the on-track checks (`fpe_jax.path.off_track`). Their predictions follow
+    the nearest part of the track, which for a car in another map frame means nothing."""
+    path = dict(
+        xy_m=np.asarray(track.xy_m, dtype=np.float64),
+        heading_rad=np.asarray(track.heading_rad, dtype=np.float64),
+        ds_m=float(track.ds_m),
+        length_m=float(track.length_m),
+        closed=track.closed,
+    )
+    line = np.asarray(params.line_offset_m) if params.settings.model == "line" else None
+    return off_track(np.asarray(cars_xy_m, dtype=np.float64), path, line)
+
+
+def off_track_summary(
+    off: np.ndarray, source: str, near_m: float = ON_TRACK_M, shown: int = 10
+) -> str | None:
+    """One line on the cars `off_track_cars` flagged (N,) (farther than near_m [m]: the track's
+    `fpe_jax.path.on_track_m`), None when there are none."""
+    rows = np.flatnonzero(off)
+    if not len(rows):
+        return None
+    listed = ", ".join(str(r) for r in rows[:shown]) + (", ..." if len(rows) > shown else "")
+    return (
+        f"warning: {len(rows)} of {len(off)} cars of {source} lie off the track, more than "
+        f"{near_m:.3g} m from its waypoints (rows {listed}): likely another map frame; "
+        "their predictions follow the nearest part of the track"
+    )
+
+
+ORIGIN_MAX_FLOAT32_M = 1000.0  # beyond a kilometre float32 cannot hold a position to the mm
+
+
+def with_origin(poses: np.ndarray, origin_m, block: int = 1 << 16) -> np.ndarray:
+    """Poses (N, H, 3) in the track's local frame moved back by the map origin (2,) [m]: x, y
+    plus the origin computed in float64, block by block (no full float64 copy), in place when
+    the poses' dtype can hold map coordinates (|origin| <= ORIGIN_MAX_FLOAT32_M or float64),
+    else into a new float64 array."""
+    origin = np.asarray(origin_m, dtype=np.float64)
+    far = poses.dtype != np.float64 and np.abs(origin).max() > ORIGIN_MAX_FLOAT32_M
+    out = np.empty(poses.shape, dtype=np.float64) if far else poses
+    for a in range(0, len(poses), block):
+        part = poses[a : a + block].astype(np.float64)
+        part[..., :2] += origin
+        out[a : a + block] = part
+    return out

@@ -169,11 +169,13 @@ def fit_case(
     blend: str = "position",
     fit: Sequence[str] | None = None,
     model: str = "line",
+    init=None,
     progress: Callable[[str], None] = lambda msg: None,
 ):
     """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`.
 
-    model, blend: as `fpe_jax.fit.fit` takes them (default: the line model); needs float64 as
+    model, blend, init: as `fpe_jax.fit.fit` takes them (default: the line model; init's
+    prediction grid, e.g. a 50-step horizon, is the fit's and the report's); needs float64 as
     `fit` does (the caller enables jax_enable_x64 at start-up)."""
     from fpe_jax.fit import fit as fit_drives
 
@@ -186,6 +188,7 @@ def fit_case(
         blend=blend,
         test_drives=[case.test_drive],
         test_tracks=[track],
+        init=init,
         progress=progress,
     )
 

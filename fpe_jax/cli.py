@@ -49,7 +49,15 @@ def _add_log_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--drop-outside-tf",
         action="store_true",
-        help="drop detections stamped outside the TF buffer instead of failing",
+        help="drop detections stamped outside the TF buffer (or in a gap longer than "
+        "--max-tf-gap) instead of failing",
+    )
+    p.add_argument(
+        "--max-tf-gap",
+        type=float,
+        metavar="S",
+        help="longest gap [s] between two transforms of a TF edge that a lookup interpolates "
+        "across (default per edge: max(4 x its median period, 0.2 s))",
     )
 
 
@@ -88,6 +96,28 @@ def _add_settings_flags(p: argparse.ArgumentParser, when: str) -> None:
     )
     g.add_argument("--dt", type=float, metavar="S", help="prediction step [s] (default: 0.1)")
     g.add_argument("--horizon", type=int, metavar="N", help="number of steps (default: 10)")
+
+
+def _add_adapt_flags(p: argparse.ArgumentParser, save: bool) -> None:
+    """--adapt and --delay; with save, --save-state (of `fpe predict`)."""
+    p.add_argument(
+        "--adapt",
+        action="store_true",
+        help="learn the car's line and speed profile while predicting, lap by lap (from "
+        "--config, or without one from the waypoints alone)",
+    )
+    p.add_argument(
+        "--delay",
+        type=float,
+        metavar="S",
+        help="with --adapt and no --config: your sensor's detection delay [s] (default: 0)",
+    )
+    if save:
+        p.add_argument(
+            "--save-state",
+            metavar="OUT.json",
+            help="with --adapt: write what it learned as a config (default: none)",
+        )
 
 
 def _settings_from_args(args) -> dict:
@@ -138,15 +168,24 @@ def _log_options(args) -> dict:
 
 def _drive_options(args) -> dict:
     """`io.load_drive`'s options from the `_add_log_flags` values."""
-    return _log_options(args) | dict(log_time=args.log_time, drop_outside_tf=args.drop_outside_tf)
+    return _log_options(args) | dict(
+        log_time=args.log_time,
+        drop_outside_tf=args.drop_outside_tf,
+        max_tf_gap_s=args.max_tf_gap,
+    )
 
 
 def _run_options(args, say) -> dict:
     """The pipeline's options of `_add_run_flags`, with progress shown by `say`."""
-    opts = dict(cache=not getattr(args, "no_cache", False), progress=say)
+    opts = dict(cache=not getattr(args, "no_cache", False), progress=say, warn=_warn(args))
     if hasattr(args, "allow_off_track"):
         opts["allow_off_track"] = args.allow_off_track
     return opts
+
+
+def _warn(args):
+    """How the pipeline's warnings reach the user: one line on stderr, `--quiet` or not."""
+    return lambda msg: print(f"fpe {args.command}: {msg}", file=sys.stderr)
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -199,6 +238,7 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_predictor_flags(p, required=False)
     p.add_argument("--out", required=True, help="PRED.csv or PRED.mcap")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    _add_adapt_flags(p, save=True)
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
@@ -367,7 +407,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "stream predictions: observations on stdin, JSON lines out",
         "fpe run --config tuned.json --waypoints track.csv < drive.csv",
     )
-    p.add_argument("--config", required=True, help="a tuned config JSON")
+    p.add_argument("--config", help="a tuned config JSON (required without --adapt)")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     p.add_argument(
         "--rate",
@@ -376,6 +416,16 @@ def _build_parser() -> argparse.ArgumentParser:
         help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses "
         "(default: none, stamps from each line)",
     )
+    _add_adapt_flags(p, save=False)
+    p.add_argument(
+        "--allow-off-track",
+        action="store_true",
+        help="warn, not fail, when the first observations are off the waypoints",
+    )
+
+    from fpe_jax.node import _cli as node_cli  # JAX-free
+
+    node_cli.add_parser(sub)
 
     p = command(
         "demo",
@@ -395,6 +445,19 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="FIG.png (or .pdf, .svg)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    _add_log_flags(p)
+    _add_run_flags(p, off_track=True)
+
+    from fpe_jax.node import _view  # JAX-free
+
+    p = command(
+        "view",
+        "predict a drive log and show it in Foxglove (live WebSocket or MCAP)",
+        "fpe view drive.mcap --waypoints track.csv --config tuned.json --foxglove",
+    )
+    p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
+    _add_predictor_flags(p, required=False)
+    _view.add_arguments(p)
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
     return parser
@@ -424,7 +487,15 @@ def cmd_run(args) -> int:
         raise InputError("stdin", "is closed", "observation lines on stdin")
     if sys.stdout is None:  # started with stdout closed: fail before the work, as a write would
         raise OSError(errno.EBADF, os.strerror(errno.EBADF))
-    runner = Runner.from_config(args.config, args.waypoints)
+    if args.adapt:
+        from fpe_jax.adapt import AdaptiveRunner
+
+        runner = AdaptiveRunner.from_files(args.config, args.waypoints, delay_s=args.delay)
+    elif args.config is None:
+        raise InputError("--config", "missing", "a tuned config JSON (or --adapt)")
+    else:
+        runner = Runner.from_config(args.config, args.waypoints)
+    runner.allow_off_track = args.allow_off_track
     return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr, rate_hz)
 
 
@@ -532,6 +603,8 @@ def cmd_presets(args) -> int:
 def cmd_predict(args) -> int:
     from fpe_jax import pipeline
 
+    if args.adapt or args.save_state or args.delay is not None:
+        return _predict_adaptive(args)
     with _progress(args) as say:
         res = pipeline.predict_log(
             args.log,
@@ -544,6 +617,35 @@ def cmd_predict(args) -> int:
         )
     n, h = res.poses_m.shape[:2]
     print(f"wrote {n} predictions x {h} steps to {args.out}", file=sys.stderr)
+    return 0
+
+
+def _predict_adaptive(args) -> int:
+    """`fpe predict --adapt`: the learning runner over the drive in stream order (no JAX)."""
+    from fpe_jax import pipeline
+
+    if not args.adapt:
+        flag = "--save-state" if args.save_state else "--delay"
+        raise InputError(flag, "given without --adapt", f"--adapt {flag} ...")
+    if args.preset:
+        raise InputError("--preset", "given with --adapt", "--config, or neither")
+    res = pipeline.predict_log_adaptive(
+        args.log,
+        args.waypoints,
+        config=args.config,
+        settings=_settings_from_args(args),
+        delay_s=args.delay,
+        out=args.out,
+        save_state=args.save_state,
+        force=args.force,
+        log_options=_drive_options(args),
+        allow_off_track=args.allow_off_track,
+        warn=_warn(args),
+    )
+    n, h = res.poses_m.shape[:2]
+    print(f"wrote {n} predictions x {h} steps to {args.out}", file=sys.stderr)
+    if args.save_state:
+        print(f"wrote {args.save_state} ({res.runner.laps} laps learned)", file=sys.stderr)
     return 0
 
 
@@ -623,7 +725,7 @@ def cmd_convert(args) -> int:
     from fpe_jax import pipeline
 
     drive = pipeline.convert_log(
-        args.log, args.out, force=args.force, log_options=_drive_options(args)
+        args.log, args.out, force=args.force, log_options=_drive_options(args), warn=_warn(args)
     )
     print(f"wrote {len(drive.t_s)} poses to {args.out}", file=sys.stderr)
     return 0
@@ -730,6 +832,22 @@ def cmd_plot(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from fpe_jax import pipeline
+    from fpe_jax.node import _view
+
+    _view.check_args(args)  # before the slow part
+    with _progress(args) as say:
+        res = pipeline.predict_log(
+            args.log,
+            args.waypoints,
+            **_predictor_options(args),
+            log_options=_drive_options(args),
+            **_run_options(args, say),
+        )
+    return _view.show(args, _view.predicted(res))
+
+
 def _one_line(msg: str) -> str:
     """The message with control characters (a newline in a file name) escaped."""
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in msg)
@@ -778,6 +896,8 @@ LIBRARY_FLAGS = {
     "fmt": "--format",
     "node": "--node",
     "waypoints": "--waypoints",
+    "half-width": "--half-width",
+    "max_gap_s": "--max-tf-gap",
 }
 
 
@@ -788,6 +908,7 @@ def main(argv: list[str] | None = None) -> int:
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _sigterm) if main_thread else None
     previous_hook = sys.unraisablehook
+    previous_int = signal.getsignal(signal.SIGINT) if main_thread else None
     if main_thread:
         sys.unraisablehook = _resend_interrupts
     try:
@@ -803,6 +924,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fpe: error: {_one_line(str(e))}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        _ignore_interrupts(main_thread)
         print("fpe: interrupted", file=sys.stderr)
         return 130
     except OSError as e:
@@ -821,13 +943,27 @@ def main(argv: list[str] | None = None) -> int:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)
             sys.unraisablehook = previous_hook
+            if previous_int is not None:
+                signal.signal(signal.SIGINT, previous_int)
+
+
+def _ignore_interrupts(main_thread: bool) -> None:
+    """After the first Ctrl-C has unwound the command, further ones are ignored while `main`
+    reports it and returns (raised there they would end in a traceback)."""
+    if main_thread:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def entry() -> None:
     """The `fpe` console script: `main`, then the process ends without Python's teardown (the
     destructors of JAX's runtime and of the loaded executables, a pause after every command).
-    Every file a command writes is closed when it returns; the streams are flushed here."""
-    rc = main()
+    Every file a command writes is closed when it returns; the streams are flushed here. A
+    Ctrl-C that lands while `main` is already finishing ends the process quietly with 130."""
+    try:
+        rc = main()
+    except KeyboardInterrupt:
+        rc = 130
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # nothing is left to interrupt
     for stream in (sys.stdout, sys.stderr):
         try:
             if stream is not None:

@@ -30,6 +30,7 @@ from typing import Any
 from fpe_jax.errors import InputError
 from fpe_jax.spec import (
     LINE_KEYS,
+    MAX_HORIZON,
     OPTIONAL_PARAM_KEYS,
     PARAM_KEYS,
     SCHEMA_VERSION,
@@ -171,7 +172,6 @@ def apply_settings(params, settings: dict, source: str | None = None):
         raise InputError(source or ", ".join(settings), str(e), "valid settings") from None
 
 
-MAX_HORIZON = 1000  # steps; longer horizons are not predictions of a car's near future
 SETTING_EXPECTED = {
     "wheelbase_m": "a positive wheelbase in metres",
     "max_steer_rad": "a steering limit in radians, > 0 and < pi/2",

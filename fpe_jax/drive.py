@@ -26,6 +26,9 @@ class Drive:
         truth_yaw_rad: (M,) true yaw [rad] (NaN if unknown), or None.
         truth_v_mps: (M,) true speed [m/s] (NaN if unknown), or None.
         meta: free-form provenance: source path, topics, frames, counts of dropped/reordered rows.
+        t_ns, truth_t_ns: (N,) / (M,) int64 stamps [ns] as read from a file, or None (then only
+            the float seconds exist). `shifted` subtracts the time origin from these integers, so
+            epoch stamps (~1.7e9 s, float64 steps of ~240 ns) lose nothing.
     """
 
     t_s: np.ndarray
@@ -36,6 +39,8 @@ class Drive:
     truth_yaw_rad: np.ndarray | None = None
     truth_v_mps: np.ndarray | None = None
     meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+    t_ns: np.ndarray | None = None
+    truth_t_ns: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.t_s)
@@ -50,6 +55,9 @@ class Drive:
             m = len(self.truth_t_s)
             if self.truth_xy_m is None or self.truth_xy_m.shape != (m, 2):
                 raise ValueError("Drive: truth_xy_m must have shape (M, 2) matching truth_t_s")
+        for ns, t in ((self.t_ns, self.t_s), (self.truth_t_ns, self.truth_t_s)):
+            if ns is not None and (t is None or np.shape(ns) != np.shape(t)):
+                raise ValueError("Drive: t_ns / truth_t_ns must match t_s / truth_t_s")
 
     @property
     def has_truth(self) -> bool:
@@ -65,9 +73,11 @@ class Drive:
         kw: dict[str, Any] = dict(
             t_s=self.t_s[keep], xy_m=self.xy_m[keep], yaw_rad=self.yaw_rad[keep]
         )
+        kw["t_ns"] = None if self.t_ns is None else self.t_ns[keep]
         if self.has_truth:
             tk = (self.truth_t_s >= t0_s) & (self.truth_t_s < t1_s)
             kw.update(
+                truth_t_ns=None if self.truth_t_ns is None else self.truth_t_ns[tk],
                 truth_t_s=self.truth_t_s[tk],
                 truth_xy_m=self.truth_xy_m[tk],
                 truth_yaw_rad=None if self.truth_yaw_rad is None else self.truth_yaw_rad[tk],
@@ -75,30 +85,56 @@ class Drive:
             )
         return Drive(**kw, meta=dict(self.meta, time_range_s=(t0_s, t1_s)))
 
-    def shifted(self, t0_s: float, origin_xy_m) -> Drive:
+    def shifted(self, t0_s: float, origin_xy_m, t0_ns: int | None = None) -> Drive:
         """The same drive with `t0_s` [s] subtracted from every stamp and `origin_xy_m` (2,) [m]
         from every position (in float64), so epoch stamps and UTM-sized coordinates become small
-        numbers before anything is cast to float32."""
+        numbers before anything is cast to float32.
+
+        With `t0_ns` [ns] (the same origin as an integer) the stamps of a drive that has integer
+        stamps (t_ns) are shifted as integers first and become seconds after: exact, where
+        float64 seconds of epoch stamps are already rounded to ~240 ns."""
+
+        def shift(t_s, ns):
+            if ns is not None and t0_ns is not None:
+                return seconds_from_ns(np.asarray(ns, dtype=np.int64) - np.int64(t0_ns))
+            return np.asarray(t_s, dtype=np.float64) - t0_s
+
+        def minus(ns):
+            return None if ns is None or t0_ns is None else np.asarray(ns) - np.int64(t0_ns)
+
         o = np.asarray(origin_xy_m, dtype=np.float64)
         kw: dict[str, Any] = dict(
-            t_s=np.asarray(self.t_s, dtype=np.float64) - t0_s,
+            t_s=shift(self.t_s, self.t_ns),
+            t_ns=minus(self.t_ns),
             xy_m=np.asarray(self.xy_m, dtype=np.float64) - o,
             yaw_rad=self.yaw_rad,
         )
         if self.truth_t_s is not None:
             kw.update(
-                truth_t_s=np.asarray(self.truth_t_s, dtype=np.float64) - t0_s,
+                truth_t_s=shift(self.truth_t_s, self.truth_t_ns),
+                truth_t_ns=minus(self.truth_t_ns),
                 truth_xy_m=np.asarray(self.truth_xy_m, dtype=np.float64) - o,
                 truth_yaw_rad=self.truth_yaw_rad,
                 truth_v_mps=self.truth_v_mps,
             )
-        return Drive(**kw, meta=dict(self.meta, origin_t_s=t0_s, origin_xy_m=o.tolist()))
+        meta = dict(self.meta, origin_t_s=t0_s, origin_xy_m=o.tolist())
+        if t0_ns is not None:
+            meta["origin_t_ns"] = int(t0_ns)
+        return Drive(**kw, meta=meta)
+
+
+def seconds_from_ns(ns) -> np.ndarray:
+    """(N,) int64 [ns] -> (N,) float64 [s], rounding only once (in the final addition)."""
+    ns = np.asarray(ns, dtype=np.int64)
+    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
 def local_frame(drive: Drive, waypoints_xy_m) -> tuple[Drive, np.ndarray, float, np.ndarray]:
-    """(drive, waypoints (K, 2) [m]) in a local frame: time from the drive's first stamp, positions
-    from `map_origin(waypoints)`. Returns (drive, waypoints, t0_s, origin_xy_m (2,))."""
+    """(drive, waypoints (K, 2) [m]) in a local frame: time from the drive's first stamp (as
+    integer nanoseconds where the drive has them), positions from `map_origin(waypoints)`.
+    Returns (drive, waypoints, t0_s, origin_xy_m (2,))."""
     origin = map_origin(waypoints_xy_m)
     t0 = float(drive.t_s[0]) if len(drive.t_s) else 0.0
+    t0_ns = int(drive.t_ns[0]) if drive.t_ns is not None and len(drive.t_ns) else None
     wp = np.asarray(waypoints_xy_m, dtype=np.float64) - origin
-    return drive.shifted(t0, origin), wp, t0, origin
+    return drive.shifted(t0, origin, t0_ns), wp, t0, origin

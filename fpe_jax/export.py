@@ -13,7 +13,10 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import re
+import secrets
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +25,7 @@ import numpy as np
 from fpe_jax.config import check_waypoints, read_config, write_config
 from fpe_jax.errors import InputError
 from fpe_jax.io.writers import check_output_paths, write_bytes
+from fpe_jax.path import waypoints_sha256
 from fpe_jax.spec import FILTER_DEFAULTS
 
 FORMATS = ("json", "ros2", "stablehlo", "all")
@@ -132,6 +136,7 @@ def to_ros2_yaml(
     node: str = DEFAULT_NODE,
     waypoint_file: str | None = None,
     source: str = "config",
+    waypoints_sha256: str | None = None,
 ) -> str:
     """The config as a ROS 2 parameter file (text): `node:` / `ros__parameters:` / flat names.
 
@@ -140,6 +145,7 @@ def to_ros2_yaml(
         node: the node's name (may carry a namespace, `/ns/node`; `/**` matches every node).
         waypoint_file: path written to `waypoint_file` ("" when None: set it on the car).
         source: the config's file name, for the header comment.
+        waypoints_sha256: written when given (`fpe_jax.path.waypoints_sha256` of the waypoints).
     """
     if not re.fullmatch(r"/\*\*|/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*", node):
         raise InputError("node", f"{node!r} is not a ROS 2 node name", "letters, digits, _ and /")
@@ -166,10 +172,75 @@ def to_ros2_yaml(
         value = [float(v) for v in value] if kind is list else kind(value)
         lines += [f"    # {doc}", f"    {name}: {_yaml_scalar(value)}"]
     lines += [
-        "    # waypoint / centerline CSV the track is built from (x, y rows, metres, map frame)",
+        "    # waypoint / centerline CSV the track is built from (x, y rows, metres, map frame);",
+        "    # a relative path is relative to this file's folder",
         f"    waypoint_file: {_yaml_scalar(waypoint_file or '')}",
     ]
+    if waypoints_sha256 is not None:
+        lines += [
+            "    # sha256 of the waypoints (x, y as little-endian float64): `fpe node` checks it",
+            f"    waypoints_sha256: {_yaml_scalar(waypoints_sha256)}",
+        ]
     return "\n".join(lines) + "\n"
+
+
+def read_ros2_params(path) -> tuple[dict[str, Any], Path | None]:
+    """(config dict, waypoint file or None) from a parameter file `to_ros2_yaml` wrote: the
+    first node's `ros__parameters`, a relative waypoint_file taken relative to the file's folder
+    and, where the file holds waypoints_sha256, checked against the waypoints. JAX-free (the
+    values are the JSON-compatible scalars and lists `_yaml_scalar` writes)."""
+    from fpe_jax.path import waypoints_sha256
+    from fpe_jax.runner import load_waypoints_xy
+    from fpe_jax.spec import check_config
+
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise InputError(path, f"cannot be read ({e.strerror})", "a parameter YAML") from None
+    values: dict[str, Any] = {}
+    inside = False
+    for n, line in enumerate(text.splitlines(), 1):
+        body = line.split("#", 1)[0].rstrip() if not line.lstrip().startswith('"') else line
+        if not body.strip():
+            continue
+        if body.strip() == "ros__parameters:":
+            inside = True
+            continue
+        if inside and body.startswith("    "):
+            name, _, value = body.strip().partition(":")
+            try:
+                values[name] = json.loads(value.strip())
+            except json.JSONDecodeError:
+                raise InputError(
+                    path,
+                    f"line {n}: {value.strip()!r} is not a value fpe export writes",
+                    "numbers, quoted strings and [lists]",
+                ) from None
+        elif inside:
+            break
+    if not values:
+        raise InputError(
+            path, "holds no ros__parameters", "a file `fpe export --format ros2` wrote"
+        )
+    sections: dict[str, dict] = {"params": {}, "settings": {}}
+    for name, section, key, _, _ in ROS2_PARAMS + ROS2_LINE_PARAMS:
+        if name in values:
+            sections[section][key] = values[name]
+    cfg = {"schema_version": values.get("schema_version"), **sections, "uncertainty": None}
+    wp = values.get("waypoint_file") or None
+    wp_path = None if wp is None else (path.parent / wp)
+    if wp_path is not None and cfg["settings"].get("model") == "line":
+        cfg["line"] = {"waypoints_sha256": values.get("waypoints_sha256")}
+    cfg = check_config(cfg, str(path))
+    if wp_path is not None and values.get("waypoints_sha256"):
+        if waypoints_sha256(load_waypoints_xy(wp_path)) != values["waypoints_sha256"]:
+            raise InputError(
+                path,
+                f"the waypoints of {wp_path} differ from those it was exported with (sha256)",
+                "the exported waypoint file",
+            )
+    return cfg, wp_path
 
 
 # ---- StableHLO -----------------------------------------------------------------------------------
@@ -426,21 +497,51 @@ def export_config(
         xy = load_waypoints_xy(waypoints)
         check_waypoints(cfg, config_path, xy, waypoints)
     text = None
-    if fmt in ("ros2", "all"):
-        wp_name = None if waypoints is None else str(waypoints)
-        text = to_ros2_yaml(cfg, node=node, waypoint_file=wp_name, source=Path(config_path).name)
     out = Path(out)
-    if fmt == "all":
-        if out.exists() and not out.is_dir():
-            raise InputError(out, "is not a folder", "a folder for config.json, params.yaml, ...")
-        targets = {k: out / name for k, name in ALL_FILES.items()}
-        if not out.exists():
-            check_output_paths([out], force)  # its parent exists and is writable
-            out.mkdir()
-        check_output_paths([*targets.values(), out / (ALL_FILES["stablehlo"] + ".json")], force)
-    else:
-        targets = {fmt: out}
+    if fmt in ("ros2", "all"):
+        # relative to the YAML's folder, so the exported folder can be copied to the car whole
+        yaml_dir = (out if fmt == "all" else out.parent).resolve()
+        wp_name = (
+            None if waypoints is None else os.path.relpath(Path(waypoints).resolve(), yaml_dir)
+        )
+        sha = None if xy is None else waypoints_sha256(xy)
+        text = to_ros2_yaml(
+            cfg,
+            node=node,
+            waypoint_file=wp_name,
+            source=Path(config_path).name,
+            waypoints_sha256=sha,
+        )
+    if fmt != "all":
         check_output_paths([out], force)
+        return _write_formats(cfg, xy, text, {fmt: out}, waypoints, force)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is not a folder", "a folder for config.json, params.yaml, ...")
+    hlo = ALL_FILES["stablehlo"]
+    names = [hlo, hlo + ".json", ALL_FILES["json"], ALL_FILES["ros2"]]  # the order written
+    if out.exists():
+        check_output_paths([out / n for n in names], force)
+    else:
+        check_output_paths([out], force)  # its parent exists and is writable
+    # the set is written whole in a hidden folder beside `out` and moved in only when complete:
+    # a failure (a full disk) leaves no partial or mixed set that a car could deploy
+    stage = out.with_name(f".{out.name[:64]}.{os.getpid()}.{secrets.token_hex(4)}.part")
+    stage.mkdir()
+    try:
+        targets = {k: stage / name for k, name in ALL_FILES.items()}
+        _write_formats(cfg, xy, text, targets, waypoints, force=False)
+        if not out.exists():
+            stage.rename(out)
+        else:  # other files of the user's folder stay; each of ours is replaced by a rename
+            for n in names:
+                os.replace(stage / n, out / n)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return [out / n for n in names]
+
+
+def _write_formats(cfg, xy, text, targets: dict, waypoints, force: bool) -> list[Path]:
+    """Write each format of `targets` (format -> path) for `export_config`: the paths written."""
     written = []
     if "stablehlo" in targets:  # first: the slowest, and the only one that can fail late
         written += export_stablehlo(

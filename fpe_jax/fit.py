@@ -693,13 +693,24 @@ def _candidates(
         if p0.settings.model != "blend":  # a line config lends only its car and grid
             car = {k: getattr(p0.settings, k) for k in USER_SETTINGS}
             p0 = with_settings(presets["default"], **car)
-        if p0 is not init and "speed" not in (free or MODEL_FIT["blend"][1]):
-            # the preset's shrinkage toward 2 m/s would stay: drive at the measured speed
+        if (p0 is not init or _preset_speed(p0)) and "speed" not in (free or MODEL_FIT["blend"][1]):
+            # the preset's shrinkage toward 2 m/s would stay: drive at the measured speed (also
+            # from an `init` that only set the car and grid on the preset, as `fpe fit` passes)
             p0 = dataclasses.replace(p0, speed_weight=jnp.ones_like(p0.speed_weight))
         for mode in BLEND_CHOICES if blend == "auto" else (blend,):
             p = dataclasses.replace(p0, settings=dataclasses.replace(p0.settings, blend=mode))
             out[mode] = (p, free or MODEL_FIT["blend"][1])
     return out, line_info
+
+
+def _preset_speed(params: Params) -> bool:
+    """Whether params shrink the speed exactly as the "default" preset does (speed_weight and
+    speed_mps its values): a start nobody fitted, whose memorised 2 m/s is no one's choice."""
+    d = presets["default"]
+    return all(
+        np.array_equal(np.asarray(getattr(params, k)), np.asarray(getattr(d, k)))
+        for k in ("speed_weight", "speed_mps")
+    )
 
 
 def allowed_groups(settings: Settings) -> tuple[str, ...]:

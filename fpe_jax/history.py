@@ -12,6 +12,18 @@ from fpe_jax.drive import Drive
 MIN_PAIR_DT_S = 0.05  # pairs closer in time than this give slopes dominated by noise
 MAX_SPAN_S = 1.0  # older observations describe a different motion
 OUTLIER_M = 0.6  # newest observation farther than this from the robust line is an outlier
+# A prediction is valid (published by `fpe node`, `valid` = 1 in `fpe predict` / `fpe run`) once
+# its history window holds at least MIN_VALID_OBS distinct observations spanning at least
+# MIN_VALID_SPAN_S: from fewer the speed and heading are guesses (the first prediction of a drive
+# is a stopped car whose heading swings).
+MIN_VALID_OBS = 3
+MIN_VALID_SPAN_S = 0.2
+
+
+def history_valid(n_obs, span_s):
+    """Whether predictions from windows of `n_obs` distinct observations spanning `span_s` [s]
+    are valid (scalars or arrays alike): the one rule of every front end."""
+    return (n_obs >= MIN_VALID_OBS) & (span_s >= MIN_VALID_SPAN_S - 1e-9)
 
 
 def distinct_mask(xy_m: np.ndarray) -> np.ndarray:
@@ -45,3 +57,12 @@ def history_windows(drive: Drive, n_hist: int, rows: slice | None = None) -> dic
         "valid": valid,
         "t_now_s": drive.t_s[k],
     }
+
+
+def drive_valid(drive: Drive, n_hist: int) -> np.ndarray:
+    """(N,) bool: `history_valid` of the prediction from each observation of the drive, with the
+    window of `n_hist` distinct observations the estimators read."""
+    w = history_windows(drive, n_hist)
+    n = w["valid"].sum(axis=1)
+    oldest = np.where(w["valid"], w["t_s"], np.inf).min(axis=1)
+    return history_valid(n, w["t_s"][:, -1] - oldest)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import bisect
 import hashlib
+import math
 
 import numpy as np
 
@@ -256,19 +257,159 @@ def nearest_vertex(points_m, vertices_m, radius_m: float) -> tuple[np.ndarray, n
     return best_i, np.sqrt(best_d2)
 
 
-# A drive on its own track: its observations lie within ON_TRACK_M of the waypoints' line
-# (race tracks are 1-2 m wide each side, and a raceline, detection noise and the odd outlier add
-# to that), and where it moves it goes the way the waypoints run.
+# A drive on its own track: its observations lie near the waypoints' line, and where it moves it
+# goes the way the waypoints run. "Near" scales with the track: 1:10 tracks are 1-2 m wide each
+# side (a raceline, detection noise and the odd outlier add to that: ON_TRACK_M), full-size ones
+# 6-8 m, where a racing line runs 3-6 m from the centre line. A track's width grows with its size
+# (about 1 % of its extent on full-size circuits and speedways), so the bound is the larger of
+# ON_TRACK_M and ON_TRACK_EXTENT times the path's extent (its bounding box's diagonal): 3 m on
+# every 1:10 track, 10-20 m on a circuit or speedway 1-2 km across, still far below the offset of
+# another map frame or another track.
 ON_TRACK_M = 3.0
+ON_TRACK_EXTENT = 0.01
 MIN_ON_TRACK_SHARE = 0.8  # of the observations, within ON_TRACK_M
 MIN_ALONG_SHARE = 0.5  # of the moves, starting near the waypoints and going their way
 _MOVE_M = 2.0  # direction of motion judged over about this distance driven
 _MAX_CHECKED = 200_000  # observations sampled for the share (its error is then < 0.3 %)
 
 
-def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON_TRACK_M) -> dict:
+def on_track_m(path_xy_m) -> float:
+    """The distance [m] within which an observation counts as on the path (M, 2) [m]: the larger
+    of ON_TRACK_M and ON_TRACK_EXTENT times the path's extent (its bounding box's diagonal)."""
+    xy = np.asarray(path_xy_m, dtype=np.float64).reshape(-1, 2)
+    xy = xy[np.all(np.isfinite(xy), axis=1)]
+    extent = float(np.hypot(*np.ptp(xy, axis=0))) if len(xy) else 0.0
+    return max(ON_TRACK_M, ON_TRACK_EXTENT * extent)
+
+
+# Where a track crosses itself (a figure-eight) two branches are equally near the car: a global
+# projection with a known heading takes the nearest segment whose direction lies within
+# BRANCH_MAX_ANGLE of it, if that lies within BRANCH_M of the car; else the nearest of all (a
+# car far off the track, or driving against it). Where the nearest agrees (everywhere but at
+# crossings and hairpin mix-ups) the result is the nearest, exactly. The heading counts as
+# known when the car's yaw is observed, or its measured speed is at least MIN_HEADING_SPEED_MPS.
+BRANCH_MAX_ANGLE_RAD = math.pi / 4
+BRANCH_COS = math.cos(BRANCH_MAX_ANGLE_RAD)
+BRANCH_M = 2.0
+MIN_HEADING_SPEED_MPS = 0.5
+
+ALLOW_HINT = "pass --allow-off-track to use them anyway"
+
+
+def _vertex_stride(xy_m: np.ndarray) -> int:
+    """Every how many points of a resampled path (M, 2) [m] a vertex is kept so that the
+    nearest-vertex distance is within 0.15 m of the distance to the path's line."""
+    spacing = float(np.median(np.hypot(*np.diff(xy_m, axis=0).T))) if len(xy_m) > 1 else 1.0
+    return max(1, int(0.3 / max(spacing, 1e-9)))
+
+
+def near_path(
+    points_xy_m, path_xy_m, near_m: float | None = None, max_cells: int = 1 << 21
+) -> np.ndarray:
+    """(P,) bool: whether each point (P, 2) [m] lies within `near_m` [m] of a resampled path
+    (M, 2) [m] (judged to 0.15 m: a vertex every ~0.3 m). The rule of the on-track checks.
+
+    Many points are judged on a raster of at most `max_cells` cells over the path: a cell whose
+    centre lies within near_m minus its half-diagonal of a vertex is near for every point in it,
+    one beyond near_m plus that is far; only the points of the cells between are searched
+    (the same answers as searching every point, at O(1) per point).
+    """
+    xy = np.asarray(path_xy_m, dtype=np.float64)
+    pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    near_m = on_track_m(xy) if near_m is None else float(near_m)
+    fine = xy[:: _vertex_stride(xy)]
+    lo = fine.min(axis=0) - near_m - 1.0
+    span = fine.max(axis=0) + near_m + 1.0 - lo
+    cell = max(near_m / 8, float(np.sqrt(span[0] * span[1] / max_cells)))
+    shape = np.ceil(span / cell).astype(np.int64)
+    if len(pts) <= shape[0] * shape[1] or cell >= near_m:  # few points: search each
+        idx, _ = nearest_vertex(pts, fine, near_m)
+        return idx >= 0
+    half_diag = cell * math.sqrt(0.5)
+    ij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1)
+    _, d = nearest_vertex(lo + (ij.reshape(-1, 2) + 0.5) * cell, fine, near_m + half_diag)
+    state = np.where(d <= near_m - half_diag, 1, np.where(np.isfinite(d), 2, 0)).astype(np.int8)
+    at = np.floor((pts - lo) / cell).astype(np.int64)
+    inside = np.all((at >= 0) & (at < shape), axis=1)  # outside: farther than near_m from all
+    judged = np.zeros(len(pts), dtype=np.int8)
+    judged[inside] = state.reshape(shape)[at[inside, 0], at[inside, 1]]
+    near = judged == 1
+    unsure = np.flatnonzero(judged == 2)
+    if len(unsure):
+        idx, _ = nearest_vertex(pts[unsure], fine, near_m)
+        near[unsure] = idx >= 0
+    return near
+
+
+def profile_values(values, s_m, length_m: float, closed: bool) -> np.ndarray:
+    """A line profile (P,) at arc lengths s (N,) [m], linear between its P evenly spread points
+    (NumPy twin of `fpe_jax.rollout.profile_at`: on a loop point i sits at s = i L / P and the
+    profile wraps; on an open path at s = i L / (P - 1), held beyond the ends)."""
+    v = np.asarray(values, dtype=np.float64)
+    p, s = len(v), np.asarray(s_m, dtype=np.float64)
+    if closed:
+        u = s * (p / length_m)
+        u_floor = np.floor(u)
+        i = u_floor.astype(np.int64) % p
+        j, f = (i + 1) % p, u - u_floor
+    else:
+        u = np.clip(s / length_m, 0.0, 1.0) * (p - 1)
+        i = np.clip(np.floor(u).astype(np.int64), 0, p - 2)
+        j, f = i + 1, u - i
+    return v[i] + f * (v[j] - v[i])
+
+
+def off_track(
+    points_xy_m, path: dict, line_offset_m=None, near_m: float | None = None
+) -> np.ndarray:
+    """(P,) bool: points (P, 2) [m] farther than `near_m` [m] from the path (`build_path`'s dict,
+    or any with xy_m, heading_rad, ds_m, length_m, closed) and, given a learned line's offset
+    profile (P_line,) [m, left positive], from that line too (`near_path`'s rule; near_m
+    defaults to `on_track_m` of the path)."""
+    if near_m is None:
+        near_m = on_track_m(path["xy_m"])
+    off = ~near_path(points_xy_m, path["xy_m"], near_m)
+    if line_offset_m is not None and off.any():
+        xy, h = np.asarray(path["xy_m"]), np.asarray(path["heading_rad"])
+        d = profile_values(
+            line_offset_m,
+            np.arange(len(xy)) * float(path["ds_m"]),
+            float(path["length_m"]),
+            bool(path["closed"]),
+        )
+        line = xy + d[:, None] * np.stack([-np.sin(h), np.cos(h)], axis=1)
+        rows = np.flatnonzero(off)
+        off[rows] = ~near_path(np.asarray(points_xy_m).reshape(-1, 2)[rows], line, near_m)
+    return off
+
+
+def check_share_near(
+    share_near: float,
+    drive_to_path_m: float,
+    *,
+    source: str,
+    drive: str,
+    near_m: float,
+    hint: str = ALLOW_HINT,
+) -> None:
+    """InputError (naming the waypoints `source` and the `drive`) when less than
+    MIN_ON_TRACK_SHARE of a drive's observations lie within near_m [m] of the waypoints."""
+    if share_near < MIN_ON_TRACK_SHARE:
+        raise InputError(
+            source,
+            f"only {share_near:.0%} of the observations of {drive} lie within "
+            f"{near_m:.3g} m of these waypoints (the drive's centre is "
+            f"{drive_to_path_m:.0f} m from theirs): likely the wrong waypoints file or a "
+            f"different map frame; {hint}",
+            f"at least {MIN_ON_TRACK_SHARE:.0%}",
+        )
+
+
+def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float | None = None) -> dict:
     """How well a drive's observations (N, 2) [m] sit on a resampled path (M, 2) [m] with its
     headings (M,) [rad] (`build_path`'s, or a Track's, in the same frame).
+
+    near_m: the distance [m] that counts as near (default `on_track_m` of the path).
 
     Returns dict: share_near (share of observations within `near_m` of the path), share_along
     (of the drive's moves of about 2 m, the share that start near the path and go its way; NaN
@@ -280,13 +421,13 @@ def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON
     obs = obs[np.all(np.isfinite(obs), axis=1)]
     xy = np.asarray(path_xy_m, dtype=np.float64)
     heading = np.asarray(path_heading_rad, dtype=np.float64)
-    # every few points of the path: a nearest-vertex distance within 0.15 m of the true one
-    spacing = float(np.median(np.hypot(*np.diff(xy, axis=0).T))) if len(xy) > 1 else 1.0
-    k = max(1, int(0.3 / max(spacing, 1e-9)))
-    xy, heading = xy[::k], heading[::k]
+    near_m = on_track_m(xy) if near_m is None else float(near_m)
     stride = max(1, len(obs) // _MAX_CHECKED)
-    idx, _ = nearest_vertex(obs[::stride], xy, near_m)
-    share_near = float(np.mean(idx >= 0)) if len(idx) else 1.0
+    near = near_path(obs[::stride], xy, near_m)
+    share_near = float(np.mean(near)) if len(near) else 1.0
+    # every few points of the path: a nearest-vertex distance within 0.15 m of the true one
+    k = _vertex_stride(xy)
+    xy, heading = xy[::k], heading[::k]
     # moves: the drive cut where its travelled distance passes each whole metre (repeated
     # detections and jitter add nothing), each judged against the path at its start
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(obs, axis=0).T))])
@@ -307,6 +448,7 @@ def track_agreement(obs_xy_m, path_xy_m, path_heading_rad, *, near_m: float = ON
         share_backward=float(np.sum(forward < 0) / n),
         n_moves=len(step),
         drive_to_path_m=gap,
+        near_m=near_m,
     )
 
 
@@ -318,16 +460,10 @@ def check_on_track(
     a = track_agreement(obs_xy_m, path_xy_m, path_heading_rad)
     if allow:
         return a
-    hint = "pass --allow-off-track to use them anyway"
-    if a["share_near"] < MIN_ON_TRACK_SHARE:
-        raise InputError(
-            source,
-            f"only {a['share_near']:.0%} of the observations of {drive} lie within "
-            f"{ON_TRACK_M:g} m of these waypoints (the drive's centre is "
-            f"{a['drive_to_path_m']:.0f} m from theirs): likely the wrong waypoints file or a "
-            f"different map frame; {hint}",
-            f"at least {MIN_ON_TRACK_SHARE:.0%}",
-        )
+    hint = ALLOW_HINT
+    check_share_near(
+        a["share_near"], a["drive_to_path_m"], source=source, drive=drive, near_m=a["near_m"]
+    )
     if a["share_along"] < MIN_ALONG_SHARE:  # NaN (a car that never moved) passes
         cause = (
             "likely waypoints in the reverse direction"

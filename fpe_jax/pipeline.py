@@ -8,7 +8,8 @@ out, nothing printed.
 Each function reads its inputs once, moves the drive and waypoints into their local frame
 (`local_log`: epoch stamps and UTM-sized coordinates removed in float64 before float32 sees them),
 checks that the drive follows the waypoints, runs the library, and returns a small result
-object. `progress(msg)` is told each slow phase (the CLI shows it on stderr). JAX is imported on
+object. `progress(msg)` is told each slow phase (the CLI shows it on stderr), `warn(msg)` what
+the user should know about the result (detections dropped, cars off the track). JAX is imported on
 first use, in float64 unless a function says otherwise, with the compilation cache unless
 `cache=False` (`start_jax`).
 """
@@ -104,15 +105,24 @@ def load_predictor(
     return Predictor(params, wp, source, cfg, name)
 
 
-def load_log(log, log_options: dict | None = None):
-    """A `Drive` from a log path (`io.load_drive` with log_options), or the Drive given."""
+def load_log(log, log_options: dict | None = None, warn: Progress = _silent):
+    """A `Drive` from a log path (`io.load_drive` with log_options; `warn` is told of the
+    detections `drop_outside_tf` dropped), or the Drive given."""
     from fpe_jax.drive import Drive
 
     if isinstance(log, Drive):
         return log
     from fpe_jax import io
 
-    return io.load_drive(log, **(log_options or {}))
+    drive = io.load_drive(log, **(log_options or {}))
+    if note := io.dropped_note(drive):
+        warn(note)
+    return drive
+
+
+def _paths(*given) -> tuple:
+    """The file paths among a function's inputs (arrays and Drives are no files)."""
+    return tuple(g for g in given if isinstance(g, str | Path))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -168,14 +178,15 @@ def _log_name(log, what: str = "the drive") -> str:
     return str(log) if isinstance(log, str | Path) else what
 
 
-def _check_out(out, force: bool, suffixes, expected: str, problem=None) -> Path | None:
-    """Refuse a bad output path before the slow part (None when there is none); `problem`
-    (of the path) says what is wrong with its suffix."""
+def _check_out(out, force: bool, suffixes, expected: str, problem=None, inputs=()) -> Path | None:
+    """Refuse a bad output path before the slow part (None when there is none), one of the
+    `inputs` included whatever `force` says; `problem` (of the path) says what is wrong with its
+    suffix."""
     if out is None:
         return None
     from fpe_jax import io
 
-    path = io.check_output_path(out, force)
+    path = io.check_output_path(out, force, _paths(*inputs))
     if path.suffix.lower() not in suffixes:
         raise InputError(out, (problem or (lambda p: "unknown output format"))(path), expected)
     return path
@@ -191,6 +202,7 @@ class Predictions:
         cov_m2: (N, H, 2, 2) map-frame covariance [m^2] when the config has an uncertainty.
         dt_s: the prediction step [s].
         predictor: what predicted; drive: the drive as read (map frame).
+        track_closed: whether the waypoints form a loop.
     """
 
     stamps_s: np.ndarray
@@ -199,6 +211,7 @@ class Predictions:
     dt_s: float
     predictor: Predictor
     drive: Any
+    track_closed: bool = False
 
 
 def predict_log(
@@ -214,17 +227,19 @@ def predict_log(
     allow_off_track: bool = False,
     cache: bool = True,
     progress: Progress = _silent,
+    warn: Progress = _silent,
 ) -> Predictions:
     """Predict from every observation of a drive log (`fpe predict`); with `out` (.csv or .mcap)
     also write them (`io.write_predictions`), refusing an existing file unless force."""
-    _check_out(out, force, (".csv", ".mcap"), ".csv or .mcap")
+    _check_out(out, force, (".csv", ".mcap"), ".csv or .mcap", inputs=(log, waypoints, config))
     start_jax(progress, cache=cache)
     from fpe_jax.evaluate import covariance_map, path_heading, prediction_covariance
+    from fpe_jax.history import drive_valid
     from fpe_jax.predict import predict_rows, states_from_drive
 
     progress("reading the drive and waypoints")
     pred = load_predictor(waypoints, preset=preset, config=config, settings=settings)
-    drive = load_log(log, log_options)
+    drive = load_log(log, log_options, warn)
     loc = local_log(
         drive,
         pred.waypoints_xy_m,
@@ -244,12 +259,90 @@ def predict_log(
     poses = np.array(poses.packed(), dtype=np.float64)  # a writable copy
     poses[..., :2] += loc.origin_xy_m
     dt_s = params.settings.dt_s
+    closed = bool(loc.track.closed)
     if out is not None:
         from fpe_jax import io
 
         progress(f"writing {out}")
-        io.write_predictions(out, stamps_s, poses, dt_s, drive=drive, cov_m2=cov, force=force)
-    return Predictions(stamps_s, poses, cov, dt_s, pred, drive)
+        io.write_predictions(
+            out,
+            stamps_s,
+            poses,
+            dt_s,
+            drive=drive,
+            cov_m2=cov,
+            valid=drive_valid(loc.drive, params.settings.history),
+            track_xy_m=pred.waypoints_xy_m,
+            track_closed=closed,
+            force=force,
+        )
+    return Predictions(stamps_s, poses, cov, dt_s, pred, drive, closed)
+
+
+@dataclasses.dataclass(frozen=True)
+class AdaptivePredictions:
+    """`predict_log_adaptive`'s result.
+
+    Attributes:
+        stamps_s: (N,) the observations' stamps [s]; poses_m: (N, H, 3) predicted x [m], y [m]
+        (map frame), yaw [rad]; dt_s: the prediction step [s].
+        runner: the `adapt.AdaptiveRunner` after the drive (what it learned: `state_config`).
+        drive: the drive as read.
+    """
+
+    stamps_s: np.ndarray
+    poses_m: np.ndarray
+    dt_s: float
+    runner: Any
+    drive: Any
+
+
+def predict_log_adaptive(
+    log,
+    waypoints,
+    *,
+    config=None,
+    settings: dict | None = None,
+    delay_s: float | None = None,
+    out=None,
+    save_state=None,
+    force: bool = False,
+    log_options: dict | None = None,
+    allow_off_track: bool = False,
+    warn: Progress = _silent,
+) -> AdaptivePredictions:
+    """`fpe predict --adapt`: the learning runner (`adapt.AdaptiveRunner`, no JAX) over every
+    observation of a drive log in stream order, starting from `config` or, without one, from the
+    waypoints alone (with the sensor's `delay_s`). With `out` (.csv or .mcap) the predictions
+    are written, with `save_state` what it learned, as a config."""
+    from fpe_jax import io
+    from fpe_jax.adapt import predict_drive_adaptive
+    from fpe_jax.config import check_waypoints, read_config, write_config
+    from fpe_jax.path import build_path, check_on_track
+
+    inputs = (log, waypoints, config)
+    _check_out(out, force, (".csv", ".mcap"), ".csv or .mcap", inputs=inputs)
+    if save_state is not None:
+        io.check_output_path(save_state, force, _paths(*inputs))
+    wp, source = load_waypoints_xy(waypoints)
+    cfg = None
+    if config is not None:
+        cfg = read_config(config)
+        check_waypoints(cfg, config, wp, source)
+    given = {k: v for k, v in (settings or {}).values() if v is not None}
+    drive = load_log(log, log_options, warn)
+    path = build_path(wp)
+    xy, heading = (np.asarray(path[k]) for k in ("xy_m", "heading_rad"))
+    check_on_track(
+        drive.xy_m, xy, heading, source=source, drive=_log_name(log), allow=allow_off_track
+    )
+    runner, poses = predict_drive_adaptive(drive, wp, cfg, settings=given or None, delay_s=delay_s)
+    if out is not None:
+        io.write_predictions(out, drive.t_s, poses, runner.dt_s, drive=drive, force=force)
+    if save_state is not None:
+        prov = {"drives": [_log_name(log)], "started_from": str(config or "waypoints")}
+        write_config(save_state, runner.state_config(prov), force=force)
+    return AdaptivePredictions(np.asarray(drive.t_s), poses, runner.dt_s, runner, drive)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,6 +365,7 @@ def evaluate_log(
     allow_off_track: bool = False,
     cache: bool = True,
     progress: Progress = _silent,
+    warn: Progress = _silent,
 ) -> Evaluation:
     """Metrics of a preset or config on a drive log (`fpe evaluate`)."""
     start_jax(progress, cache=cache)
@@ -280,7 +374,7 @@ def evaluate_log(
     progress("reading the drive and waypoints")
     pred = load_predictor(waypoints, preset=preset, config=config, settings=settings)
     loc = local_log(
-        load_log(log, log_options),
+        load_log(log, log_options, warn),
         pred.waypoints_xy_m,
         source=pred.waypoints_source,
         name=_log_name(log),
@@ -316,13 +410,15 @@ def plot_log(
     allow_off_track: bool = False,
     cache: bool = True,
     progress: Progress = _silent,
+    warn: Progress = _silent,
 ) -> PlotResult:
     """Draw a drive with one predictor's predictions, whole and zoomed where it misses most
     (`fpe plot`); predicts in the local frame, draws in the map frame."""
     from fpe_jax.plots import FIGURE_SUFFIXES
 
     figure = lambda p: f"unknown figure type {p.suffix!r}"
-    path = _check_out(out, force, FIGURE_SUFFIXES, " or ".join(FIGURE_SUFFIXES), figure)
+    inputs = (log, waypoints, config)
+    path = _check_out(out, force, FIGURE_SUFFIXES, " or ".join(FIGURE_SUFFIXES), figure, inputs)
     start_jax(progress, cache=cache)
     from fpe_jax.evaluate import heldout_predictions
     from fpe_jax.metrics import errors_m, summarize
@@ -330,7 +426,7 @@ def plot_log(
 
     progress("reading the drive and waypoints")
     pred = load_predictor(waypoints, preset=preset, config=config, settings=settings)
-    drive = load_log(log, log_options)
+    drive = load_log(log, log_options, warn)
     source = _log_name(log)
     loc = local_log(
         drive,
@@ -359,11 +455,13 @@ def plot_log(
 @dataclasses.dataclass(frozen=True)
 class CarPredictions:
     """`predict_cars`' result: poses (N, H, 3) x [m], y [m] (map frame), yaw [rad]; the
-    prediction's wall time [s] including compilation."""
+    prediction's wall time [s] including compilation; off_track (N,) bool: the cars far from
+    the track (`batch.off_track_cars`), whose predictions mean nothing."""
 
     poses_m: np.ndarray
     wall_s: float
     predictor: Predictor
+    off_track: np.ndarray
 
 
 def predict_cars(
@@ -379,27 +477,29 @@ def predict_cars(
     force: bool = False,
     cache: bool = True,
     progress: Progress = _silent,
+    warn: Progress = _silent,
     on_chunk: Callable[[int, int], None] | None = None,
 ) -> CarPredictions:
     """Predict many cars at once (`fpe batch`), chunked, in `dtype`.
 
     cars: a CSV (header x,y,yaw,v[,yaw_rate]) or .npy path, or an (N, 4|5) array: x [m], y [m],
     yaw [rad], v [m/s][, yaw rate [rad/s]] in the map frame. out: optional .npy or .csv to write.
-    on_chunk(done, n) is told after each chunk.
+    on_chunk(done, n) is told after each chunk; `warn` of the cars far from the track.
     """
     import time
 
     from fpe_jax import io
 
     if out is not None:
-        path = io.check_output_path(out, force)
+        path = io.check_output_path(out, force, _paths(cars, waypoints, config))
         if path.suffix.lower() not in (".npy", ".csv"):
             raise InputError(path, f"unknown output type {path.suffix!r}", "OUT.npy or OUT.csv")
     spec.check_chunk(chunk)
     # the predictor runs in `dtype` (batch.py pins it); its chunk function is a plain jit
     start_jax(progress, x64=False, cache=cache, executables=False)
-    from fpe_jax.batch import predict_chunked
+    from fpe_jax.batch import off_track_cars, off_track_summary, predict_chunked, with_origin
     from fpe_jax.drive import map_origin
+    from fpe_jax.path import on_track_m
     from fpe_jax.track import Track
 
     progress("reading the cars and waypoints")
@@ -407,22 +507,24 @@ def predict_cars(
     wp = pred.waypoints_xy_m
     origin = map_origin(wp)  # removed in float64 before the (float32) computation
     track = Track.from_waypoints(wp - origin)
-    raw = io.read_cars(cars) if isinstance(cars, str | Path) else cars
-    cars = np.array(raw, dtype=np.float64)
+    source = _log_name(cars, "the cars")
+    if isinstance(cars, str | Path):
+        cars = np.asarray(io.read_cars(cars), dtype=np.float64)  # its own float64 copy
+    else:
+        cars = np.array(cars, dtype=np.float64)  # never the caller's array
     cars[:, :2] -= origin
     progress(f"predicting {len(cars)} cars")
     t0 = time.perf_counter()
     poses = predict_chunked(pred.params, cars, track, dtype=dtype, chunk=chunk, progress=on_chunk)
     wall_s = time.perf_counter() - t0
-    # float32 cannot hold coordinates beyond a kilometre to the millimetre: write float64 then
-    out_dtype = poses.dtype if np.abs(origin).max() <= 1000.0 else np.float64
-    poses = np.array(poses, dtype=np.float64)  # a writable copy
-    poses[..., :2] += origin
-    poses = poses.astype(out_dtype)
+    poses = with_origin(poses, origin)  # float64 where float32 cannot hold map coordinates
+    off = off_track_cars(pred.params, cars[:, :2], track)
+    if warning := off_track_summary(off, source, on_track_m(np.asarray(track.xy_m))):
+        warn(warning)
     if out is not None:
         progress(f"writing {out}")
-        io.write_poses(out, poses, pred.params.settings.dt_s, force=force)
-    return CarPredictions(poses, wall_s, pred)
+        io.write_poses(out, poses, pred.params.settings.dt_s, force=force, off_track=off)
+    return CarPredictions(poses, wall_s, pred, off)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -454,10 +556,10 @@ def _waypoint_provenance(path, entries) -> dict | None:
     return {"file": str(Path(path).resolve()), "sha256": sha.pop()}
 
 
-def _fit_inputs(logs, waypoints, test, out, flags: dict, log_options, progress):
+def _fit_inputs(logs, waypoints, test, out, flags: dict, log_options, progress, warn):
     """(drives, test drives, out, options) of `fit_logs`: entries (drive, waypoints, description)
     read from the logs (or the one recipe .toml they name), the options of the recipe (or the
-    defaults) with the given `flags` on top."""
+    defaults) with the given `flags` on top, and under "inputs" the files read."""
     from fpe_jax.recipe import load_recipe
 
     if len(logs) == 1 and str(logs[0]).endswith(".toml"):
@@ -472,7 +574,7 @@ def _fit_inputs(logs, waypoints, test, out, flags: dict, log_options, progress):
             settings=r.settings,
             waypoints=r.waypoints,
         )
-        return r.drives, r.test_drives, out or r.out, opts | flags
+        return r.drives, r.test_drives, out or r.out, opts | flags | {"inputs": r.inputs}
     if waypoints is None:
         raise InputError("--waypoints", "missing", "a waypoint file for the drives")
     wp, _ = load_waypoints_xy(waypoints)
@@ -481,12 +583,13 @@ def _fit_inputs(logs, waypoints, test, out, flags: dict, log_options, progress):
         entries = []
         for i, log in enumerate(logs, 1):
             progress(f"reading {what} {i}/{len(logs)}: {log}")
-            entries.append((load_log(log, log_options), wp, _log_name(log)))
+            entries.append((load_log(log, log_options, warn), wp, _log_name(log)))
         return entries
 
     drives, tests = read(logs, "drive"), read(test or [], "test drive")
     opts = dict(holdout=0.3, fit=None, blend="auto", model=None, solver=None, settings={})
     opts["estimator"] = None
+    opts["inputs"] = _paths(*logs, *(test or []), waypoints)
     source = str(waypoints) if isinstance(waypoints, str | Path) else None
     return drives, tests, out, opts | {"waypoints": source} | flags
 
@@ -509,6 +612,7 @@ def fit_logs(
     allow_off_track: bool = False,
     cache: bool = True,
     progress: Progress = _silent,
+    warn: Progress = _silent,
 ) -> FitOutcome:
     """Fit the predictor to drive logs and write the tuned config (`fpe fit`).
 
@@ -529,15 +633,16 @@ def fit_logs(
     if out is None and not is_recipe:
         raise InputError("--out", "missing", "CONFIG.json to write")
     if out is not None:
-        io.check_output_path(out, force)
+        io.check_output_path(out, force, _paths(*logs, *(test or ()), waypoints))
     flags = dict(holdout=holdout, blend=blend, model=model, solver=solver, estimator=estimator)
     flags = {k: v for k, v in flags.items() if v is not None}
     progress("reading drives")
-    drives, tests, out, opts = _fit_inputs(logs, waypoints, test, out, flags, log_options, progress)
+    read = (flags, log_options, progress, warn)
+    drives, tests, out, opts = _fit_inputs(logs, waypoints, test, out, *read)
     drives, tests = _local_entries(drives), _local_entries(tests)
     if out is None:
         raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
-    out = io.check_output_path(out, force)
+    out = io.check_output_path(out, force, _paths(*opts["inputs"]))
     start_jax(progress, cache=cache)
     from fpe_jax.config import apply_settings
     from fpe_jax.fit import fit as fit_drives
@@ -593,12 +698,14 @@ def _local_entries(entries):
     return [(*local_frame(d, wp)[:2], desc) for d, wp, desc in entries]
 
 
-def convert_log(log, out, *, force: bool = False, log_options: dict | None = None):
+def convert_log(
+    log, out, *, force: bool = False, log_options: dict | None = None, warn: Progress = _silent
+):
     """Write a drive log's observed poses as CSV t,x,y,yaw (`fpe convert`); returns the Drive."""
     from fpe_jax import io
 
-    _check_out(out, force, (".csv",), ".csv")
-    drive = load_log(log, log_options)
+    _check_out(out, force, (".csv",), ".csv", inputs=(log,))
+    drive = load_log(log, log_options, warn)
     io.write_drive_csv(out, drive, force=force)
     return drive
 
@@ -664,6 +771,7 @@ def simulate_to(
         raise InputError(out, "exists and is not empty; pass --force to write into it")
     if not out.exists():
         io.check_output_path(out, False)  # its parent exists and is writable
+    sim.check_simulation_out(out, (track, raceline))
     res = sim.simulate(
         track,
         duration_s=duration_s,

@@ -16,9 +16,10 @@ from fpe_jax.estimate import estimate_state, track_frame_lines, track_frame_wind
 from fpe_jax.history import history_windows
 from fpe_jax.kalman import kalman_params, kalman_window
 from fpe_jax.params import Params, Settings
+from fpe_jax.path import MIN_HEADING_SPEED_MPS
 from fpe_jax.rollout import estimate_variance, rollout
 from fpe_jax.state import Poses, State
-from fpe_jax.track import Track, arclength_along
+from fpe_jax.track import Track, arclength_along_heading
 
 # Rows per compiled prediction call: a drive of any length runs in blocks of this size (a
 # 10-million-row log asked XLA for one 13.4 GB block before).
@@ -166,7 +167,7 @@ def row_blocks(n: int):
 
 def no_arclength() -> np.ndarray:
     """The start arc length of a drive's first block: NaN, projected globally
-    (`arclength_along`)."""
+    (`arclength_along_heading`)."""
     return np.full((), np.nan, jax.dtypes.canonicalize_dtype(np.float64))
 
 
@@ -208,7 +209,11 @@ def _states_from_windows(windows: dict, track: Track, s_before_m, filter_values:
     states = jax.vmap(estimate_state)(
         windows["t_s"], windows["xy_m"], windows["yaw_rad"], windows["valid"], windows["t_now_s"]
     )
-    s_m = arclength_along(track, jnp.stack([states.x_m, states.y_m], axis=1), s_before_m)
+    # the heading is known where the newest observation has a yaw or the car moves
+    known = jnp.isfinite(windows["yaw_rad"][:, -1]) | (states.v_mps >= MIN_HEADING_SPEED_MPS)
+    heading = jnp.where(known, states.yaw_rad, jnp.nan)
+    xy = jnp.stack([states.x_m, states.y_m], axis=1)
+    s_m = arclength_along_heading(track, xy, heading, s_before_m)
     states = dataclasses.replace(states, s_m=s_m)
     s_win, d_win = jax.vmap(track_frame_window, in_axes=(0, 0, 0, None))(
         windows["xy_m"], windows["valid"], s_m, track

@@ -16,6 +16,7 @@ rate_hz = 10                   # also: pose_topic, truth_topic, waypoints, log_t
 
 [[drives]]
 path = "drives/camera.bag"     # AprilTag detections + TF: also tag_id (0), drop_outside_tf,
+max_tf_gap_s = 0.5             # (the longest TF gap a lookup interpolates across; default per edge)
 tag_to_base = [-0.2, 0.0, 0.2, 3.14159]  # and the tag's mount ("x,y,z,yaw" or 4 numbers)
 
 [[drives]]
@@ -33,7 +34,7 @@ from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 
 DRIVE_KEYS = {"path", "rate_hz", "pose_topic", "truth_topic", "waypoints", "log_time", "simulate"}
-DRIVE_KEYS |= {"tag_id", "tag_to_base", "drop_outside_tf"}
+DRIVE_KEYS |= {"tag_id", "tag_to_base", "drop_outside_tf", "max_tf_gap_s"}
 TOP_KEYS = {"out", "waypoints", "holdout", "fit", "model", "blend", "solver", "drives"}
 TOP_KEYS |= {"test_drives", "settings", "estimator"}
 SETTINGS_KEYS = S.USER_SETTINGS
@@ -83,6 +84,8 @@ def _check_entry(entry, source, field: str) -> None:
             _check(isinstance(entry[key], bool), source, f"{field}.{key}", entry[key], _BOOL)
     if "rate_hz" in entry:
         S.check_rate(entry["rate_hz"], source, f"{field}.rate_hz")
+    if "max_tf_gap_s" in entry:
+        S.check_tf_gap(entry["max_tf_gap_s"], source, f"{field}.max_tf_gap_s")
     if "tag_id" in entry:
         v = entry["tag_id"]
         _check(S.is_int(v) and v >= 0, source, f"{field}.tag_id", v, "an integer >= 0")
@@ -140,6 +143,7 @@ class Recipe:
     estimator: str | None
     settings: dict  # {"[settings] key": (Settings field, value)}, see config.apply_settings
     waypoints: Path | None = None  # the top-level waypoint file (drives may name their own)
+    inputs: list[Path] = dataclasses.field(default_factory=list)  # every file it reads
 
 
 def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
@@ -168,6 +172,7 @@ def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
         tag_id=entry.get("tag_id"),
         tag_to_base=parse_tag_to_base(entry.get("tag_to_base"), f"{source}: tag_to_base"),
         drop_outside_tf=entry.get("drop_outside_tf", False),
+        max_tf_gap_s=entry.get("max_tf_gap_s"),
     )
     return drive, io.load_waypoints(base / wp).xy_m, str(base / entry["path"])
 
@@ -238,4 +243,15 @@ def load_recipe(path) -> Recipe:
         estimator=spec.get("estimator"),
         settings={f"[settings] {k}": (k, v) for k, v in table.items()},
         waypoints=None if wp is None else base / wp,
+        inputs=[path, *_entry_files(spec, base, wp)],
     )
+
+
+def _entry_files(spec: dict, base: Path, default_wp: str | None) -> list[Path]:
+    """The drive and waypoint files the [[drives]] and [[test_drives]] entries read."""
+    files = []
+    for e in [*spec["drives"], *spec.get("test_drives", [])]:
+        for name in (e.get("path"), e.get("waypoints", default_wp) if "path" in e else None):
+            if name is not None:
+                files.append(base / name)
+    return files

@@ -135,7 +135,11 @@ def _rollout_bicycle(params: Params, state: State, track: Track, turn_scale) -> 
     turn_scale[k] ((H+1,), 1 = pure pursuit, 0 = straight)."""
     v, wb = _speed(params, state), params.settings.wheelbase_m
     p0 = jnp.stack([state.x_m, state.y_m])
-    s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
+    s0 = (
+        track.project(p0, state.yaw_rad)
+        if state.s_m is None
+        else track.project_local(p0, state.s_m)
+    )
 
     def step(c, inp):
         x, y, yaw, cos_yaw, sin_yaw, s = c
@@ -260,7 +264,11 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
     by the offset's slope.
     """
     p0 = jnp.stack([state.x_m, state.y_m])
-    s0 = track.project(p0) if state.s_m is None else track.project_local(p0, state.s_m)
+    s0 = (
+        track.project(p0, state.yaw_rad)
+        if state.s_m is None
+        else track.project_local(p0, state.s_m)
+    )
     h0 = track.heading_at(s0)
     c0 = track.point_at(s0)
     d0 = (p0[1] - c0[1]) * jnp.cos(h0) - (p0[0] - c0[0]) * jnp.sin(h0)

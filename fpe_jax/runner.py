@@ -35,8 +35,16 @@ import numpy as np
 
 from fpe_jax.config import LINE_KEYS, check_waypoints, read_config
 from fpe_jax.errors import InputError
-from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M
-from fpe_jax.path import build_path
+from fpe_jax.history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M, history_valid
+from fpe_jax.path import (
+    BRANCH_COS,
+    BRANCH_M,
+    MIN_HEADING_SPEED_MPS,
+    MIN_ON_TRACK_SHARE,
+    build_path,
+    check_share_near,
+    on_track_m,
+)
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported: the runner's modes
 from fpe_jax.spec import FILTER_DEFAULTS, FILTER_KEYS, check_config
 from fpe_jax.spec import MODELS as MODELS
@@ -55,6 +63,16 @@ INIT_POS_SIGMA_M = 0.3  # fpe_jax.kalman's
 INIT_SPEED_SIGMA_MPS = 2.0
 INIT_LAT_RATE_SIGMA_MPS = 0.5
 GATE_SHARPNESS = 4.0
+# The off-track check (`Runner.check_track`): the first this many observations must pass the
+# offline rule (`fpe_jax.path.check_share_near`), and a stream reports an off-track car on
+# stderr at most once per OFF_TRACK_REPORT_S of stamps.
+OFF_TRACK_START_OBS = 10
+OFF_TRACK_REPORT_S = 5.0
+_MIN_ON_AT_START = math.ceil(round(MIN_ON_TRACK_SHARE * OFF_TRACK_START_OBS, 9))
+OFF_TRACK_HINT = (
+    "check the waypoints file and that the observations are in its map frame, or pass "
+    "--allow-off-track to go on with warnings"
+)
 
 _PI = math.pi
 _TWO_PI = 2 * math.pi
@@ -129,6 +147,8 @@ class RunnerPath:
         self._table = rows  # the same (M, 8), for `arrays()`
         self._arrays: _ArrayPath | None = None
         self._heading = p["heading_rad"].tolist()
+        self.xy_m: np.ndarray = xy  # (M, 2) the resampled points [m] and their headings [rad]
+        self.heading_rad: np.ndarray = p["heading_rad"]
         self._all_segments = np.arange(m if self.closed else m - 1)
         n_back = int(np.ceil(WINDOW_BEHIND_M / self.ds_m))
         n_ahead = int(np.ceil(WINDOW_AHEAD_M / self.ds_m))
@@ -182,9 +202,12 @@ class RunnerPath:
             )
         return s
 
-    def _nearest(self, x_m: float, y_m: float, idx: np.ndarray, contiguous: bool) -> float:
+    def _nearest(
+        self, x_m: float, y_m: float, idx: np.ndarray, contiguous: bool, heading_rad=None
+    ) -> float:
         """Arc length [m] of the closest point to (x, y) on the segments starting at idx (n,);
-        `contiguous` (idx = lo, lo + 1, ...) reads them as a view instead of gathering."""
+        `contiguous` (idx = lo, lo + 1, ...) reads them as a view instead of gathering. With a
+        heading [rad], the branch rule of `fpe_jax.path.BRANCH_COS` (Track._project_segments)."""
         lo = int(idx[0])
         seg = self._seg[:, lo : lo + len(idx)] if contiguous else self._seg.take(idx, axis=1)
         ax, ay, abx, aby, ab2 = seg
@@ -193,12 +216,29 @@ class RunnerPath:
         np.minimum(t, 1.0, out=t)
         dx = ax + t * abx - x_m
         dy = ay + t * aby - y_m
-        k = int(np.argmin(dx * dx + dy * dy))  # the first minimum, as jnp.argmin
+        d2 = dx * dx + dy * dy
+        k = int(np.argmin(d2))  # the first minimum, as jnp.argmin
+        if heading_rad is not None:
+            tangent = self._table[idx, 4:6]
+            agree = tangent @ np.array([math.cos(heading_rad), math.sin(heading_rad)])
+            d2_agree = np.where(agree >= BRANCH_COS, d2, np.inf)
+            ka = int(np.argmin(d2_agree))
+            if d2_agree[ka] <= BRANCH_M * BRANCH_M:
+                k = ka
         return (int(idx[k]) + float(t[k])) * self.ds_m
 
-    def project(self, x_m: float, y_m: float) -> float:
-        """Arc length [m] of the closest point of the whole track (global search)."""
-        return self._nearest(x_m, y_m, self._all_segments, True)
+    def project(self, x_m: float, y_m: float, heading_rad: float | None = None) -> float:
+        """Arc length [m] of the closest point of the whole track (global search); given the
+        car's heading [rad], of the branch that agrees with it (`fpe_jax.path.BRANCH_COS`)."""
+        return self._nearest(x_m, y_m, self._all_segments, True, heading_rad)
+
+    def continuous(self, s_m: float, s_ref_m: float) -> float:
+        """s [m] moved by whole laps to within half a lap of s_ref [m] on a loop (as is on an
+        open path): Track.project_window's seam rule."""
+        if not self.closed:
+            return s_m
+        half = 0.5 * self.length_m
+        return s_ref_m + ((s_m - s_ref_m + half) % self.length_m - half)
 
     def project_window(self, x_m: float, y_m: float, s_hint_m: float) -> float:
         """Arc length [m] of the closest point within [s_hint - 2 m, s_hint + 4 m], continuous
@@ -270,8 +310,12 @@ class Runner:
         self._wheelbase_m = float(st["wheelbase_m"])
         self._max_steer_rad = float(st["max_steer_rad"])
         self.path = RunnerPath(waypoints_xy_m, source="waypoints")
+        self.on_track_m = on_track_m(self.path.xy_m)  # the offline checks' distance [m]
         self._set_params(p)
         self._history = deque(maxlen=int(st["history"]))  # distinct (t, x, y, yaw), oldest first
+        self.waypoints_source = "waypoints"  # names the waypoints in the off-track error
+        self.allow_off_track = False  # True: the start check only warns (--allow-off-track)
+        self._reset_track_check()
         self.reset()
 
     def _set_params(self, p: dict) -> None:
@@ -300,6 +344,7 @@ class Runner:
         new = copy.copy(self)
         new._set_params(params)
         new._history = deque(maxlen=self._history.maxlen)
+        new._reset_track_check()
         new.reset()
         return new
 
@@ -309,15 +354,89 @@ class Runner:
         cfg = read_config(config_path)
         xy = load_waypoints_xy(waypoints_path)
         check_waypoints(cfg, config_path, xy, waypoints_path)
-        return cls(cfg, xy, source=str(config_path))
+        runner = cls(cfg, xy, source=str(config_path))
+        runner.waypoints_source = str(waypoints_path)
+        return runner
 
     def reset(self) -> None:
         """Forget the history and the track position (a new drive starts)."""
         self._history.clear()
+        self.valid = False  # whether the last prediction had enough history (history_valid)
         self._last_stamp_s: float | None = None
         self._last_xy: tuple[float, float] | None = None
         self._s_m: float | None = None
+        self._settled = False  # whether the track position was found with a known heading
         self._motion: tuple[float, ...] | None = None
+
+    def _reset_track_check(self) -> None:
+        self._check_s_m: float | None = None  # the off-track check's own track position
+        self._start: list[tuple[bool, float, float]] = []  # the first observations: on, x, y
+
+    def track_distance(self, x_m: float, y_m: float) -> float:
+        """Distance [m] of a position from the track's line, or from the learned line where
+        that is nearer (line model). Its own windowed projection (the whole track again when
+        far), so it costs one window search per call and leaves the predictions untouched."""
+        path, x, y = self.path, float(x_m), float(y_m)
+        s = (
+            path.project(x, y)
+            if self._check_s_m is None
+            else path.project_window(x, y, self._check_s_m)
+        )
+        dist = self._off_line_m(x, y, s)
+        if (
+            dist > self.on_track_m and self._check_s_m is not None
+        ):  # lost the car: search everywhere
+            s = path.project(x, y)
+            dist = self._off_line_m(x, y, s)
+        self._check_s_m = s
+        return dist
+
+    def _off_line_m(self, x: float, y: float, s_m: float) -> float:
+        path = self.path
+        cx, cy = path.point_at(s_m)
+        dist = math.hypot(x - cx, y - cy)
+        if self._line is not None:
+            h = path.heading_at(s_m)
+            d = (y - cy) * math.cos(h) - (x - cx) * math.sin(h)
+            dist = min(dist, abs(d - self._profile_at(self._line[0], s_m)))
+        return dist
+
+    def check_track(self, x_m: float, y_m: float) -> str | None:
+        """The off-track check of one observation (call it for each, alongside `update`).
+
+        Returns None when the position lies within `on_track_m` (`fpe_jax.path.on_track_m`: the
+        offline checks' distance) of the track's line (or of the learned line), else a one-line
+        warning with the distance.
+
+        Raises:
+            InputError naming the waypoints when, of the first OFF_TRACK_START_OBS observations,
+            fewer than MIN_ON_TRACK_SHARE lie on the track: the offline check's rule
+            (`fpe_jax.path.check_share_near`), which catches a waypoint file in another map frame;
+            not with `allow_off_track` set.
+        """
+        dist = self.track_distance(x_m, y_m)
+        on = dist <= self.on_track_m
+        start = self._start
+        if len(start) < OFF_TRACK_START_OBS and not self.allow_off_track:
+            start.append((on, float(x_m), float(y_m)))
+            n_on = sum(o[0] for o in start)
+            # as soon as the first OFF_TRACK_START_OBS can no longer meet the rule
+            if len(start) - n_on > OFF_TRACK_START_OBS - _MIN_ON_AT_START:
+                centre = np.mean([o[1:] for o in start], axis=0) - self.path.xy_m.mean(axis=0)
+                check_share_near(
+                    n_on / len(start),
+                    float(np.hypot(*centre)),
+                    source=self.waypoints_source,
+                    drive=f"the stream's first {len(start)}",
+                    near_m=self.on_track_m,
+                    hint=OFF_TRACK_HINT,
+                )
+        if on:
+            return None
+        return (
+            f"observation {dist:.1f} m from the track (more than {self.on_track_m:.3g} m): its "
+            "predictions follow the nearest part of the track"
+        )
 
     def update(self, stamp_s: float, x_m: float, y_m: float, yaw_rad: float | None = None):
         """Add one observation and predict from it.
@@ -346,6 +465,9 @@ class Runner:
         if self._last_xy != (x, y):
             self._history.append((t, x, y, yaw))
             self._motion = None
+            t_new = self._history[-1][0]
+            recent = [o[0] for o in self._history if t_new - o[0] <= MAX_SPAN_S]
+            self.valid = bool(history_valid(len(recent), t_new - recent[0]))
         self._last_stamp_s, self._last_xy = t, (x, y)
         if self._motion is None:  # a repeated row is predicted from as if fresh: reuse
             self._motion = self._estimate_motion()
@@ -359,7 +481,12 @@ class Runner:
             return self._ctrv(est)
         path = self.path
         ex, ey = est[0], est[1]
-        s_prev = path.project(ex, ey) if self._s_m is None else self._s_m
+        s_prev = self._s_m
+        if not self._settled:  # until the heading is known the branch is searched globally
+            known = math.isfinite(self._history[-1][3]) or est[3] >= MIN_HEADING_SPEED_MPS
+            s_glob = path.project(ex, ey, est[2] if known else None)
+            s_prev = s_glob if s_prev is None else path.continuous(s_glob, s_prev)
+            self._settled = known
         self._s_m = path.project_window(ex, ey, s_prev)
         if self.model in ("frenet", "line"):
             return self._frenet(self._track_frame(self._s_m), est)
@@ -757,39 +884,77 @@ def load_waypoints_xy(path) -> np.ndarray:
 
 def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) -> int:
     """Predict for every usable observation line of `lines` (parsed by `fpe_jax.io.stream`),
-    writing one JSON line to `out` for each: {"stamp": t, "poses": [[x, y, yaw] x H]}, flushed
+    writing one JSON line to `out` for each: {"stamp": t, "poses": [[x, y, yaw] x H], "valid":
+    bool (`fpe_jax.history.history_valid`: enough history)}, flushed
     at once (a car's process pipes into it).
 
-    A bad line is reported on `err` with its line number and skipped; where the stamps restart
-    the runner starts a new history. Returns 0 at the end of the input. Raises InputError for a
-    stream laid out wrongly as a whole, and at the end if lines came but none was usable.
+    A bad line is reported on `err` with its line number and skipped (the first
+    `spec.STREAM_MESSAGES` in full, then rate-limited, with a closing count: see
+    `fpe_jax.io.stream.SkipReport`); where the stamps restart the runner starts a new history.
+    The runner gets the stamps since the stream's time origin (exact for epoch stamps); the
+    replies carry the stamps as given. An observation far from the track
+    (`Runner.check_track`) gets a "warning" field in its reply, and a line on `err` at most once
+    per OFF_TRACK_REPORT_S of stamps while the car stays off (and one when it is back). Returns 0
+    at the end of the input. Raises InputError for a stream laid out wrongly as a whole, when its
+    first observations are off the track, and at the end if lines came but none was usable.
     """
-    from fpe_jax.io.stream import read_observations
+    from fpe_jax.io.stream import SkipReport, read_observations
 
-    skipped = []
-
-    def warn(msg: str) -> None:
-        skipped.append(msg)
-        print(f"fpe run: {msg}", file=err, flush=True)
-
+    warn = SkipReport(err)
     n_written = 0
+    off = _OffTrackReports(err)
     for obs in read_observations(lines, warn, rate_hz):
         if obs.restart:
             runner.reset()
             for o in obs.restart:
-                runner.update(o.t_s, o.x_m, o.y_m, o.yaw_rad)
+                runner.update(o.since_s, o.x_m, o.y_m, o.yaw_rad)
         try:
-            poses = runner.update(obs.t_s, obs.x_m, obs.y_m, obs.yaw_rad)
-            reply = json.dumps({"stamp": obs.t_s, "poses": poses.tolist()}, allow_nan=False)
+            poses = runner.update(obs.since_s, obs.x_m, obs.y_m, obs.yaw_rad)
+            reply = {"stamp": obs.t_s, "poses": poses.tolist(), "valid": runner.valid}
+            reply = json.dumps(reply, allow_nan=False)
         except (InputError, ValueError) as e:
             warn(f"line {obs.line}: {e}; skipped")
             continue
+        # an InputError here (the first observations off the track) ends the stream
+        warning = off.observe(obs, runner.check_track(obs.x_m, obs.y_m))
+        if warning is not None:  # only then: an on-track reply is unchanged
+            reply = f"{reply[:-1]}, {json.dumps('warning')}: {json.dumps(warning)}}}"
         out.write(reply + "\n")
         out.flush()
         n_written += 1
-    if skipped and not n_written:
-        raise InputError("stdin", f"none of its observations was usable ({len(skipped)} skipped)")
+    if (summary := warn.summary()) is not None:
+        print(summary, file=err, flush=True)
+    if warn.n_skipped and not n_written:
+        raise InputError("stdin", f"none of its observations was usable ({warn.n_skipped} skipped)")
     return 0
+
+
+class _OffTrackReports:
+    """`run_stream`'s stderr lines for a car off the track: at the first off-track observation,
+    then at most once per OFF_TRACK_REPORT_S of stamps while it stays off, with the count, and
+    once when it is back."""
+
+    def __init__(self, err):
+        self.err = err
+        self.n_seen = 0
+        self.n_off = 0  # of the current stretch off the track
+        self.last_report_s: float | None = None
+
+    def observe(self, obs, warning: str | None) -> str | None:
+        self.n_seen += 1
+        if warning is None:
+            if self.n_off:
+                self._say(f"line {obs.line}: back on the track after {self.n_off} observation(s)")
+            self.n_off, self.last_report_s = 0, None
+            return None
+        self.n_off += 1
+        if self.last_report_s is None or obs.t_s - self.last_report_s >= OFF_TRACK_REPORT_S:
+            self._say(f"line {obs.line}: warning: {warning} ({self.n_off} in a row)")
+            self.last_report_s = obs.t_s
+        return warning
+
+    def _say(self, msg: str) -> None:
+        print(f"fpe run: {msg}", file=self.err, flush=True)
 
 
 # ---- benchmark -----------------------------------------------------------------------------------

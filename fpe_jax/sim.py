@@ -30,8 +30,8 @@ import numpy as np
 
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
-from fpe_jax.path import left_normals, nearest_index, wrap_angle
-from fpe_jax.spec import check_simulation
+from fpe_jax.path import build_path, left_normals, nearest_index, wrap_angle
+from fpe_jax.spec import check_half_width, check_simulation
 from fpe_jax.tracks import builtin_track, is_builtin, loop_arclength, loop_curvature, resample_loop
 
 SIM_VERSION = "1.0"
@@ -203,6 +203,9 @@ def simulate(
     """
     check_simulation(duration_s, latency_s, seed, driver.stops_per_min)
     name, center, hw, ref_xy, ref_v = _resolve_track(track, raceline, half_width_m)
+    check_drivable(center, vehicle, track if isinstance(track, str | Path) else "track")
+    if raceline is not None:
+        check_drivable(ref_xy, vehicle, raceline)
     rng_drive, rng_offset, rng_sensor = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)
     )
@@ -280,6 +283,71 @@ def simulate(
     )
 
 
+def observe(
+    t_s: np.ndarray,
+    xy_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    centerline_xy_m: np.ndarray,
+    *,
+    latency_s: float = 0.3,
+    seed: int = 0,
+    sensor: Sensor = Sensor(),
+    meta: dict[str, Any] | None = None,
+) -> Drive:
+    """A recorded trajectory seen through the simulator's detector (`Sensor`: capture timing,
+    range-dependent noise, outliers, dropouts, then `latency_s` of delay), as `simulate` sees
+    its own drives.
+
+    Args:
+        t_s: (N,) strictly increasing stamps of the recorded poses [s].
+        xy_m: (N, 2) recorded positions [m]; yaw_rad: (N,) recorded heading [rad].
+        centerline_xy_m: (K, 2) closed loop the trailing car drives on (sets the range) [m].
+        latency_s, seed, sensor: as `simulate`'s.
+        meta: provenance added to the drive's meta.
+
+    Returns:
+        A Drive: detections stamped at arrival (captures from t_s[0] on, relative time kept),
+        truth = the recorded poses (speed from their differences).
+    """
+    t = np.asarray(t_s, dtype=float)
+    xy = np.asarray(xy_m, dtype=float)
+    yaw = np.unwrap(np.asarray(yaw_rad, dtype=float))
+    if t.ndim != 1 or len(t) < 3 or np.any(np.diff(t) <= 0) or xy.shape != (len(t), 2):
+        raise InputError(
+            "trajectory",
+            f"stamps {t.shape} and positions {xy.shape} do not form a drive",
+            "(N,) strictly increasing stamps, N >= 3, and (N, 2) positions",
+        )
+    t0 = t[0]
+    rel = t - t0
+    v = np.hypot(*np.gradient(xy, rel, axis=0).T)
+    r = np.gradient(yaw, rel)
+    states = np.stack([xy[:, 0], xy[:, 1], yaw, v, r], axis=1)
+    rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(3)[2])
+    det = _detect(
+        rng, rel, states, np.asarray(centerline_xy_m, float), rel[-1], latency_s, sensor, None
+    )
+    return Drive(
+        t_s=det["stamp"] + t0,
+        xy_m=det["xy"],
+        yaw_rad=det["yaw"],
+        truth_t_s=t.copy(),
+        truth_xy_m=xy.copy(),
+        truth_yaw_rad=wrap_angle(yaw),
+        truth_v_mps=v,
+        meta=dict(
+            source="fpe_jax.sim.observe",
+            seed=int(seed),
+            latency_s=float(latency_s),
+            sim_version=SIM_VERSION,
+            n_captured=det["n_captured"],
+            n_dropped=det["n_captured"] - len(det["stamp"]),
+            n_outliers=int(det["outlier"].sum()),
+        )
+        | (meta or {}),
+    )
+
+
 # --- track and reference path -------------------------------------------------------------------
 
 
@@ -298,13 +366,34 @@ def _resolve_track(track, raceline, half_width_m):
     else:
         expected = "oval, hairpin, random:SEED or a centerline/waypoint file"
         raise InputError(track, "is neither a built-in track nor an existing file", expected)
-    hw = float(half_width_m) if half_width_m is not None else hw
-    if not (hw > 0 and math.isfinite(hw)):
-        raise InputError("half-width", f"{hw!r} m", "a positive number of metres")
+    hw = check_half_width(half_width_m if half_width_m is not None else hw, "half-width")
     if raceline is None:
         return name, center, hw, center, speeds
     rl = _load_waypoints(raceline)
     return name, center, hw, rl.xy_m, rl.speed_mps
+
+
+def check_drivable(xy_m, vehicle: Vehicle, source) -> None:
+    """InputError (naming `source`) unless the car can drive the closed loop (K, 2) [m]: the size
+    limits of every command (`fpe_jax.spec.check_track_size`, which also catches a far spike),
+    and no stretch one turning circle long (2 pi R, R = wheelbase / tan(steer_max)) that turns by
+    more than a full circle, i.e. a loop tighter than the car's turning radius. Judged over that
+    length, so the kinks of hand-recorded waypoints (a corner at a point) pass."""
+    # the cleaned, smoothed loop every command builds (with its size checks)
+    path = build_path(np.asarray(xy_m, dtype=np.float64), closed=True, source=str(source))
+    h, ds, m = path["heading_rad"], path["ds_m"], len(path["heading_rad"])
+    r_min = (vehicle.lf_m + vehicle.lr_m) / math.tan(vehicle.steer_max_rad)
+    turn = wrap_angle(np.roll(h, -1) - h)  # per point, the closing one included
+    n = max(1, int(round(2 * math.pi * r_min / ds)))  # may be laps of a small loop
+    total = np.concatenate([[0.0], np.cumsum(np.tile(turn, n // m + 2)[: m + n])])
+    worst = float(np.max(np.abs(total[n : n + m] - total[:m])))
+    if worst > 2 * math.pi * 1.001:  # a circle of radius R turns exactly 2 pi over 2 pi R
+        raise InputError(
+            source,
+            f"turns by {worst:.1f} rad within {n * ds:.2f} m: tighter than the car's turning "
+            f"radius {r_min:.2f} m (it could never follow it)",
+            f"a loop with no turn tighter than a {r_min:.2f} m radius",
+        )
 
 
 def _load_waypoints(path):
@@ -648,6 +737,20 @@ POSE_TOPIC, ODOM_TOPIC, TF_TOPIC = "/opp/pose", "/opp/odom", "/tf"
 MAP_FRAME, CAR_FRAME = "map", "other_base_link"
 
 
+SIMULATION_FILES = ("drive.mcap", "waypoints.csv", "scenario.json")  # what write_simulation writes
+
+
+def check_simulation_out(out_dir, inputs) -> None:
+    """InputError if a file `write_simulation` would write into `out_dir` is one of the `inputs`
+    (the track and raceline files; built-in track names and None are skipped), however spelled
+    (`fpe_jax.io.writers.check_not_input`): `--force` never replaces what the simulation read."""
+    from fpe_jax.io.writers import check_not_input
+
+    files = [p for p in inputs if p is not None and not (isinstance(p, str) and is_builtin(p))]
+    for name in SIMULATION_FILES:
+        check_not_input(Path(out_dir) / name, files)
+
+
 def write_simulation(
     res: SimResult, out_dir: str | Path, *, force: bool = False, layout: str | None = None
 ) -> list[Path]:
@@ -682,6 +785,7 @@ def write_simulation(
         raise InputError(out, "is a file", "a folder to write the simulated drive into")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise InputError(out, "exists and is not empty; pass --force to write into it")
+    check_simulation_out(out, (res.scenario.get("track_file"), res.scenario.get("raceline")))
     out.mkdir(parents=True, exist_ok=True)
     d = res.drive
     truth = dict(t_s=d.truth_t_s, xy_m=d.truth_xy_m, yaw_rad=d.truth_yaw_rad)

@@ -92,6 +92,9 @@ FIT_MODELS = ("auto", "line", "blend")
 # Settings a user may change on a predictor (flags --wheelbase, --max-steer, --dt, --horizon and
 # a recipe's [settings] table): the car and the prediction grid, never the model's form.
 USER_SETTINGS = ("wheelbase_m", "max_steer_rad", "dt_s", "horizon")
+# the longest prediction a config, a flag or a recipe may ask for [steps]: planners read 3-5 s
+# ahead (50 steps of 0.1 s); beyond this a rollout no longer predicts a car's near future
+MAX_HORIZON = 1000
 
 
 def is_number(v) -> bool:
@@ -168,7 +171,7 @@ LINE_RULES = (
 )
 SETTING_RULES = (
     Rule("dt_s", lo=0.0, hi=10.0, lo_open=True, unit="s"),
-    Rule("horizon", "int", lo=1, hi=10_000),
+    Rule("horizon", "int", lo=1, hi=MAX_HORIZON),
     Rule("wheelbase_m", lo=0.0, hi=100.0, lo_open=True, unit="m"),
     # >= pi/2 makes tan(steer) flip sign
     Rule("max_steer_rad", lo=0.0, hi=0.5 * math.pi, lo_open=True, hi_open=True, unit="rad"),
@@ -454,3 +457,45 @@ def check_simulation(
     if not (is_int(seed) and seed >= 0):
         raise InputError(source, f"{prefix}seed is {short(seed)}", "an integer >= 0")
     number_check(source, f"{prefix}stops_per_min", 0.0, 60.0)(stops_per_min)
+
+
+# --- readers: TF, AprilTag mounts, simulated tracks, stream messages --------------------------
+
+MAX_TF_GAP_S = 3600.0  # --max-tf-gap: interpolating a TF edge across more is never meant
+MAX_TAG_OFFSET_M = 10.0  # a tag on a car sits within this of the car's base frame
+MAX_TAG_YAW_RAD = 2 * math.pi
+MAX_HALF_WIDTH_M = 50.0  # a track's half-width: F1TENTH ~1.1 m, a race circuit ~8 m
+STREAM_MESSAGES = 10  # `fpe run` prints this many skipped-line messages, then one per ...
+STREAM_MESSAGE_EVERY_S = 10.0  # ... this many seconds, each with the count since the last
+
+
+def check_tf_gap(v, source, field: str = "--max-tf-gap") -> float:
+    """The longest TF gap [s] a lookup may interpolate across: a number in (0, MAX_TF_GAP_S]."""
+    return number_check(source, field, 0.0, MAX_TF_GAP_S, open_lo=True)(v)
+
+
+def check_tag_mount(values, source="--tag-to-base") -> tuple[float, float, float, float]:
+    """X, Y, Z [m] of a tag's centre in the car's base frame, each within ±MAX_TAG_OFFSET_M, and
+    the way it faces, YAW [rad], within ±MAX_TAG_YAW_RAD: four finite numbers."""
+    expected = (
+        f"X,Y,Z,YAW: the tag's centre in the car's base frame, each within "
+        f"±{MAX_TAG_OFFSET_M:g} m, and the way it faces, within ±{MAX_TAG_YAW_RAD:.4g} rad"
+    )
+    try:  # a string here is one the caller could not split into four numbers
+        out = () if isinstance(values, str) else tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        out = ()
+    if len(out) != 4 or not all(math.isfinite(v) for v in out):
+        shown = short(values if isinstance(values, str) else ",".join(map(str, values)))
+        raise InputError(source, f"{shown} is not four finite numbers", expected)
+    if max(abs(v) for v in out[:3]) > MAX_TAG_OFFSET_M or abs(out[3]) > MAX_TAG_YAW_RAD:
+        shown = ",".join(f"{v:g}" for v in out)
+        raise InputError(source, f"{shown} is out of range", expected)
+    return out  # type: ignore[return-value]
+
+
+def check_half_width(v, source="--half-width") -> float:
+    """A track's half-width [m]: a finite number in (0, MAX_HALF_WIDTH_M]."""
+    if not (is_number(v) and 0.0 < float(v) <= MAX_HALF_WIDTH_M):
+        raise InputError(source, f"{short(v)} m", f"a half-width in (0, {MAX_HALF_WIDTH_M:g}] m")
+    return float(v)

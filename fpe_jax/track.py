@@ -13,7 +13,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from fpe_jax.aot import device_array
-from fpe_jax.path import build_path
+from fpe_jax.path import BRANCH_COS, BRANCH_M, build_path
 
 
 class Track(eqx.Module):
@@ -96,8 +96,10 @@ class Track(eqx.Module):
         h0 = self.heading_rad[i]
         return wrap_angle(h0 + f * wrap_angle(self.heading_rad[j] - h0))
 
-    def _project_segments(self, p_m, idx):
-        """Closest point of p (2,) on the segments starting at indices idx (n,): arc length [m]."""
+    def _project_segments(self, p_m, idx, heading_rad=None):
+        """Closest point of p (2,) on the segments starting at indices idx (n,): arc length [m].
+        With a heading [rad] (NaN: unknown), the nearest segment within 45 degrees of it where
+        that lies within 2 m of p (`fpe_jax.path.BRANCH_COS`, `BRANCH_M`)."""
         rows = self.seg_m[idx]
         a, ab = rows[:, :2], rows[:, 2:4]
         t = jnp.clip(
@@ -105,12 +107,24 @@ class Track(eqx.Module):
         )
         d2 = jnp.sum((a + t[:, None] * ab - p_m[None, :]) ** 2, -1)
         k = jnp.argmin(d2)
+        if heading_rad is not None:
+            agree = rows[:, 4] * jnp.cos(heading_rad) + rows[:, 5] * jnp.sin(heading_rad)
+            d2_agree = jnp.where(agree >= BRANCH_COS, d2, jnp.inf)
+            ka = jnp.argmin(d2_agree)
+            k = jnp.where(d2_agree[ka] <= BRANCH_M * BRANCH_M, ka, k)
         return (idx[k].astype(t.dtype) + t[k]) * self.ds_m
 
-    def project(self, p_m: Float[Array, "2"]) -> Float[Array, ""]:
-        """Arc length [m] of the closest point of the whole track to p (2,) [m] (global search)."""
+    def project(self, p_m: Float[Array, "2"], heading_rad=None) -> Float[Array, ""]:
+        """Arc length [m] of the closest point of the whole track to p (2,) [m] (global search);
+        given the car's heading [rad] (NaN: unknown), of the branch that agrees with it where the
+        track crosses itself (`fpe_jax.path.BRANCH_COS`)."""
         last = self.n_points if self.closed else self.n_points - 1
-        return self._project_segments(p_m, jnp.arange(last))
+        return self._project_segments(p_m, jnp.arange(last), heading_rad)
+
+    def continuous(self, s_m, s_ref_m):
+        """s [m] moved by whole laps to within half a lap of s_ref [m] on a loop (as is on an
+        open path): the seam rule of `project_window`."""
+        return s_ref_m + wrap_to(s_m - s_ref_m, self.length_m) if self.closed else s_m
 
     def project_window(
         self, p_m: Float[Array, "2"], s_hint_m: Float[Array, ""], behind_m=2.0, ahead_m=4.0
@@ -188,6 +202,33 @@ def arclength_along(track: Track, xy_m: Float[Array, "N 2"], s_before_m=None) ->
         return s, s
 
     _, s = jax.lax.scan(step, s0, xy_m)
+    return s
+
+
+@jax.jit
+def arclength_along_heading(
+    track: Track, xy_m: Float[Array, "N 2"], heading_rad: Float[Array, " N"], s_before_m
+) -> Float[Array, " N"]:
+    """`arclength_along` for a drive whose headings [rad] (N,) are known where finite (NaN where
+    not, e.g. a car without orientation that has not moved yet): until the first known heading
+    each point is projected globally onto the branch that agrees with it (`Track.project`),
+    then in the window around the last. `s_before_m` NaN starts the drive; a number continues it.
+    """
+
+    def step(carry, inp):
+        s_prev, settled = carry
+        p, h = inp
+
+        def search(_):
+            s = track.project(p, h)
+            return jnp.where(jnp.isnan(s_prev), s, track.continuous(s, s_prev))
+
+        hint = jax.lax.cond(settled, lambda _: s_prev, search, None)
+        s = track.project_window(p, hint)
+        return (s, settled | ~jnp.isnan(h)), s
+
+    s_before = jnp.asarray(s_before_m, dtype=xy_m.dtype)
+    _, s = jax.lax.scan(step, (s_before, ~jnp.isnan(s_before)), (xy_m, heading_rad))
     return s
 
 

@@ -426,7 +426,8 @@ def test_cli_batch_npy_and_csv(tmp_path, cli_files, loop):
     common = ["--waypoints", str(wp), "--preset", "seed", "--chunk", str(CHUNK)]
     assert main(["batch", str(npy), *common, "--out", str(out_csv)]) == 0
     table = np.loadtxt(out_csv, delimiter=",", skiprows=1)
-    assert table.shape == (N_CARS * 10, 6)
+    assert table.shape == (N_CARS * 10, 7)  # car, step, horizon_s, x, y, yaw, off_track
+    assert not table[:, 6].any()
     np.testing.assert_allclose(table[:10, 2], np.arange(1, 11) * 0.1)
 
 
@@ -463,3 +464,20 @@ def test_state_fields_follow_predict_batch_defaults(loop, loop_grid):
     a = predict_chunked(presets["ctrv"], st, loop, **kw)
     b = predict_chunked(presets["ctrv"], cars[:, :4], loop, **kw)
     np.testing.assert_allclose(a, b)
+
+
+@pytest.mark.parametrize("origin", [[-12.0, 7.0], [5e5, 5e6]])
+def test_with_origin_is_the_float64_sum_cast_back(origin):
+    """`with_origin` adds the map origin in float64, block by block and in place where the
+    poses' dtype can hold the result, exactly as adding it to a float64 copy and casting back."""
+    from fpe_jax.batch import with_origin
+
+    rng = np.random.default_rng(3)
+    poses = rng.normal(0.0, 30.0, (1001, 10, 3)).astype(np.float32)
+    origin = np.asarray(origin)
+    ref = np.array(poses, dtype=np.float64)
+    ref[..., :2] += origin
+    ref = ref.astype(poses.dtype if np.abs(origin).max() <= 1000.0 else np.float64)
+    out = with_origin(poses.copy(), origin, block=97)
+    assert out.dtype == ref.dtype
+    np.testing.assert_array_equal(out, ref)

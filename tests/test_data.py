@@ -198,3 +198,41 @@ def test_readme_names_only_existing_data_files():
     assert "data/samples/drive.mcap" in named
     missing = sorted(p for p in named if not (ROOT / p).exists())
     assert not missing
+
+
+def _perturb_csv(path: Path, delta: float) -> None:
+    """Move the first x value of a drive CSV by delta (as another CPU's rounding would)."""
+    lines = path.read_text().splitlines()
+    cells = lines[1].split(",")
+    cells[1] = f"{float(cells[1]) + delta:.9f}"
+    lines[1] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_check_compares_values_within_its_stated_tolerance(fresh, tmp_path):
+    """--check and the rewrite judge files by what they say, within make_samples.TOLERANCE: a
+    last-digit difference (another CPU) passes and rewrites nothing; a real change is named."""
+    import shutil
+
+    script = _load_script()
+    assert script.TOLERANCE == 1e-8
+    copy = tmp_path / "data"
+    shutil.copytree(fresh, copy)
+    _perturb_csv(copy / "samples" / "drive.csv", 1e-9)
+    track = copy / "tracks" / "oval.csv"
+    rows = track.read_text().splitlines()
+    x = float(rows[1].split(",")[0])
+    rows[1] = rows[1].replace(repr(x), repr(float(np.nextafter(x, np.inf))), 1)
+    track.write_text("\n".join(rows) + "\n")
+    assert (copy / "samples" / "drive.csv").read_bytes() != (
+        fresh / "samples/drive.csv"
+    ).read_bytes()
+    assert script.compare_trees(fresh, copy) == []
+    before = {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()}
+    assert script._sync(fresh / "samples", copy / "samples") == []
+    assert script._sync(fresh / "tracks", copy / "tracks") == []
+    assert {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()} == before
+    _perturb_csv(copy / "samples" / "drive.csv", 1e-6)
+    assert script.compare_trees(fresh, copy) == ["samples/drive.csv"]
+    assert script._sync(fresh / "samples", copy / "samples") == [copy / "samples" / "drive.csv"]
+    assert script.compare_trees(fresh, copy) == []

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -25,8 +26,9 @@ from fpe_jax.export import (
     load,
     to_ros2_yaml,
 )
+from fpe_jax.path import waypoints_sha256
 from fpe_jax.predict import states_from_drive
-from fpe_jax.runner import Runner
+from fpe_jax.runner import Runner, load_waypoints_xy
 from fpe_jax.sim import simulate
 from fpe_jax.spec import SCHEMA_VERSION
 
@@ -156,9 +158,12 @@ def test_round_trip_ros2_yaml_holds_every_fitted_value(case):
     assert ros["delay_offset_s"] == physical["delay_s"]
     assert ros["speed_weight"] == physical["speed_weight"]
     assert ros["typical_speed_mps"] == physical["speed_mps"]
-    assert ros["waypoint_file"] == str(case["tmp"] / "wp.csv")
+    # relative to the YAML's folder: the exported folder works wherever it is copied
+    assert ros["waypoint_file"] == os.path.relpath(case["tmp"] / "wp.csv", case["out"])
+    assert ros["waypoints_sha256"] == waypoints_sha256(load_waypoints_xy(case["tmp"] / "wp.csv"))
     assert ros["schema_version"] == SCHEMA_VERSION
-    assert set(ros) == {n for n, *_ in ROS2_PARAMS} | {"schema_version", "waypoint_file"}
+    extra = {"schema_version", "waypoint_file", "waypoints_sha256"}
+    assert set(ros) == {n for n, *_ in ROS2_PARAMS} | extra
 
 
 def test_refuses_to_overwrite_without_force(case, capsys):
@@ -210,8 +215,12 @@ def test_json_and_ros2_export_without_jax(case, tmp_path, fmt):
     if fmt == "json":
         assert read_config(tmp_path / "out") == case["cfg"]
     else:
-        wp = str(case["tmp"] / "wp.csv")
-        want = to_ros2_yaml(case["cfg"], waypoint_file=wp, source="tuned.json")
+        wp = case["tmp"] / "wp.csv"
+        sha = waypoints_sha256(load_waypoints_xy(wp))
+        rel = os.path.relpath(wp, tmp_path)
+        want = to_ros2_yaml(
+            case["cfg"], waypoint_file=rel, source="tuned.json", waypoints_sha256=sha
+        )
         assert (tmp_path / "out").read_text() == want
 
 
@@ -310,3 +319,54 @@ def test_export_refuses_a_line_config_on_other_waypoints(case, tmp_path, fmt, ca
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "other.csv" in err and "line.json" in err
     assert not out.exists()
+
+
+def test_all_failing_midway_leaves_no_partial_export(case, tmp_path, monkeypatch):
+    """A write that fails after the StableHLO artifact (a full disk) leaves no folder, or an
+    existing export exactly as it was: never a mixed or partial set a car could deploy."""
+    import errno
+
+    import fpe_jax.export as ex
+
+    def full_disk(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(ex, "export_json", full_disk)
+    out = tmp_path / "car"
+    argv = ["export", str(case["tmp"] / "tuned.json"), "--format", "all", "--out", str(out)]
+    argv += ["--waypoints", str(case["tmp"] / "wp.csv")]
+    assert main(argv) != 0
+    assert list(tmp_path.iterdir()) == []  # no folder, no temporary left
+    out.mkdir()
+    names = [*ex.ALL_FILES.values(), ex.ALL_FILES["stablehlo"] + ".json", "notes.txt"]
+    for name in names:
+        (out / name).write_text(f"old {name}")
+    assert main([*argv, "--force"]) != 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["car"]
+    assert {p.name: p.read_text() for p in out.iterdir()} == {n: f"old {n}" for n in names}
+
+
+def test_ros2_params_file_reads_back_where_it_is_copied(case, tmp_path):
+    """The exported folder moved elsewhere (as onto a car) still gives the config and its
+    waypoints; changed waypoints are refused by their hash."""
+    import shutil
+
+    from fpe_jax.export import read_ros2_params
+
+    argv = ["export", str(case["tmp"] / "tuned.json"), "--format", "ros2"]
+    (tmp_path / "a").mkdir()
+    shutil.copy(case["tmp"] / "wp.csv", tmp_path / "a" / "wp.csv")
+    out = tmp_path / "a" / "params.yaml"
+    assert main([*argv, "--out", str(out), "--waypoints", str(tmp_path / "a" / "wp.csv")]) == 0
+    moved = shutil.copytree(tmp_path / "a", tmp_path / "car")
+    shutil.rmtree(tmp_path / "a")
+    cfg, wp = read_ros2_params(moved / "params.yaml")
+    assert wp == moved / "wp.csv"
+    for section in ("params", "settings"):
+        assert cfg[section] == {
+            k: v for k, v in case["cfg"][section].items() if k in cfg[section]
+        }, section
+    xy = load_waypoints_xy(wp)
+    np.savetxt(moved / "wp.csv", xy + 0.5, delimiter=",", header="x,y", comments="")
+    with pytest.raises(InputError, match="differ from those it was exported with"):
+        read_ros2_params(moved / "params.yaml")

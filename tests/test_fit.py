@@ -606,3 +606,26 @@ def test_levine_fit_beats_seed_and_constant_velocity(shared_data):
     for base in ("seed", "constant-velocity"):
         assert rep["fitted"]["ade_m"] < rep[base]["ade_m"], base
         assert rep["fitted"]["fde_m"] < rep[base]["fde_m"], base
+
+
+def test_blend_from_a_settings_only_start_drives_at_the_measured_speed(oval_drives):
+    """`fpe fit` passes the default preset with the flags' settings as `init`: the blend's start
+    must still drop the preset's memorised 2 m/s, as the Python API without `init` does."""
+    from fpe_jax.config import apply_settings
+
+    track = oval_drives[2]
+    cli_init = apply_settings(presets["default"], {})  # what cmd_fit passes without flags
+    flags = apply_settings(presets["default"], {"--dt": ("dt_s", 0.05)})
+    for model, blend in (("blend", "auto"), ("auto", "position")):
+        api, _ = F._candidates(model, blend, None, None, [], [track], [], print, "kalman")
+        for init in (cli_init, flags):
+            cli, _ = F._candidates(model, blend, init, None, [], [track], [], print, "kalman")
+            for mode in BLEND_CHOICES_OF[blend]:
+                assert float(cli[mode][0].speed_weight) == float(api[mode][0].speed_weight) == 1.0
+    # a start the user fitted keeps its own speed values
+    own = dataclasses.replace(cli_init, speed_weight=jnp.asarray(0.5))
+    kept, _ = F._candidates("blend", "position", own, None, [], [track], [], print, "kalman")
+    assert float(kept["position"][0].speed_weight) == 0.5
+
+
+BLEND_CHOICES_OF = {"auto": ("position", "heading"), "position": ("position",)}

@@ -378,7 +378,10 @@ def test_stream_bad_lines_are_skipped_and_poison_nothing(capsys, monkeypatch, st
     warned = [int(line.split()[3].rstrip(":")) for line in err.strip().splitlines()]
     assert warned == bad_at, err
     r = Runner(cfg, wp)
-    want = [{"stamp": float(t), "poses": r.update(t, x, y, yaw).tolist()} for t, x, y, yaw in rows]
+    want = [
+        {"stamp": float(t), "poses": r.update(t, x, y, yaw).tolist(), "valid": r.valid}
+        for t, x, y, yaw in rows
+    ]
     assert [json.loads(line) for line in out.splitlines()] == want
 
 

@@ -229,8 +229,8 @@ def test_cache_dir_follows_xdg(monkeypatch, tmp_path):
 
 def test_clear_leaves_other_folders_alone(monkeypatch, tmp_path):
     monkeypatch.setenv("FPE_CACHE_DIR", str(tmp_path))
-    (tmp_path / "jax-x_jaxlib-x_cpu_x64").mkdir()
-    (tmp_path / "jax-x_jaxlib-x_cpu_x64" / "k-cache").write_bytes(b"1234")
+    (tmp_path / "jax-0.4.30_jaxlib-0.4.30_cpu_x64").mkdir()  # an older version's folder
+    (tmp_path / "jax-0.4.30_jaxlib-0.4.30_cpu_x64" / "k-cache").write_bytes(b"1234")
     (tmp_path / "mine").mkdir()
     assert cache.clear()["entries"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]

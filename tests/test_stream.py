@@ -57,9 +57,13 @@ def fpe_run(monkeypatch, capsys, argv, lines) -> tuple[int, list[dict], list[str
 
 
 def expected(cfg, wp, rows) -> list[dict]:
-    """What a fresh runner predicts for the rows (t, x, y, yaw) in order."""
+    """What a fresh runner replies for the rows (t, x, y, yaw) in order."""
     r = Runner(cfg, wp)
-    return [{"stamp": float(t), "poses": r.update(t, x, y, yaw).tolist()} for t, x, y, yaw in rows]
+    replies = []
+    for t, x, y, yaw in rows:
+        poses = r.update(t, x, y, yaw).tolist()
+        replies.append({"stamp": float(t), "poses": poses, "valid": r.valid})
+    return replies
 
 
 @pytest.mark.parametrize(

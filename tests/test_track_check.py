@@ -236,3 +236,70 @@ def test_projection_grid_grows_with_track_length_not_area():
     # passes + ~60 kB)
     for nbytes, peak in ((b1, p1), (b2, p2)):
         assert nbytes < 8e3 * l1 and peak < 2e8 + 1e5 * l1
+
+
+def _speedway(straight_m=600.0, radius_m=200.0, spacing_m=2.0):
+    """A 1.5-mile speedway's centre line (K, 2) [m], counter-clockwise: two straights, two
+    half circles."""
+    n_s, n_c = int(straight_m / spacing_m), int(np.pi * radius_m / spacing_m)
+    a = np.linspace(-0.5 * np.pi, 0.5 * np.pi, n_c, endpoint=False)
+    right = np.column_stack([straight_m / 2 + radius_m * np.cos(a), radius_m * np.sin(a)])
+    top = np.column_stack(
+        [np.linspace(straight_m / 2, -straight_m / 2, n_s, endpoint=False), np.full(n_s, radius_m)]
+    )
+    return np.vstack([right, top, -right, -top])
+
+
+def _racing_line_drive(center_xy_m, seed=0):
+    """Observations (N, 2) [m] of a car 3-6 m inside (left of) the centre line at 60 m/s, 10 Hz,
+    0.3 m noise: a real racing line on a wide track."""
+    p = build_path(center_xy_m)
+    rng = np.random.default_rng(seed)
+    s = np.arange(0.0, 2 * p["length_m"], 6.0)
+    k = np.searchsorted(np.cumsum(np.hypot(*np.diff(p["xy_m"], axis=0).T)), s % p["length_m"])
+    k = np.minimum(k, len(p["xy_m"]) - 1)
+    offset = 4.5 + 1.5 * np.sin(2 * np.pi * s / 700.0)
+    h = p["heading_rad"][k]
+    xy = p["xy_m"][k] + offset[:, None] * np.column_stack([-np.sin(h), np.cos(h)])
+    return xy + rng.normal(0.0, 0.3, xy.shape)
+
+
+def test_a_racing_line_on_a_full_size_track_is_on_it_and_wrong_frames_are_caught():
+    from fpe_jax.path import ON_TRACK_M, on_track_m
+
+    center = _speedway()
+    xy = _racing_line_drive(center)
+    p = build_path(center)
+    assert 10.0 < on_track_m(p["xy_m"]) < 12.0  # 1 % of the 1077 m extent
+    # a fixed 3 m refused it: most of the drive is further from the centre line
+    assert track_agreement(xy, p["xy_m"], p["heading_rad"], near_m=ON_TRACK_M)["share_near"] < 0.8
+    a = check_on_track(xy, p["xy_m"], p["heading_rad"], source="wp.csv", drive="d.csv")
+    assert a["share_near"] >= 0.95 and a["share_along"] >= 0.95, a
+    # the 1:10 bound is unchanged: the oval's extent is 32 m
+    assert on_track_m(build_path(simulate("oval", duration_s=1.0).centerline_xy_m)["xy_m"]) == 3.0
+    wrong = {
+        "shifted 50 m": (center + [0.0, 50.0], "different map frame"),
+        "reversed": (center[::-1], "reverse direction"),
+        "a smaller speedway": (_speedway(400.0, 150.0), "different map frame"),
+        "a UTM frame": (center + [4.8e5, 4.4e6], "different map frame"),
+    }
+    for name, (wp, words) in wrong.items():
+        q = build_path(wp)
+        with pytest.raises(InputError, match=words):
+            check_on_track(xy, q["xy_m"], q["heading_rad"], source="wp.csv", drive=name)
+
+
+def test_fpe_predict_takes_a_full_size_racing_line_without_flags(tmp_path, capsys):
+    center = _speedway()
+    xy = _racing_line_drive(center)[:300]
+    t = np.arange(len(xy)) * 0.1
+    log = _write_csv(tmp_path / "drive.csv", np.column_stack([t, xy]), "t,x,y")
+    wp = _write_csv(tmp_path / "wp.csv", center, "x,y")
+    out = tmp_path / "pred.csv"
+    argv = ["predict", str(log), "--waypoints", str(wp), "--out", str(out), "--quiet"]
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    assert out.exists()
+    shifted = _write_csv(tmp_path / "shifted.csv", center + [0.0, 50.0], "x,y")
+    argv[3] = str(shifted)
+    assert cli.main([*argv[:5], str(tmp_path / "p2.csv"), "--quiet"]) == 2
+    assert "different map frame" in capsys.readouterr().err

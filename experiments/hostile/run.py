@@ -29,17 +29,28 @@ SHARED = HERE.parents[2] / "shared" / "data"
 Q_S, Q_M = 2.0**-16, 2.0**-8  # stamps, positions on grids that survive the offsets exactly
 
 
-def fpe(work: Path, *argv: str, stdin: bytes | None = None) -> dict:
-    """Run `fpe ARGV` in `work`; exit status, stderr, wall time and peak RSS [MB]."""
+def fpe(work: Path, *argv: str, stdin: bytes | None = None, timeout_s: float | None = None) -> dict:
+    """Run `fpe ARGV` in `work`; exit status (None: killed after timeout_s), stderr, wall time
+    and peak RSS [MB]."""
     code = (
         "import resource, sys; from fpe_jax.cli import main; rc = main(sys.argv[1:]); "
         "sys.stderr.write('\\n@@rss %d' % resource.getrusage(resource.RUSAGE_SELF).ru_maxrss); "
         "sys.exit(rc)"
     )
     t0 = time.perf_counter()
-    p = subprocess.run(
-        [sys.executable, "-c", code, *argv], cwd=work, input=stdin, capture_output=True
-    )
+    try:
+        p = subprocess.run(
+            [sys.executable, "-c", code, *argv],
+            cwd=work,
+            input=stdin,
+            capture_output=True,
+            timeout=timeout_s,
+        )
+    except subprocess.TimeoutExpired:
+        wall_s = time.perf_counter() - t0
+        return dict(
+            rc=None, err=f"hung: killed after {timeout_s} s", out=b"", wall_s=wall_s, rss_mb=0.0
+        )
     err = p.stderr.decode(errors="replace")
     rss = 0.0
     if "\n@@rss " in err:
@@ -439,6 +450,300 @@ def _big_loop(work: Path) -> dict:
     return {"length_m": float(np.sum(np.hypot(*np.diff(np.vstack([xy, xy[:1]]), axis=0).T)))}
 
 
+# ---- the TF/AprilTag reader, stamps and the stream (issue 34, items 3, 4, 7, 13, 14, 15) -------
+#
+#     .venv/bin/python experiments/hostile/run.py --io     # these cases only -> results-io.md
+
+S_NS = 1_000_000_000
+
+
+def _io_setup(work: Path) -> dict:
+    """AprilTag logs (intact, a 3 s ego TF dropout, unset detection stamps, a tag seen twice, a
+    static mount published 1,501 ways, a TF tree 3,000 frames deep), drives and streams with
+    stamps off every binary grid, from zero and from epoch."""
+    from fpe_jax import sim
+    from fpe_jax.io import apriltag as at
+    from fpe_jax.io.writers import _odom_events, _write_ros2_mcap
+
+    res = sim.simulate("hairpin", duration_s=20.0, seed=2, camera=sim.Camera())
+    d = res.drive
+    truth = dict(t_s=d.truth_t_s, xy_m=d.truth_xy_m, yaw_rad=d.truth_yaw_rad, v_mps=d.truth_v_mps)
+    odom = _odom_events("hostile", truth | {"yaw_rate_rps": res.truth_yaw_rate_rps})
+
+    def layout():
+        return at.apriltag_events("hostile", **sim.apriltag_layout(res)) + odom
+
+    def write(name, events):
+        _write_ros2_mcap(work / name, events)
+
+    write("tag.mcap", layout())
+    _csv(work / "tag_wp.csv", "x,y", res.centerline_xy_m)
+    gap = [e for e in layout() if e[1] != "/tf" or not 8 * S_NS < e[0] < 11 * S_NS]
+    write("tag_tf_gap.mcap", gap)
+    n_gap = sum(1 for t in d.t_s if 8.0 < t < 11.0)
+    zero = layout()
+    for _, topic, _, msg in zero:
+        if topic == at.DETECTION_TOPIC:
+            msg["header"]["stamp"] = {"sec": 0, "nanosec": 0}
+            for det in msg["detections"]:
+                det["pose"]["header"]["stamp"] = msg["header"]["stamp"]
+    write("tag_zero_stamps.mcap", zero)
+    twice = layout()
+    for _, topic, _, msg in twice:
+        if topic == at.DETECTION_TOPIC:
+            msg["detections"] = msg["detections"] * 2
+    write("tag_twice.mcap", twice)
+    rng = np.random.default_rng(0)
+    moving = layout()
+    mounts = moving[0][3]["transforms"]
+    laser = next(t for t in mounts if t["child_frame_id"] == "laser")
+    for k in range(1500):  # the laser mount "moves" on /tf_static: 1,501 different transforms
+        t = dict(laser, transform=dict(laser["transform"], translation=dict(
+            zip("xyz", (rng.normal(0, 10, 3)).tolist()))))  # fmt: skip
+        moving.append(
+            (moving[0][0] + k + 1, "/tf_static", "tf2_msgs/TFMessage", {"transforms": [t]})
+        )
+    write("tag_static_moves.mcap", moving)
+    deep = [
+        {"header": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": f"f{k}"},
+         "child_frame_id": f"f{k + 1}",
+         "transform": {"translation": {"x": 0.001, "y": 0.0, "z": 0.0},
+                       "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}
+        for k in range(3000)
+    ]  # fmt: skip
+    write("tf_deep.mcap", [(S_NS, "/tf_static", "tf2_msgs/TFMessage", {"transforms": deep})])
+
+    # stamps 123.456789 ms + k * 87.654321 ms: on no binary grid, so float64 epoch seconds round
+    oval = sim.simulate("oval", duration_s=30.0, seed=3)
+    o = oval.drive
+    t_ns = 123_456_789 + np.arange(len(o.t_s), dtype=np.int64) * 87_654_321
+
+    def text(ns):
+        return f"{ns // S_NS}.{ns % S_NS:09d}"
+
+    for name, off in (("zero", 0), ("epoch", 1_700_000_000 * S_NS)):
+        rows = [f"{text(int(n) + off)},{x!r},{y!r},{a!r}" for n, (x, y), a in
+                zip(t_ns, o.xy_m.tolist(), o.yaw_rad.tolist())]  # fmt: skip
+        (work / f"ns_{name}.csv").write_text("t,x,y,yaw\n" + "\n".join(rows) + "\n")
+    _csv(work / "ns_wp.csv", "x,y", oval.centerline_xy_m)
+    from fpe_jax.config import params_to_config, write_config
+    from fpe_jax.params import presets
+
+    write_config(work / "default.json", params_to_config(presets["default"]))
+    return {"n_gap": n_gap, "n_det": len(d.t_s)}
+
+
+def _io_cases(work: Path, info: dict) -> list[dict]:
+    rows: list[dict] = []
+
+    def case(item, name, argv, *, outputs=(), expect="exit2", check=None, stdin=None):
+        """As `run_cases`' case: exit 2 in at most 3 stderr lines, or exit 0 and `check`."""
+        for o in outputs:
+            (work / o).unlink(missing_ok=True)
+        before = {k: v for k, v in snapshot(work).items() if k not in outputs}
+        r = fpe(work, *argv, stdin=stdin)
+        after = {k: v for k, v in snapshot(work).items() if k not in outputs or r["rc"] != 0}
+        changed = sorted(set(before.items()) ^ set(after.items()))
+        lines = len(r["err"].strip().splitlines())
+        tb = "Traceback" in r["err"]
+        ok = not tb and not changed
+        ok &= (r["rc"] == 2 and 1 <= lines <= 3) if expect == "exit2" else r["rc"] == 0
+        note = ""
+        if check is not None and r["rc"] == 0:
+            good, note = check(r)
+            ok &= good
+        if r["rc"] == 2 and not note:
+            note = r["err"].strip().splitlines()[-1][:150] if lines else ""
+        rows.append(dict(item=item, case=name, rc=r["rc"], lines=lines, traceback=tb,
+                         files_unchanged=not changed, ok=bool(ok), note=note,
+                         wall_s=round(r["wall_s"], 1), rss_mb=round(r["rss_mb"])))  # fmt: skip
+        print(f"{item:>3} {name:48s} rc {r['rc']} {'ok' if ok else 'FAIL'} {note[:90]}")
+        return r
+
+    # 3. TF dropouts
+    case(3, "convert across a 3 s ego TF dropout", ["convert", "tag_tf_gap.mcap", "--out",
+         "g.csv"])  # fmt: skip
+
+    def counted(r):
+        said = r["err"].strip().splitlines()[0] if r["err"].strip() else ""
+        n = len(np.loadtxt(work / "g.csv", delimiter=",", skiprows=1, ndmin=2))
+        good = f"dropped {info['n_gap']} detections" in said and n == info["n_det"] - info["n_gap"]
+        return good, f"{n} of {info['n_det']} kept; {said[:90]}"
+
+    case(3, "the same with --drop-outside-tf", ["convert", "tag_tf_gap.mcap", "--out", "g.csv",
+         "--drop-outside-tf"], outputs=["g.csv"], expect="ok", check=counted)  # fmt: skip
+    case(3, "the same with --max-tf-gap 4", ["convert", "tag_tf_gap.mcap", "--out", "g4.csv",
+         "--max-tf-gap", "4"], outputs=["g4.csv"], expect="ok")  # fmt: skip
+    case(3, "--max-tf-gap -1", ["convert", "tag_tf_gap.mcap", "--out", "g5.csv", "--max-tf-gap",
+         "-1"])  # fmt: skip
+
+    # 4. unset detection stamps
+    case(4, "convert detections stamped 0", ["convert", "tag_zero_stamps.mcap", "--out", "z.csv"])
+    case(4, "intact log, --log-time", ["convert", "tag.mcap", "--out", "l0.csv", "--log-time"],
+         outputs=["l0.csv"], expect="ok")  # fmt: skip
+
+    def same_as_intact(_):
+        a = np.loadtxt(work / "l0.csv", delimiter=",", skiprows=1, ndmin=2)
+        b = np.loadtxt(work / "l1.csv", delimiter=",", skiprows=1, ndmin=2)
+        err = np.max(np.abs(a - b)) if a.shape == b.shape else np.inf
+        return err <= 1e-6, f"max difference from the intact log {err:.1e} (CSV: 6 decimals)"
+
+    case(4, "detections stamped 0, --log-time", ["convert", "tag_zero_stamps.mcap", "--out",
+         "l1.csv", "--log-time"], outputs=["l1.csv"], expect="ok",
+         check=same_as_intact)  # fmt: skip
+
+    # 7. epoch stamps off the binary grids: the same predictions as from zero
+    pred = ["--waypoints", "ns_wp.csv", "--quiet"]
+    case(7, "predict, t from 0.123456789 s", ["predict", "ns_zero.csv", *pred, "--out",
+         "n0.csv"], outputs=["n0.csv"], expect="ok")  # fmt: skip
+
+    def same_xy(_):
+        a, b = _predictions(work / "n0.csv"), _predictions(work / "n1.csv")
+        err = max(np.max(np.abs(a["x"] - b["x"])), np.max(np.abs(a["y"] - b["y"])))
+        dt = np.max(np.abs(b["stamp"] - 1.7e9 - a["stamp"]))
+        return err == 0 and dt < 1e-6, f"x, y differ by {err:.1e} m (9 decimals); stamps {dt:.1e}"
+
+    case(7, "predict, the same + 1.7e9 s", ["predict", "ns_epoch.csv", *pred, "--out", "n1.csv"],
+         outputs=["n1.csv"], expect="ok", check=same_xy)  # fmt: skip
+    replies = {}
+
+    def stream_same(tag):
+        def check(r):
+            replies[tag] = [json.loads(x)["poses"] for x in r["out"].decode().splitlines()]
+            if len(replies) < 2:
+                return True, f"{len(replies[tag])} replies"
+            a, b = np.array(replies["zero"]), np.array(replies["epoch"])
+            err = np.max(np.abs(a - b)) if a.shape == b.shape else np.inf
+            return err <= 1e-9, f"poses differ by {err:.1e} m from the zero-based stream"
+
+        return check
+
+    run = ["run", "--config", "default.json", "--waypoints", "ns_wp.csv"]
+    for tag in ("zero", "epoch"):
+        case(7, f"run, stream stamps from {tag}", run, expect="ok", check=stream_same(tag),
+             stdin=(work / f"ns_{tag}.csv").read_bytes())  # fmt: skip
+
+    # 13. deep trees, long names, a second Ctrl-C
+    case(
+        13,
+        "info on a TF tree 3,000 frames deep",
+        ["info", "tf_deep.mcap", "--json"],
+        expect="ok",
+        check=lambda r: (True, f"{len(json.loads(r['out'])['tf_tree'])} edges"),
+    )
+    long_name = "p" * 251 + ".csv"
+    case(13, "predict --out a 255-byte name", ["predict", "ns_zero.csv", *pred, "--out",
+         long_name], outputs=[long_name], expect="ok")  # fmt: skip
+    rows.append(_double_interrupt(work))
+    print(f" 13 {rows[-1]['case']:48s} {'ok' if rows[-1]['ok'] else 'FAIL'} {rows[-1]['note']}")
+
+    # 14. a flood of bad lines
+    good = (work / "ns_zero.csv").read_bytes()
+    flood = good + b"oops,1,2,3\n" * 3_000_000
+
+    def flat(r):
+        lines = len(r["err"].decode().strip().splitlines()) if isinstance(r["err"], bytes) else \
+            len(r["err"].strip().splitlines())  # fmt: skip
+        last = r["err"].strip().splitlines()[-1]
+        good_ = lines <= 15 and "skipped 3000000 of" in last
+        return good_, f"{lines} stderr lines, peak RSS {r['rss_mb']:.0f} MB; {last[:60]}"
+
+    case(14, "run, 3e6 bad lines after a drive", run, expect="ok", check=flat, stdin=flood)
+    case(
+        14,
+        "run, the drive alone",
+        run,
+        expect="ok",
+        stdin=good,
+        check=lambda r: (True, f"peak RSS {r['rss_mb']:.0f} MB"),
+    )
+
+    # 15. syntax, truncation, disagreeing mounts, ranges, a tag twice
+    cut = good.rstrip(b"\n")[:-3]  # the last line loses its last digits and its newline
+    n_good = len(good.splitlines()) - 1
+
+    def cut_reported(r):
+        n = len(r["out"].splitlines())
+        said = r["err"].strip()
+        return n == n_good - 1 and "no newline" in said, f"{n} of {n_good} lines; {said[:70]}"
+
+    case(15, "run, last line cut short", run, expect="ok", check=cut_reported, stdin=cut)
+    header, first, second = good.splitlines()[:3]
+
+    def odd_reported(r):
+        said = r["err"].strip().splitlines()
+        return len(said) == 2 and all("expected a number" in s for s in said), " / ".join(said)[
+            :120
+        ]
+
+    odd = b"\n".join([header, first, second.replace(b",", b",1_0", 1),
+                      "0.5,\u0663,1,0".encode(), b""])  # fmt: skip
+    case(15, "run, 1_0 and an Arabic-Indic digit", run, expect="ok", check=odd_reported,
+         stdin=odd)  # fmt: skip
+    (work / "underscore.csv").write_text("t,x,y\n0,1_0,2\n0.1,10,2\n0.2,10,2.1\n")
+    case(15, "predict a CSV cell 1_0", ["predict", "underscore.csv", *pred, "--out", "u.csv"])
+    case(15, "convert a /tf_static mount given 1,501 ways", ["convert", "tag_static_moves.mcap",
+         "--out", "s.csv"])  # fmt: skip
+    case(15, "--tag-to-base=0,0,0,1e20", ["convert", "tag.mcap", "--out", "t.csv",
+         "--tag-to-base=0,0,0,1e20"])  # fmt: skip
+    case(15, "simulate --half-width 1e6", ["simulate", "--half-width", "1e6", "--out", "hw"])
+    case(15, "convert a tag seen twice in every image", ["convert", "tag_twice.mcap", "--out",
+         "tw.csv"])  # fmt: skip
+    rows[-1]["ok"] &= "no detection of tag" not in rows[-1]["note"]
+    return rows
+
+
+def _double_interrupt(work: Path) -> dict:
+    """`fpe predict` interrupted twice, 0.5-20 ms apart, at several moments: exit 130, no
+    traceback, nothing left behind."""
+    import signal
+
+    code = "import sys; from fpe_jax.cli import entry; sys.argv[0] = 'fpe'; entry()"
+    argv = ["predict", "ns_zero.csv", "--waypoints", "ns_wp.csv", "--out", "ci.csv"]
+    tally, left = [], []
+    for first_s in (1.0, 2.0, 3.0):
+        for gap_s in (0.0005, 0.005, 0.02):
+            before = set(snapshot(work))
+            p = subprocess.Popen([sys.executable, "-c", code, *argv], cwd=work,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+            time.sleep(first_s)
+            p.send_signal(signal.SIGINT)
+            time.sleep(gap_s)
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+            _, err = p.communicate()
+            tally.append((p.returncode, b"Traceback" in err))
+            left += sorted(set(snapshot(work)) - before - {"ci.csv"})
+            (work / "ci.csv").unlink(missing_ok=True)
+    ok = all(rc in (0, 130) and not tb for rc, tb in tally) and not left
+    codes = sorted({rc for rc, _ in tally})
+    return dict(item=13, case="predict interrupted twice (9 timings)", rc=",".join(map(str, codes)),
+                lines="", traceback=any(tb for _, tb in tally), files_unchanged=not left,
+                ok=ok, note=f"exit {codes}, tracebacks {sum(tb for _, tb in tally)}, left {left}",
+                wall_s="", rss_mb="")  # fmt: skip
+
+
+def main_io() -> int:
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="fpe-hostile-io-") as tmp:
+        os.environ.setdefault("FPE_CACHE_DIR", str(Path(tmp) / "cache"))
+        work = Path(tmp) / "work"
+        work.mkdir()
+        rows = _io_cases(work, _io_setup(work))
+    out = HERE / "results-io.md"
+    write_markdown(rows, out, time.perf_counter() - t0)
+    text = out.read_text().replace(
+        "# Hostile-input walk (issue 14's examples, run as written)",
+        "# Hostile-input walk: the TF/AprilTag reader, stamps and the stream",
+    ).replace("`.venv/bin/python experiments/hostile/run.py`", "`.venv/bin/python "
+              "experiments/hostile/run.py --io`").replace(
+        " Items 8, 12 and the `.npy` part of 10 are covered elsewhere.", " Items: issue 34's."
+    )  # fmt: skip
+    out.write_text(text)
+    print(f"wrote {out}: {sum(r['ok'] for r in rows)}/{len(rows)} pass")
+    return 0 if all(r["ok"] for r in rows) else 1
+
+
 def write_markdown(rows: list[dict], path: Path, seconds: float) -> None:
     n_ok = sum(r["ok"] for r in rows)
     lines = [
@@ -470,10 +775,250 @@ def main() -> int:
         work.mkdir()
         setup(work)
         rows = run_cases(work)
+        import cache_cases  # beside this file: the compilation cache's cases
+
+        rows += cache_cases.run_cases(work, fpe)
     write_markdown(rows, HERE / "results.md", time.perf_counter() - t0)
     print(f"wrote {HERE / 'results.md'}: {sum(r['ok'] for r in rows)}/{len(rows)} pass")
     return 0 if all(r["ok"] for r in rows) else 1
 
 
+# ---- issue 34: off the track, crossings, the CLI's blend start, outputs naming inputs, partial
+# exports, committed files, simulate's track checks -------------------------------------------
+#
+#     .venv/bin/python experiments/hostile/run.py --only offtrack    # -> offtrack.md, ~3 min
+
+
+def _offtrack_setup(work: Path) -> None:
+    """Inputs of the off-track section: the oval drive shifted 100 m (all of it, or from row 40
+    on), cars partly off the track, a figure-eight with a drive from its crossing, bad tracks."""
+    from fpe_jax.config import params_to_config, write_config
+    from fpe_jax.params import presets
+
+    rows = np.loadtxt(work / "drive.csv", delimiter=",", skiprows=1)
+    shifted = rows.copy()
+    shifted[:, 1] += 100.0
+    _csv(work / "drive_far.csv", "t,x,y,yaw", shifted)
+    leaving = rows.copy()
+    leaving[40:, 1] += 100.0
+    _csv(work / "drive_leaving.csv", "t,x,y,yaw", leaving)
+    cars = np.column_stack([rows[:50, 1:4], np.full(50, 3.0)])
+    cars[[3, 17, 40], 0] += 100.0
+    _csv(work / "cars_some_off.csv", "x,y,yaw,v", cars)
+    write_config(work / "default.json", params_to_config(presets["default"]))
+    # a lemniscate: x = a sin t, y = a sin t cos t crosses itself at the origin
+    t = np.linspace(0.0, 2 * np.pi, 1200, endpoint=False)
+    _csv(work / "eight.csv", "x,y", 15.0 * np.column_stack([np.sin(t), np.sin(t) * np.cos(t)]))
+    fine = np.linspace(0.0, 2 * np.pi, 200_001)
+    xy = 15.0 * np.column_stack([np.sin(fine), np.sin(fine) * np.cos(fine)])
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    tt = np.arange(0.0, 6.0, 0.1)
+    path = np.column_stack([np.interp(3.0 * tt, s, xy[:, 0]), np.interp(3.0 * tt, s, xy[:, 1])])
+    d = np.gradient(path, axis=0)
+    _csv(work / "eight_drive.csv", "t,x,y,yaw", np.column_stack([tt, path, np.arctan2(*d.T[::-1])]))
+    _csv(work / "eight_car.csv", "x,y,yaw,v", [[0.0, 0.0, 0.25 * np.pi, 3.0]])
+    a = np.linspace(0.0, 2 * np.pi, 60, endpoint=False)
+    ring = np.column_stack([np.cos(a), np.sin(a)])
+    _csv(work / "track_tiny.csv", "x,y", 1e-4 * ring)
+    _csv(work / "track_huge.csv", "x,y", 1e6 * ring)
+    _csv(work / "track_tight.csv", "x,y", 0.5 * ring)
+    oval = np.loadtxt(work / "wp.csv", delimiter=",", skiprows=1)
+    _csv(work / "track_spike.csv", "x,y", np.insert(oval, 10, oval[10] + [283_000.0, 0.0], axis=0))
+    (work / "simdir").mkdir()
+    (work / "simdir" / "waypoints.csv").write_bytes((work / "wp.csv").read_bytes())
+    (work / "links").mkdir()
+    (work / "links" / "drive_link.csv").symlink_to(work / "drive.csv")
+    os.link(work / "drive.csv", work / "links" / "drive_hard.csv")
+    os.link(work / "wp.csv", work / "links" / "wp_hard.csv")
+
+
+def _offtrack_case(work: Path, rows: list, item, name, argv, *, outputs=(), expect="exit2",
+                   check=None, stdin=None, command=None, limit_bytes=None) -> dict:  # fmt: skip
+    """One case as `run_cases` judges it (exit status, stderr lines, traceback, no other file
+    changed); expect "exit2", "ok" or "fail" (a non-zero exit other than a crash); `command`
+    replaces `fpe`; `limit_bytes` caps the size of any file written (a full disk midway)."""
+    import resource
+    import signal
+
+    def mine(k):
+        return any(k == o or k.startswith(o + "/") for o in outputs)
+
+    before = {k: v for k, v in snapshot(work).items() if not mine(k)}
+    if command is None and limit_bytes is None:
+        r = fpe(work, *argv, stdin=stdin)
+    else:
+
+        def cap():
+            signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails with EFBIG instead
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+        cmd = command or [sys.executable, "-m", "fpe_jax.cli", *argv]
+        t0 = time.perf_counter()
+        p = subprocess.run(cmd, cwd=work, input=stdin, capture_output=True,
+                           preexec_fn=cap if limit_bytes else None)  # fmt: skip
+        r = dict(rc=p.returncode, err=p.stderr.decode(errors="replace"), out=p.stdout,
+                 wall_s=time.perf_counter() - t0, rss_mb=0.0)  # fmt: skip
+    after = {k: v for k, v in snapshot(work).items() if not mine(k) or r["rc"] != 0}
+    changed = sorted(set(before.items()) ^ set(after.items()))
+    lines = len(r["err"].strip().splitlines())
+    tb = "Traceback" in r["err"]
+    ok = not tb and not changed
+    if expect == "exit2":
+        ok &= r["rc"] == 2 and 1 <= lines <= 3
+    elif expect == "fail":
+        ok &= r["rc"] in (1, 2) and 1 <= lines <= 3
+    else:
+        ok &= r["rc"] == 0
+    note = ""
+    if check is not None and (r["rc"] == 0 or expect == "fail"):
+        good, note = check(r)
+        ok &= good
+    if r["rc"] != 0 and not note:
+        note = r["err"].strip().splitlines()[-1][:150] if lines else ""
+    rows.append(dict(item=item, case=name, rc=r["rc"], lines=lines, traceback=tb,
+                     files_unchanged=not changed, ok=bool(ok), note=note,
+                     wall_s=round(r["wall_s"], 1), rss_mb=round(r["rss_mb"])))  # fmt: skip
+    print(f"{item:>3} {name:48s} rc {r['rc']} {'ok' if ok else 'FAIL'} {note[:90]}")
+    return r
+
+
+def run_offtrack_cases(work: Path) -> list[dict]:
+    """Issue 34 items 1, 5, 6, 8, 10, 11 and 12 through the command line."""
+    rows: list[dict] = []
+
+    def case(*args, **kwargs):
+        return _offtrack_case(work, rows, *args, **kwargs)
+
+    run = ["run", "--config", "default.json", "--waypoints", "wp.csv"]
+    # 1. a car off the track
+    case("34.1", "run: a stream 100 m off the track", run,
+         stdin=(work / "drive_far.csv").read_bytes())  # fmt: skip
+
+    def warned(r):
+        replies = [json.loads(x) for x in r["out"].decode().splitlines()]
+        n = sum("warning" in x for x in replies)
+        lines = len(r["err"].strip().splitlines())
+        off_s = replies[-1]["stamp"] - replies[40]["stamp"]
+        limit = 1 + off_s / 5.0  # one line when it leaves, then at most one per 5 s of stamps
+        return n == len(replies) - 40 and lines <= limit, (
+            f"{n} replies warned, {lines} stderr lines over {off_s:.0f} s off the track"
+        )
+
+    case("34.1", "run: a stream leaving the track after 40 rows", run, expect="ok",
+         stdin=(work / "drive_leaving.csv").read_bytes(), check=warned)  # fmt: skip
+
+    def on_track_clean(r):
+        replies = [json.loads(x) for x in r["out"].decode().splitlines()]
+        return all(set(x) == {"stamp", "poses"} for x in replies) and not r["err"].strip(), (
+            f"{len(replies)} replies, none warned, stderr empty"
+        )
+
+    case("34.1", "run: the on-track stream", run, expect="ok",
+         stdin=(work / "drive.csv").read_bytes(), check=on_track_clean)  # fmt: skip
+
+    def flagged(r):
+        table = np.genfromtxt(work / "b_off.csv", delimiter=",", names=True)
+        cars = sorted(set(table["car"][table["off_track"] == 1].astype(int).tolist()))
+        said = "3 of 50 cars" in r["err"]
+        return cars == [3, 17, 40] and said, f"flagged cars {cars}; summary on stderr: {said}"
+
+    case("34.1", "batch: 3 of 50 cars 100 m off", ["batch", "cars_some_off.csv", "--waypoints",
+         "wp.csv", "--preset", "default", "--out", "b_off.csv", "--quiet"], outputs=["b_off.csv"],
+         expect="ok", check=flagged)  # fmt: skip
+
+    # 5. a figure-eight, starting at its crossing
+    def along(path):
+        def check(r):
+            obs = np.loadtxt(work / "eight_drive.csv", delimiter=",", skiprows=1)
+            p = _predictions(work / path)
+            last = p[p["step"] == p["step"].max()]
+            k = np.arange(1, len(obs) - 10)  # from the second row (the first has no speed)
+            err = np.hypot(last["x"][k] - obs[k + 10, 1], last["y"][k] - obs[k + 10, 2])
+            return err.max() < 1.0, f"1 s error max {err.max():.2f} m"
+
+        return check
+
+    case("34.5", "predict: figure-eight drive from the crossing", ["predict", "eight_drive.csv",
+         "--waypoints", "eight.csv", "--out", "p_eight.csv", "--quiet"],
+         outputs=["p_eight.csv"], expect="ok", check=along("p_eight.csv"))  # fmt: skip
+
+    def drives_on(r):
+        poses = np.load(work / "b_eight.npy")
+        moved = float(np.hypot(*poses[0, -1, :2]))
+        turn = abs(math.remainder(float(poses[0, 0, 2]) - 0.25 * math.pi, 2 * math.pi))
+        return moved > 2.0 and turn < 0.3, f"moved {moved:.2f} m in 1 s, yaw turned {turn:.2f} rad"
+
+    case("34.5", "batch: a car at the crossing", ["batch", "eight_car.csv", "--waypoints",
+         "eight.csv", "--preset", "default", "--out", "b_eight.npy", "--quiet",
+         "--dtype", "float64"], outputs=["b_eight.npy"], expect="ok", check=drives_on)  # fmt: skip
+
+    # 6. fpe fit --model blend starts at the measured speed, as the Python API
+    def measured_speed(r):
+        cfg = json.loads((work / "blend.json").read_text())
+        w = cfg["params"]["speed_weight"]
+        return w > 0.99, f"speed_weight {w:.6f}, speed_mps {cfg['params']['speed_mps']:.3f}"
+
+    case("34.6", "fit --model blend: speed parameters", ["fit", "oval/drive.mcap", "--waypoints",
+         "oval/waypoints.csv", "--model", "blend", "--blend", "position", "--out", "blend.json",
+         "--quiet"], outputs=["blend.json"], expect="ok", check=measured_speed)  # fmt: skip
+
+    # 8. an output that is one of the inputs, --force or not
+    pr = ["--waypoints", "wp.csv", "--preset", "linear", "--quiet", "--force"]
+    for out in ("drive.csv", "./drive.csv", "links/drive_link.csv", "links/drive_hard.csv"):
+        case("34.8", f"predict --out {out} --force (the input)",
+             ["predict", "drive.csv", *pr, "--out", out])  # fmt: skip
+    case("34.8", "convert --out (hard link of the input) --force",
+         ["convert", "drive.csv", "--out", "links/drive_hard.csv", "--force"])  # fmt: skip
+    case("34.8", "batch --out ./cars_some_off.csv --force", ["batch", "cars_some_off.csv",
+         *pr, "--out", "./cars_some_off.csv"])  # fmt: skip
+    case("34.8", "fit --out (the waypoints' hard link) --force", ["fit", "drive.csv",
+         "--waypoints", "wp.csv", "--out", "links/wp_hard.csv", "--force", "--quiet"])  # fmt: skip
+    case("34.8", "simulate --force into the folder of its --track", ["simulate", "--track",
+         "simdir/waypoints.csv", "--duration", "5", "--out", "simdir", "--force"])  # fmt: skip
+
+    # 10. export --format all failing midway (files capped at 16 kB: EFBIG on the artifact)
+    case("34.10", "export all, a write fails midway", ["export", "default.json", "--format",
+         "all", "--out", "e_all", "--waypoints", "wp.csv"], expect="fail", limit_bytes=16_000,
+         check=lambda r: (not (work / "e_all").exists(), "no e_all/ left"))  # fmt: skip
+
+    # 11. committed files: the sample data's check compares values within a stated tolerance
+    root = HERE.parents[1]
+    case("34.11", "data/make_samples.py --check", [], expect="ok",
+         command=[sys.executable, str(root / "data" / "make_samples.py"), "--check"],
+         check=lambda r: (True, r["out"].decode().strip().splitlines()[-1]))  # fmt: skip
+
+    # 12. simulate applies the track checks of the other commands
+    for name in ("tiny", "huge", "spike", "tight"):
+        case("34.12", f"simulate --track track_{name}.csv", ["simulate", "--track",
+             f"track_{name}.csv", "--duration", "20", "--out", f"sim_{name}"])  # fmt: skip
+    return rows
+
+
+def offtrack_main() -> int:
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="fpe-hostile-offtrack-") as tmp:
+        os.environ.setdefault("FPE_CACHE_DIR", str(Path(tmp) / "cache"))
+        work = Path(tmp) / "work"
+        work.mkdir()
+        setup(work)
+        _offtrack_setup(work)
+        rows = run_offtrack_cases(work)
+    path = HERE / "offtrack.md"
+    write_markdown(rows, path, time.perf_counter() - t0)
+    text = path.read_text().splitlines()
+    text[0] = "# Hostile inputs, issue 34: off the track, crossings, outputs naming inputs, tracks"
+    text[2] = (
+        "`.venv/bin/python experiments/hostile/run.py --only offtrack`: each case is `fpe ...` "
+        "in a fresh process in a scratch folder of inputs. *unchanged*: no file it was not asked "
+        f"to write changed, appeared or vanished. {sum(r['ok'] for r in rows)} of {len(rows)} "
+        f"cases pass; the walk took {time.perf_counter() - t0:.0f} s."
+    )
+    path.write_text("\n".join(text) + "\n")
+    print(f"wrote {path}: {sum(r['ok'] for r in rows)}/{len(rows)} pass")
+    return 0 if all(r["ok"] for r in rows) else 1
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    if "--io" in sys.argv[1:]:
+        sys.exit(main_io())
+    sys.exit(offtrack_main() if sys.argv[1:] == ["--only", "offtrack"] else main())

@@ -28,6 +28,7 @@ def main() -> None:
     from fpe_jax.path import (
         MIN_ALONG_SHARE,
         MIN_ON_TRACK_SHARE,
+        ON_TRACK_EXTENT,
         ON_TRACK_M,
         build_path,
         track_agreement,
@@ -78,12 +79,13 @@ def main() -> None:
         "# Drive-vs-track check: shares on own drives and on wrong waypoints",
         "",
         f"`.venv/bin/python experiments/hostile/track_check.py`. near: share of observations "
-        f"within {ON_TRACK_M:g} m of the waypoints' path (must be >= {MIN_ON_TRACK_SHARE:.0%}); "
+        f"within `near m` of the waypoints' path, the larger of {ON_TRACK_M:g} m and "
+        f"{ON_TRACK_EXTENT:.0%} of the path's extent (must be >= {MIN_ON_TRACK_SHARE:.0%}); "
         f"along: share of the drive's ~2 m moves that start near the path and go its way (must "
         f"be >= {MIN_ALONG_SHARE:.0%}).",
         "",
-        "| case | waypoints | near | along | moves | verdict |",
-        "| --- | --- | ---: | ---: | ---: | --- |",
+        "| case | waypoints | near m | near | along | moves | verdict |",
+        "| --- | --- | ---: | ---: | ---: | ---: | --- |",
     ]
     for kind, cases in (("own", own), ("wrong", wrong)):
         for name, (xy, wp) in cases.items():
@@ -93,8 +95,8 @@ def main() -> None:
             good = trips == (kind == "wrong")
             verdict = ("trips" if trips else "passes") + ("" if good else " (WRONG)")
             lines.append(
-                f"| {name} | {kind} | {a['share_near']:.3f} | {a['share_along']:.3f} | "
-                f"{a['n_moves']} | {verdict} |"
+                f"| {name} | {kind} | {a['near_m']:.1f} | {a['share_near']:.3f} | "
+                f"{a['share_along']:.3f} | {a['n_moves']} | {verdict} |"
             )
             print(lines[-1])
     (HERE / "track_check.md").write_text("\n".join(lines) + "\n")

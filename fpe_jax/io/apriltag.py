@@ -37,8 +37,11 @@ from typing import Any
 
 import numpy as np
 
+from fpe_jax import spec
 from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
+from fpe_jax.io import tables
+from fpe_jax.io.logs import check_stamps_vary
 from fpe_jax.io.tf import Rigid, TfBuffer, format_stamp, quat_from_matrix
 
 DETECTION_TYPES = (
@@ -71,21 +74,19 @@ def tag_mount(x_m: float, y_m: float, z_m: float, yaw_rad: float) -> Rigid:
 
 
 def parse_tag_to_base(value, source: str = "--tag-to-base") -> tuple[float, ...] | None:
-    """`"x,y,z,yaw"` or a sequence of 4 numbers -> (x [m], y [m], z [m], yaw [rad]); None stays."""
+    """`"x,y,z,yaw"` or a sequence of 4 numbers -> (x [m], y [m], z [m], yaw [rad]); None stays.
+    The ranges are `spec.check_tag_mount`'s."""
     if value is None:
         return None
-    parts = value.split(",") if isinstance(value, str) else list(value)
+    if not isinstance(value, str):
+        return spec.check_tag_mount(list(value), source)
     try:
-        out = tuple(float(p) for p in parts)
-    except (TypeError, ValueError):
-        out = ()
-    if len(out) != 4 or not all(math.isfinite(v) for v in out):
-        raise InputError(
-            source,
-            f"{value!r} is not four finite numbers",
-            "X,Y,Z,YAW: the tag's centre [m] in the car's base frame and the way it faces [rad]",
-        )
-    return out
+        parts = [tables.plain_number(p) for p in value.split(",")]
+    except ValueError:
+        parts = []
+    if len(parts) != 4:  # the message shows the text as given
+        spec.check_tag_mount(value, source)
+    return spec.check_tag_mount(parts, source)
 
 
 # --- reading --------------------------------------------------------------------------------------
@@ -207,7 +208,14 @@ def _raise_no_detections(log, topic, tag_id, counts, ids_seen) -> None:
             f"detection topic {topic!r}: all {n} detection arrays are empty (no tag was seen)",
             f"detections of tag {tag_id}",
         )
-    if ids_seen:
+    if counts["n_ambiguous_arrays"] and not counts["n_bundles_with_tag"]:
+        raise InputError(
+            log.source,
+            f"detection topic {topic!r}: tag {tag_id} is detected more than once in each of the "
+            f"{counts['n_ambiguous_arrays']} images that hold it (no way to tell which is right)",
+            "one detection of the tag per image (distinct tag ids on one car)",
+        )
+    if any(i != tag_id for i in ids_seen):
         seen = ", ".join(f"{i} ({c}x)" for i, c in sorted(ids_seen.items()))
         raise InputError(
             log.source,
@@ -305,9 +313,12 @@ def _tag_frame_from_tree(buf: TfBuffer, map_frame, car_frame, camera_frames) -> 
 
 
 def _compose(log, topic, dets: _Detections, buf: TfBuffer, plan: _Plan, map_frame, car_frame,
-             drop_outside_tf: bool):  # fmt: skip
-    """(kept mask (N,), T_map_car (kept) of the detections, number dropped outside the TF)."""
+             drop_outside_tf: bool, log_time: bool = False):  # fmt: skip
+    """(kept mask (N,), T_map_car (kept) of the detections, number dropped outside the TF,
+    number of those dropped in a TF gap). The TF is looked up at the header stamps, or at the
+    log times with `log_time`; a detector's own TF pose is matched by header stamp."""
     n = len(dets.stamp_ns)
+    at_ns = dets.log_ns if log_time else dets.stamp_ns
     what = f"detections on {topic}"
     keep = np.ones(n, dtype=bool)
     if dets.cam_tag is None:  # the pose is the detector's TF sample with the detection's stamp
@@ -326,19 +337,22 @@ def _compose(log, topic, dets: _Detections, buf: TfBuffer, plan: _Plan, map_fram
         frames = np.full(n, plan.camera_frames[0], dtype=object)
     else:
         frames = dets.frame
+    in_gap = np.zeros(n, dtype=bool)
     if drop_outside_tf:
         for cam in plan.camera_frames:
             sel = frames == cam
-            keep[sel] &= buf.covers(map_frame, cam, dets.stamp_ns[sel])
+            keep[sel] &= buf.covers(map_frame, cam, at_ns[sel])
+            in_gap[sel] |= buf.in_gap(map_frame, cam, at_ns[sel])
         if plan.tag_car is None:
-            keep &= buf.covers(plan.tag_frame, car_frame, dets.stamp_ns)
+            keep &= buf.covers(plan.tag_frame, car_frame, at_ns)
+            in_gap |= buf.in_gap(plan.tag_frame, car_frame, at_ns)
         if not keep.any():
             raise InputError(
                 log.source,
                 f"none of the {n} {what} lie within the TF buffer",
                 f"transforms {map_frame} -> {plan.camera_frames[0]} around the detections' stamps",
             )
-    stamps, frames = dets.stamp_ns[keep], frames[keep]
+    stamps, frames = at_ns[keep], frames[keep]
     if dets.cam_tag is not None:
         cam_tag = dets.cam_tag.take(keep)
     else:
@@ -353,13 +367,21 @@ def _compose(log, topic, dets: _Detections, buf: TfBuffer, plan: _Plan, map_fram
     q = np.empty((len(stamps), 4))
     for cam in sorted(set(frames)):
         sel = frames == cam
-        out = (
-            buf.lookup(map_frame, cam, stamps[sel], what, _REMEDY)
-            @ cam_tag.take(sel)
-            @ tag_car.take(sel)
+        out = place_tag(
+            buf, map_frame, cam, stamps[sel], cam_tag.take(sel), tag_car.take(sel), what
         )
         t[sel], q[sel] = out.t_m, out.q
-    return keep, Rigid(t, q), int(n - keep.sum())
+    return keep, Rigid(t, q), int(n - keep.sum()), int((in_gap & ~keep).sum())
+
+
+def place_tag(
+    buf: TfBuffer, map_frame: str, camera_frame: str, stamps_ns, cam_tag: Rigid, tag_car: Rigid,
+    what: str = "detections", remedy: str | None = _REMEDY,
+) -> Rigid:  # fmt: skip
+    """T_map_car of N detections in one camera frame: T_map_camera (TF at each stamp (N,) [ns])
+    @ T_camera_tag (the detections) @ T_tag_car (the tag's mount). Raises InputError when the
+    TF buffer does not join the frames or a stamp lies outside it (`what` names the stamps)."""
+    return buf.lookup(map_frame, camera_frame, stamps_ns, what, remedy) @ cam_tag @ tag_car
 
 
 def detection_rows(
@@ -371,23 +393,31 @@ def detection_rows(
     map_frame: str = "map",
     car_frame: str = "other_base_link",
     drop_outside_tf: bool = False,
+    log_time: bool = False,
+    max_tf_gap_s: float | None = None,
 ) -> tuple[list[tuple], dict[str, Any]]:
     """The leading car's map-frame poses from one detection topic, as rows for the drive reader.
 
     Returns (rows, meta): rows (stamp_ns, log_ns, x, y, qx, qy, qz, qw, nan) per placed
     detection (the planar reduction happens in the reader: it keeps x, y and the yaw of q);
     meta: the chain, the tag frame, where the tag -> car link came from, and counts.
-    Raises InputError for a topic without usable detections of `tag_id`, a missing TF link, or
-    a detection stamped outside the TF buffer (unless `drop_outside_tf`: then it is dropped).
+    Raises InputError for a topic without usable detections of `tag_id`, a missing TF link,
+    detections whose header stamps are all equal (zero: unset; unless `log_time`), or a
+    detection stamped outside the TF buffer or inside a TF gap longer than the limit
+    (`max_tf_gap_s`, see `fpe_jax.io.tf`; with `drop_outside_tf` it is dropped and counted).
+    With `log_time` the TF is looked up at each detection's log time (the time it is stamped
+    with in the drive too).
     """
     if isinstance(tag_id, bool) or not isinstance(tag_id, int | np.integer):
         raise InputError("--tag-id", f"{tag_id!r} is not an integer", "an AprilTag id such as 0")
     tag_to_base = parse_tag_to_base(tag_to_base)
     dets = _read_detections(log, topic, tag_id)
-    buf = TfBuffer.from_log(log)
+    if not log_time:
+        check_stamps_vary(log.source, topic, dets.stamp_ns, f"detections of tag {tag_id}")
+    buf = TfBuffer.from_log(log, max_gap_s=max_tf_gap_s)
     plan = _plan(buf, dets, tag_id, tag_to_base, map_frame, car_frame)
-    keep, map_car, n_dropped = _compose(
-        log, topic, dets, buf, plan, map_frame, car_frame, drop_outside_tf
+    keep, map_car, n_dropped, n_gap = _compose(
+        log, topic, dets, buf, plan, map_frame, car_frame, drop_outside_tf, log_time
     )
     stamps, logs = dets.stamp_ns[keep], dets.log_ns[keep]
     rows = [
@@ -399,6 +429,7 @@ def detection_rows(
         **_plan_summary(buf, plan, map_frame, car_frame),
         **dets.counts,
         "n_dropped_outside_tf": n_dropped,
+        "n_dropped_tf_gap": n_gap,
     }
     return rows, meta
 

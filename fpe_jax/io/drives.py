@@ -30,6 +30,7 @@ from fpe_jax.io.logs import (
     STAMPED_POSE_TYPES,
     TF_TYPES,
     Log,
+    check_stamps_vary,
     is_log_path,
     open_log,
 )
@@ -131,7 +132,8 @@ def _clean(source, what: str, t_ns: np.ndarray, cols: dict[str, np.ndarray], fin
         t_ns: (N,) int64 stamps [ns] in arrival order.
         cols: (N, ...) arrays to keep aligned with the stamps.
         finite: names in `cols` that must be finite for a row to be kept.
-    Returns (t_s (M,) float64 [s], cols, counts) with counts of what was dropped or reordered.
+    Returns (t_s (M,) float64 [s], cols, counts) with counts of what was dropped or reordered;
+    cols["t_ns"] (M,) holds the kept stamps as integers [ns].
     """
     n = len(t_ns)
     if n == 0:
@@ -152,7 +154,7 @@ def _clean(source, what: str, t_ns: np.ndarray, cols: dict[str, np.ndarray], fin
             "map coordinates in metres",
         )
     t_ns = t_ns[ok]
-    cols = {k: v[ok] for k, v in cols.items()}
+    cols = {k: v[ok] for k, v in cols.items()} | {"t_ns": t_ns}
     # A row is "reordered" when it arrived after a row with a later stamp.
     n_reordered = int(np.sum(t_ns[1:] < np.maximum.accumulate(t_ns)[:-1]))
     order = np.argsort(t_ns, kind="stable")
@@ -171,7 +173,7 @@ def _clean(source, what: str, t_ns: np.ndarray, cols: dict[str, np.ndarray], fin
 
 
 def _log_series(log: Log, topic: str, tf_pair, log_time: bool, tags: dict):
-    """Cleaned (t_s, cols, counts) of one pose-like topic; cols has xy_m, yaw_rad, v_mps.
+    """Cleaned (t_s, cols, counts) of one pose-like topic; cols has xy_m, yaw_rad, v_mps, t_ns.
 
     A detection topic's counts also hold "detection": `apriltag.detection_rows`' meta.
     """
@@ -186,11 +188,15 @@ def _log_series(log: Log, topic: str, tf_pair, log_time: bool, tags: dict):
             map_frame=tf_pair[0],
             car_frame=tf_pair[1],
             drop_outside_tf=tags.get("drop_outside_tf", False),
+            log_time=log_time,
+            max_tf_gap_s=tags.get("max_tf_gap_s"),
         )
     else:
         rows = log.pose_rows(topic, tf_pair)
     a = np.array(rows, dtype=np.float64)
     t_ns = np.array([r[1] if log_time else r[0] for r in rows], dtype=np.int64)
+    if not log_time:
+        check_stamps_vary(log.source, topic, t_ns)
     cols = {"xy_m": a[:, 2:4], "quat": a[:, 4:8], "v_mps": a[:, 8]}
     t_s, cols, counts = _clean(log.source, topic, t_ns, cols, ["xy_m", "quat"])
     cols["yaw_rad"] = rm.quaternion_to_yaw(*cols.pop("quat").T)
@@ -205,6 +211,7 @@ def _refuse_tag_options(source, topic: str, tags: dict) -> None:
             ("--tag-id", "tag_id"),
             ("--tag-to-base", "tag_to_base"),
             ("--drop-outside-tf", "drop_outside_tf"),
+            ("--max-tf-gap", "max_tf_gap_s"),
         )
         if tags.get(key) is not None and tags.get(key) is not False  # a tag id 0 counts
     ]
@@ -236,9 +243,26 @@ def _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair, tags: dict
     if truth_topic is not None:
         tt, tc, tcounts = _log_series(log, truth_topic, tf_pair, log_time, tags)
         truth = dict(truth_t_s=tt, **{f"truth_{k}": tc[k] for k in ("xy_m", "yaw_rad", "v_mps")})
+        truth["truth_t_ns"] = tc["t_ns"]
         meta["truth_type"] = rm.full_type(log.topics[truth_topic].msgtype)
         meta.update({f"truth_{k}": v for k, v in tcounts.items()})
-    return Drive(t_s=t_s, xy_m=cols["xy_m"], yaw_rad=cols["yaw_rad"], **truth, meta=meta)
+    return Drive(
+        t_s=t_s, xy_m=cols["xy_m"], yaw_rad=cols["yaw_rad"], **truth, meta=meta, t_ns=cols["t_ns"]
+    )
+
+
+def dropped_note(drive: Drive) -> str | None:
+    """One line on the detections `drop_outside_tf` dropped from a drive, or None."""
+    det = drive.meta.get("detection") or {}
+    n = det.get("n_dropped_outside_tf", 0)
+    if not n:
+        return None
+    gap = det.get("n_dropped_tf_gap", 0)
+    where = f", {gap} of them in TF gaps longer than the limit" if gap else ""
+    return (
+        f"dropped {n} detections of {det.get('n_tag_detections', n)} outside the TF buffer "
+        f"of {drive.meta.get('source')}{where} (--drop-outside-tf)"
+    )
 
 
 def _drive_from_table(path, rate_hz) -> Drive:
@@ -271,10 +295,14 @@ def _drive_from_table(path, rate_hz) -> Drive:
     cols = {"t": t, "xy_m": np.column_stack([x, y])}
     cols |= {k: c for k, c in (("yaw_rad", yaw), ("v_mps", v)) if c is not None}
     finite = [k for k in cols if k != "v_mps"]
-    # Rows with a non-finite stamp are dropped before the stamps become integers.
-    t_ns = np.zeros(len(t), dtype=np.int64)
-    good_t = np.isfinite(t)
-    t_ns[good_t] = rm.seconds_to_ns(t[good_t])
+    # Rows with a non-finite stamp are dropped; the others keep the exact nanoseconds of the text.
+    if table.t_ns is not None:
+        t_ns = table.t_ns
+        cols["t"] = np.where(table.t_ok, t, np.nan)
+    else:
+        t_ns = np.zeros(len(t), dtype=np.int64)
+        good_t = np.isfinite(t)
+        t_ns[good_t] = rm.seconds_to_ns(t[good_t])
     t_s, cols, counts = _clean(path, "CSV", t_ns, cols, finite)
     meta: dict[str, Any] = {
         "source": str(path),
@@ -286,7 +314,7 @@ def _drive_from_table(path, rate_hz) -> Drive:
     if "v_mps" in cols:
         meta["v_mps"] = cols["v_mps"]
     yaw_rad = cols.get("yaw_rad", np.full(len(t_s), np.nan))
-    return Drive(t_s=t_s, xy_m=cols["xy_m"], yaw_rad=yaw_rad, meta=meta)
+    return Drive(t_s=t_s, xy_m=cols["xy_m"], yaw_rad=yaw_rad, meta=meta, t_ns=cols["t_ns"])
 
 
 def load_drive(
@@ -301,6 +329,7 @@ def load_drive(
     tag_id: int | None = None,
     tag_to_base=None,
     drop_outside_tf: bool = False,
+    max_tf_gap_s: float | None = None,
 ) -> Drive:
     """Read one drive of the leading car from a log or a CSV.
 
@@ -319,9 +348,14 @@ def load_drive(
         tag_id: the AprilTag id to follow on a detection topic (None: 0).
         tag_to_base: the tag's mount on the leading car, "x,y,z,yaw" or 4 numbers ([m], [rad],
             see `fpe_jax.io.apriltag`); None: a transform tag -> tf_child in the log.
-        drop_outside_tf: drop detections stamped outside the TF buffer instead of failing.
+        drop_outside_tf: drop detections stamped outside the TF buffer, or inside one of its
+            gaps longer than the limit, instead of failing (counted in meta["detection"]).
+        max_tf_gap_s: the longest gap [s] between two transforms of a TF edge that a lookup may
+            interpolate across; None: each edge's own default (`fpe_jax.io.tf.default_max_gap_ns`).
 
-    Returns a `Drive` with absolute stamps [s] (float64, computed from integer nanoseconds).
+    Returns a `Drive` with absolute stamps [s] (float64, computed from integer nanoseconds) and
+    the integers themselves (t_ns, truth_t_ns), which `drive.local_frame` shifts exactly.
+    A log topic whose header stamps are all equal (zero: unset) is an error unless log_time.
     Rows with a non-finite position or orientation are dropped, out-of-order stamps are sorted,
     and of exactly repeated stamps the last one is kept; meta counts each (n_dropped_nonfinite,
     n_reordered, n_duplicate_stamps) and holds source, format, topics, types, frames, t0_ns.
@@ -333,6 +367,7 @@ def load_drive(
             raise InputError(path, "--rate applies to header-less CSVs only", "no --rate for logs")
         tf_pair = (tf_parent.lstrip("/"), tf_child.lstrip("/"))
         tags = dict(tag_id=tag_id, tag_to_base=tag_to_base, drop_outside_tf=drop_outside_tf)
+        tags["max_tf_gap_s"] = max_tf_gap_s
         return _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair, tags)
     if Path(path).suffix.lower() not in tables.TABLE_SUFFIXES:
         if not Path(path).exists():
@@ -348,6 +383,7 @@ def load_drive(
     if log_time:
         raise InputError(path, "--log-time applies to ROS logs, not CSV", "no --log-time")
     tags = dict(tag_id=tag_id, tag_to_base=tag_to_base, drop_outside_tf=drop_outside_tf)
+    tags["max_tf_gap_s"] = max_tf_gap_s
     _refuse_tag_options(path, "a CSV", tags)
     return _drive_from_table(path, rate_hz)
 

@@ -524,3 +524,17 @@ def cdr_pose_row(msgtype: str, data: bytes, log_ns: int) -> tuple | None:
 def _row(stamp, log_ns: int, p, q, v: float = np.nan) -> tuple:
     stamp_ns = int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
     return (stamp_ns, int(log_ns), p.x, p.y, q.x, q.y, q.z, q.w, v)
+
+
+def check_stamps_vary(source, topic: str, stamps_ns: np.ndarray, what="messages") -> None:
+    """InputError when all (two or more) header stamps of a topic are equal (zero: unset), which
+    would collapse the drive into one pose."""
+    if len(stamps_ns) > 1 and np.all(stamps_ns == stamps_ns[0]):
+        value = (
+            "zero (unset)" if stamps_ns[0] == 0 else f"{rm.ns_to_seconds(stamps_ns[:1])[0]:.9f} s"
+        )
+        raise InputError(
+            source,
+            f"{topic}: the header stamps of all {len(stamps_ns)} {what} are {value}",
+            "header stamps of the time each was measured, or --log-time to stamp by recording time",
+        )

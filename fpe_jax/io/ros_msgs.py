@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fpe_jax.drive import seconds_from_ns
+
 _FIELDS: dict[str, str] = {
     "builtin_interfaces/Time": "int32 sec\nuint32 nanosec",
     "builtin_interfaces/Duration": "int32 sec\nuint32 nanosec",
@@ -122,6 +124,7 @@ def known_type(msgtype: str) -> bool:
 
 
 # Marker.type values we write.
+MARKER_SPHERE = 2
 MARKER_LINE_STRIP = 4
 MARKER_SPHERE_LIST = 7
 
@@ -171,8 +174,7 @@ def seconds_to_ns(t_s) -> np.ndarray:
 
 def ns_to_seconds(ns) -> np.ndarray:
     """(N,) int64 [ns] -> (N,) float64 [s], rounding only once (in the final addition)."""
-    ns = np.asarray(ns, dtype=np.int64)
-    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
+    return seconds_from_ns(ns)
 
 
 def stamp_dict(ns: int | np.integer) -> dict[str, int]:

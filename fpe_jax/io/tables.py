@@ -6,6 +6,10 @@ One parser for every table format we meet:
   comment line before the data (the F1TENTH centerline/raceline style `# x_m, y_m, ...`);
 - no header at all (the 2019 project's files);
 - a UTF-8 byte-order mark at the start of the file (ignored).
+Numbers are plain ASCII decimal or float syntax (`12`, `-1.5`, `.5e-3`, `nan`, `inf`): Python's
+`float` would also take `1_0`, other scripts' digits and non-breaking spaces, which no other tool
+reads as numbers, so they are refused. A time column keeps its exact integer nanoseconds
+(`Table.t_ns`): `1700000000.123456789` in float64 would already be rounded to ~240 ns.
 Malformed input raises InputError naming the file and the line. `read_cars` reads the cars of
 `fpe batch` from such a table or from a `.npy` array.
 """
@@ -13,6 +17,7 @@ Malformed input raises InputError naming the file and the line. `read_cars` read
 from __future__ import annotations
 
 import dataclasses
+import decimal
 import re
 from pathlib import Path
 
@@ -20,6 +25,7 @@ import numpy as np
 
 from fpe_jax import spec
 from fpe_jax.errors import InputError
+from fpe_jax.io.ros_msgs import seconds_to_ns
 
 TABLE_SUFFIXES = (".csv", ".txt")
 
@@ -32,13 +38,79 @@ SPEED_NAMES = ("v", "v_mps", "speed", "speed_mps", "vx_mps")
 STATE_COLUMNS = ("x", "y", "yaw", "v", "yaw_rate")  # the (N, 4|5) layout of `fpe batch`'s cars
 
 
+# The syntax `plain_number` accepts: ASCII digits, one optional sign, point and exponent; or the
+# words nan, inf, infinity (any case, signed).
+_PLAIN = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_WORDS = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+
+
+def plain_number(cell: str) -> float:
+    """The float of one cell in plain ASCII number syntax (surrounding blanks allowed).
+
+    Raises ValueError for anything else, `1_0`, non-ASCII digits and `0x10` included.
+    """
+    s = cell.strip(" \t\r\n")
+    if not (_PLAIN.fullmatch(s) or _WORDS.fullmatch(s)):
+        raise ValueError(f"not a plain number: {cell!r}")
+    return float(s)
+
+
+def stamp_ns(cell: str) -> int | None:
+    """A stamp [s] in plain number syntax -> int [ns], exactly (half to even below 1 ns);
+    None for nan/inf. Raises ValueError as `plain_number` does."""
+    s = cell.strip(" \t\r\n")
+    if _WORDS.fullmatch(s):
+        return None
+    if not _PLAIN.fullmatch(s):
+        raise ValueError(f"not a plain number: {cell!r}")
+    return _plain_stamp_ns(s)
+
+
+def _plain_stamp_ns(s: str) -> int:
+    """`stamp_ns` of a cell already known to be a plain finite number (no checks)."""
+    whole, _, frac = s.partition(".")
+    digits = whole.lstrip("+-")
+    if len(frac) <= 9 and digits.isdigit() and "e" not in frac and "E" not in frac:
+        ns = int(digits) * 1_000_000_000 + (int(frac.ljust(9, "0")) if frac else 0)
+        return -ns if whole.startswith("-") else ns
+    return int(decimal.Decimal(s).scaleb(9).to_integral_value(decimal.ROUND_HALF_EVEN))
+
+
+EXACT_FROM_S = 2.0**20  # below, float64 seconds round to the same nanosecond as the text
+
+
+def _stamps_ns(t_s: np.ndarray, texts: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(int64 stamps [ns], finite mask) of a time column: from its float64 values where those
+    are exact to the nanosecond (|t| < EXACT_FROM_S), else from the text (epoch stamps)."""
+    ok = np.isfinite(t_s) & (np.abs(t_s) < 9e9)  # beyond int64 ns a stamp is a unit mistake
+    ns = np.zeros(len(t_s), dtype=np.int64)
+    if not np.any(np.abs(t_s[ok]) >= EXACT_FROM_S):
+        ns[ok] = seconds_to_ns(t_s[ok])
+        return ns, ok
+    idx = np.flatnonzero(ok)
+    ns[idx] = [_plain_stamp_ns(texts[k].strip()) for k in idx]
+    return ns, ok
+
+
+def _is_plain(line: str) -> bool:
+    """Whether `float` could only accept plain syntax in this line (the fast common case)."""
+    return line.isascii() and "_" not in line
+
+
 @dataclasses.dataclass(frozen=True)
 class Table:
-    """A parsed table: data (rows, cols) float64, header lower-cased names or None."""
+    """A parsed table: data (rows, cols) float64, header lower-cased names or None.
+
+    t_ns: (rows,) int64 stamps [ns] of the time column (the first header name in `T_NAMES`),
+    parsed exactly from the text, with t_ok (rows,) False where the cell is nan/inf; None
+    without a time column.
+    """
 
     source: Path
     data: np.ndarray
     header: tuple[str, ...] | None
+    t_ns: np.ndarray | None = None
+    t_ok: np.ndarray | None = None
 
     def column(self, names: tuple[str, ...], what: str, required: bool = True) -> np.ndarray | None:
         """The (rows,) column whose header is one of `names`; None (or InputError) if absent."""
@@ -56,7 +128,7 @@ class Table:
 
 def _is_number(cell: str) -> bool:
     try:
-        float(cell)
+        plain_number(cell)
     except ValueError:
         return False
     return True
@@ -110,6 +182,13 @@ def read_table(path) -> Table:
 
     rows = []
     ncols = len(header) if header is not None else len(first)
+    if header is not None:
+        # Names like "x [m]" are common in hand-made files; keep the bare name.
+        header = tuple(re.sub(r"\s*[\[(].*$", "", h).strip() for h in header)
+        if len(set(header)) != len(header):
+            raise InputError(p, f"repeated column names in header {','.join(header)!r}")
+    t_col = next((header.index(n) for n in T_NAMES if n in header), None) if header else None
+    stamps: list[str] = []  # the time column's text, parsed exactly where float64 is not exact
     for i in range(start, len(lines)):
         s = lines[i].strip()
         if not s or s.startswith("#"):
@@ -120,18 +199,21 @@ def read_table(path) -> Table:
                 p, f"line {i + 1} has {len(cells)} cells", f"{ncols} like the first row"
             )
         try:
-            rows.append([float(c) for c in cells])
+            rows.append(
+                [float(c) for c in cells] if _is_plain(s) else [plain_number(c) for c in cells]
+            )
         except ValueError:
             bad = next(c for c in cells if not _is_number(c))
             raise InputError(p, f"line {i + 1}: non-numeric cell {bad!r}", "numbers") from None
+        if t_col is not None:
+            stamps.append(cells[t_col])
     if not rows:
         raise InputError(p, "has a header but no data rows", "a table of numbers")
-    if header is not None:
-        # Names like "x [m]" are common in hand-made files; keep the bare name.
-        header = tuple(re.sub(r"\s*[\[(].*$", "", h).strip() for h in header)
-        if len(set(header)) != len(header):
-            raise InputError(p, f"repeated column names in header {','.join(header)!r}")
-    return Table(p, np.asarray(rows, dtype=np.float64), header)
+    data = np.asarray(rows, dtype=np.float64)
+    t_ns = t_ok = None
+    if t_col is not None:
+        t_ns, t_ok = _stamps_ns(data[:, t_col], stamps)
+    return Table(p, data, header, t_ns, t_ok)
 
 
 def _check_npy_header(p: Path) -> None:

@@ -6,10 +6,15 @@ as p_a = R(q_ab) p_b + t_ab, and `T_a_b @ T_b_c` is `T_a_c`.
 
 `TfBuffer` keeps every transform of a log by edge. Dynamic edges are interpolated in time (linear in
 translation, slerp in rotation) and never extrapolated: a stamp before an edge's first transform or
-after its last is an error naming the edge and the gap. Static edges (from a topic named
-`.../tf_static`) hold at every time. `lookup(a, b, stamps)` walks the tree from b up to the common
-ancestor and down to a, so any chain (map -> base_link -> laser -> camera) is one call. As in tf2
-every frame has one parent; a frame with two is an error only when a lookup passes through it.
+after its last is an error naming the edge and the gap. Nor is a dropout bridged: a stamp between
+two transforms further apart than the edge's gap limit is an error naming the edge and the gap
+(`max_gap_s`; default per edge max(4 x its median sample period, 0.2 s), see
+`default_max_gap_ns`): interpolating a moving car across a 3 s dropout is metres off. Static
+edges (from a topic named `.../tf_static`) hold at every time; the transforms of one static edge
+must agree (a latched topic repeats them) to `STATIC_TOL_M` / `STATIC_TOL_RAD`.
+`lookup(a, b, stamps)` walks the tree from b up to the common ancestor and down to a, so any
+chain (map -> base_link -> laser -> camera) is one call. As in tf2 every frame has one parent; a
+frame with two is an error only when a lookup passes through it.
 """
 
 from __future__ import annotations
@@ -26,6 +31,11 @@ from fpe_jax.io.logs import TF_TYPES
 
 # /tf_static, /robot/tf_static: static transforms; other TF topics: dynamic
 STATIC_SUFFIX = "tf_static"
+GAP_PERIODS = 4  # a dynamic edge's default gap limit: this many median sample periods ...
+MIN_GAP_NS = 200_000_000  # ... but at least 0.2 s (a 100 Hz edge may miss a few samples)
+STATIC_TOL_M = 1e-3  # transforms of one static edge that differ more are not one mount
+STATIC_TOL_RAD = 1e-3
+QUAT_NORM_TOL = 1e-2  # |q|^2 - 1 beyond this is not a rounded unit quaternion (tf2's tolerance)
 
 
 # --- quaternions and rigid transforms -------------------------------------------------------------
@@ -159,6 +169,7 @@ class Edge:
 
     stamps_ns: (K,) int64 header stamps [ns]; transform: K transforms T_parent_child.
     A static edge holds its last transform at every time (stamps_ns has one entry).
+    max_gap_ns: the longest interval between two transforms that a lookup interpolates across.
     """
 
     parent: str
@@ -167,16 +178,31 @@ class Edge:
     stamps_ns: np.ndarray
     transform: Rigid
     topics: tuple[str, ...]
+    max_gap_ns: int = 0
 
     @property
     def name(self) -> str:
         return f"{self.parent} -> {self.child}"
 
-    def covers(self, stamps_ns: np.ndarray) -> np.ndarray:
-        """(N,) whether each stamp can be looked up without extrapolating."""
+    def in_span(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """(N,) whether each stamp lies within the edge's time span (no extrapolation)."""
         if self.static:
             return np.ones(len(stamps_ns), dtype=bool)
         return (stamps_ns >= self.stamps_ns[0]) & (stamps_ns <= self.stamps_ns[-1])
+
+    def in_gap(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """(N,) whether each stamp falls strictly inside an interval between two transforms
+        longer than max_gap_ns (a stamp on a transform is never in a gap)."""
+        s = self.stamps_ns
+        if self.static or len(s) < 2:
+            return np.zeros(len(stamps_ns), dtype=bool)
+        i = np.clip(np.searchsorted(s, stamps_ns, side="right") - 1, 0, len(s) - 2)
+        inside = (stamps_ns > s[i]) & (stamps_ns < s[i + 1])
+        return inside & (s[i + 1] - s[i] > self.max_gap_ns)
+
+    def covers(self, stamps_ns: np.ndarray) -> np.ndarray:
+        """(N,) whether each stamp can be looked up: within the span and not in a long gap."""
+        return self.in_span(stamps_ns) & ~self.in_gap(stamps_ns)
 
     def at(self, stamps_ns: np.ndarray) -> Rigid:
         """T_parent_child at each stamp (N,) [ns]; every stamp must be covered (see `covers`)."""
@@ -203,8 +229,18 @@ class Edge:
             "rate_hz": (k - 1) / (span_ns * 1e-9) if k > 1 and span_ns > 0 else None,
             "first_s": None if self.static else float(rm.ns_to_seconds(self.stamps_ns[:1])[0]),
             "last_s": None if self.static else float(rm.ns_to_seconds(self.stamps_ns[-1:])[0]),
+            "max_gap_s": float(np.max(np.diff(self.stamps_ns))) * 1e-9 if k > 1 else None,
+            "gap_limit_s": None if self.static else self.max_gap_ns * 1e-9,
             "topics": list(self.topics),
         }
+
+
+def default_max_gap_ns(stamps_ns: np.ndarray) -> int:
+    """A dynamic edge's default gap limit [ns]: GAP_PERIODS x its median sample period, at least
+    MIN_GAP_NS (a single transform: MIN_GAP_NS)."""
+    if len(stamps_ns) < 2:
+        return MIN_GAP_NS
+    return max(int(GAP_PERIODS * np.median(np.diff(stamps_ns))), MIN_GAP_NS)
 
 
 class TfBuffer:
@@ -214,26 +250,61 @@ class TfBuffer:
         transforms: (parent, child, stamp_ns, translation (3,) [m], quaternion (4,) xyzw, static,
             topic) tuples in arrival order. Leading '/' of frame names is dropped (ROS 1 habit).
         source: what to name in errors (the log's path).
+        max_gap_s: the gap limit [s] of every dynamic edge; None: each edge's default
+            (`default_max_gap_ns`).
     """
 
-    def __init__(self, transforms: Iterable[tuple], source: Any = "TF"):
+    def __init__(self, transforms: Iterable[tuple] = (), source: Any = "TF", max_gap_s=None):
         self.source = source
-        raw: dict[tuple[str, str, bool], list] = {}
-        for parent, child, stamp_ns, t, q, static, topic in transforms:
-            key = (parent.lstrip("/"), child.lstrip("/"), bool(static))
-            raw.setdefault(key, []).append((int(stamp_ns), t, q, topic))
+        self.max_gap_ns = None
+        if max_gap_s is not None:
+            from fpe_jax import spec
+
+            self.max_gap_ns = int(round(spec.check_tf_gap(max_gap_s, "max_gap_s", "value") * 1e9))
+        self._raw: dict[tuple[str, str, bool], list] = {}
         self.edges: dict[tuple[str, str], Edge] = {}
         self._both: set[tuple[str, str]] = set()  # edges on both a static and a dynamic topic
-        for (parent, child, static), rows in raw.items():
-            if (parent, child) in self.edges:
-                self._both.add((parent, child))
-            self.edges[(parent, child)] = self._edge(parent, child, static, rows)
         self.parents: dict[str, list[str]] = {}
-        for parent, child in sorted(self.edges):
-            self.parents.setdefault(child, []).append(parent)
+        self.add(transforms)
 
-    def _edge(self, parent: str, child: str, static: bool, rows: list) -> Edge:
-        stamps = np.array([r[0] for r in rows], dtype=np.int64)
+    def add(self, transforms: Iterable[tuple], keep_ns: int | None = None) -> None:
+        """Add transforms (tuples as the constructor takes) to the buffer, as a live node receives
+        them. With `keep_ns`, a dynamic edge keeps only the transforms no older than that before
+        its newest (a bounded buffer). Raises InputError for a non-finite, zero, non-unit or
+        absurdly far transform, or static repeats that disagree, before any of `transforms` is
+        added."""
+        rows = list(transforms)
+        by_key: dict[tuple[str, str, bool], list] = {}
+        for parent, child, stamp_ns, t, q, static, topic in rows:
+            key = (parent.lstrip("/"), child.lstrip("/"), bool(static))
+            by_key.setdefault(key, []).append((int(stamp_ns), t, q, topic))
+        for (parent, child, static), new in sorted(by_key.items()):
+            self._check_rows(f"TF {parent} -> {child}", new)
+            if static:
+                self._check_static_rows(
+                    f"TF {parent} -> {child}", self._raw.get((parent, child, True), []) + new
+                )
+        new_edge = False
+        for key, new in sorted(by_key.items()):
+            parent, child, static = key
+            self._raw.setdefault(key, []).extend(new)
+            if keep_ns is not None and not static:
+                newest = max(r[0] for r in self._raw[key])
+                self._raw[key] = [r for r in self._raw[key] if r[0] >= newest - keep_ns]
+            if (parent, child) in self.edges and self.edges[(parent, child)].static != static:
+                self._both.add((parent, child))
+            new_edge |= (parent, child) not in self.edges
+            self.edges[(parent, child)] = self._edge(parent, child, static, self._raw[key])
+        if new_edge:
+            self.parents = {}
+            for parent, child in sorted(self.edges):
+                self.parents.setdefault(child, []).append(parent)
+
+    def _check_rows(self, name: str, rows: list) -> None:
+        """InputError when a transform (stamp_ns, t, q, topic) of `rows` is not a rigid one."""
+        from fpe_jax import spec
+
+        stamps = [r[0] for r in rows]
         t = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
         q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
         norm = np.linalg.norm(q, axis=1)
@@ -242,22 +313,72 @@ class TfBuffer:
             k = int(np.argmax(bad))
             raise InputError(
                 self.source,
-                f"TF {parent} -> {child}: transform at {format_stamp(stamps[k])} has a zero or "
+                f"{name}: transform at {format_stamp(stamps[k])} has a zero or "
                 "non-finite rotation or translation",
                 "finite translations and non-zero quaternions",
             )
-        if static:  # the last one published wins (a latched topic may repeat or update it)
+        off = np.abs(norm**2 - 1.0) > QUAT_NORM_TOL
+        if off.any():
+            k = int(np.argmax(off))
+            raise InputError(
+                self.source,
+                f"{name}: the rotation at {format_stamp(stamps[k])} is not a unit quaternion "
+                f"(norm {norm[k]:.6g})",
+                f"quaternions of norm 1 (|q|^2 within {QUAT_NORM_TOL:g} of 1)",
+            )
+        far = np.abs(t).max(axis=1) > spec.MAX_COORD_M
+        if far.any():
+            k = int(np.argmax(far))
+            raise InputError(
+                self.source,
+                f"{name}: the translation at {format_stamp(stamps[k])} is "
+                f"{np.abs(t[k]).max():.6g} m",
+                f"translations within ±{spec.MAX_COORD_M:g} m",
+            )
+
+    def _check_static_rows(self, name: str, rows: list) -> None:
+        """InputError when the transforms of one static edge are not one mount."""
+        if len(rows) < 2:
+            return
+        t = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
+        q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
+        topics = sorted({r[3] for r in rows})
+        r = Rigid.make(t, q)
+        dt_m = float(np.linalg.norm(r.t_m - r.t_m[-1], axis=1).max())
+        dot = np.clip(np.abs(np.sum(r.q * r.q[-1], axis=1)), 0.0, 1.0)
+        da_rad = float(2.0 * np.arccos(dot).max())
+        if dt_m > STATIC_TOL_M or da_rad > STATIC_TOL_RAD:
+            raise InputError(
+                self.source,
+                f"{name} has {len(t)} transforms on {', '.join(topics)} that differ by up to "
+                f"{dt_m:.4g} m and {da_rad:.4g} rad",
+                f"one transform per static edge (repeats within {STATIC_TOL_M:g} m and "
+                f"{STATIC_TOL_RAD:g} rad); a moving link belongs on /tf",
+            )
+
+    def _edge(self, parent: str, child: str, static: bool, rows: list) -> Edge:
+        stamps = np.array([r[0] for r in rows], dtype=np.int64)
+        t = np.array([r[1] for r in rows], dtype=np.float64).reshape(-1, 3)
+        q = np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 4)
+        topics = tuple(sorted({r[3] for r in rows}))
+        if static:  # one mount (checked on arrival): the last one published
             keep = np.array([len(rows) - 1])
         else:  # sorted by stamp; of repeated stamps the last to arrive
             order = np.argsort(stamps, kind="stable")
             last = np.append(stamps[order][1:] != stamps[order][:-1], True)
             keep = order[last]
-        topics = tuple(sorted({r[3] for r in rows}))
-        return Edge(parent, child, static, stamps[keep], Rigid.make(t[keep], q[keep]), topics)
+        gap = 0
+        if not static:
+            gap = (
+                self.max_gap_ns if self.max_gap_ns is not None else default_max_gap_ns(stamps[keep])
+            )
+        rigid = Rigid.make(t[keep], q[keep])
+        return Edge(parent, child, static, stamps[keep], rigid, topics, gap)
 
     @classmethod
-    def from_log(cls, log) -> TfBuffer:
-        """Every transform on the log's TF topics (tf2_msgs/TFMessage, tf/tfMessage)."""
+    def from_log(cls, log, max_gap_s=None) -> TfBuffer:
+        """Every transform on the log's TF topics (tf2_msgs/TFMessage, tf/tfMessage);
+        `max_gap_s` as in the constructor."""
         topics = [t for t, i in log.topics.items() if i.msgtype in TF_TYPES and i.count]
 
         def rows():
@@ -269,7 +390,7 @@ class TfBuffer:
                     frames = (tr.header.frame_id, tr.child_frame_id)
                     yield (*frames, stamp, (p.x, p.y, p.z), (r.x, r.y, r.z, r.w), static, topic)
 
-        return cls(rows(), source=log.source)
+        return cls(rows(), source=log.source, max_gap_s=max_gap_s)
 
     # --- the tree
 
@@ -361,13 +482,24 @@ class TfBuffer:
         return [a.lstrip("/")] + [e.parent for e in edges_a] + down
 
     def covers(self, a: str, b: str, stamps_ns) -> np.ndarray:
-        """(N,) whether T_a_b can be looked up at each stamp without extrapolating any edge."""
+        """(N,) whether T_a_b can be looked up at each stamp: no edge extrapolated, none across a
+        gap longer than its limit."""
         stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
         edges_a, edges_b = self.path(a, b)
         ok = np.ones(len(stamps_ns), dtype=bool)
         for e in edges_a + edges_b:
             ok &= e.covers(stamps_ns)
         return ok
+
+    def in_gap(self, a: str, b: str, stamps_ns) -> np.ndarray:
+        """(N,) whether a lookup of T_a_b at each stamp would cross a gap longer than the limit
+        of some edge of the chain."""
+        stamps_ns = np.asarray(stamps_ns, dtype=np.int64)
+        edges_a, edges_b = self.path(a, b)
+        out = np.zeros(len(stamps_ns), dtype=bool)
+        for e in edges_a + edges_b:
+            out |= e.in_gap(stamps_ns)
+        return out
 
     def lookup(
         self, a: str, b: str, stamps_ns, what: str = "lookups", remedy: str | None = None
@@ -382,9 +514,12 @@ class TfBuffer:
         edges_a, edges_b = self.path(a, b)
         n = len(stamps_ns)
         for e in edges_a + edges_b:
-            ok = e.covers(stamps_ns)
+            ok = e.in_span(stamps_ns)
             if not ok.all():
                 self._raise_outside(e, stamps_ns, ok, what, remedy)
+            gap = e.in_gap(stamps_ns)
+            if gap.any():
+                self._raise_gap(e, stamps_ns, gap, what, remedy)
         identity = Rigid(np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)))
         t_c_a, t_c_b = identity, identity
         for e in edges_a:  # up from a: T_c_a = T_c_p @ T_p_a
@@ -412,6 +547,26 @@ class TfBuffer:
             + (f"; or {remedy}" if remedy else ""),
         )
 
+    def _raise_gap(self, e: Edge, stamps_ns, gap, what: str, remedy: str | None):
+        k = int(stamps_ns[gap][0])
+        s = e.stamps_ns
+        i = int(np.searchsorted(s, k, side="right") - 1)
+        limit = f"{e.max_gap_ns * 1e-9:.3f} s"
+        if self.max_gap_ns is None:
+            period = float(np.median(np.diff(s))) * 1e-9
+            limit += (
+                f" (max({GAP_PERIODS} x its median period {period:.3f} s, {MIN_GAP_NS * 1e-9:g} s))"
+            )
+        raise InputError(
+            self.source,
+            f"{int(gap.sum())} of {len(stamps_ns)} {what} fall in a gap of "
+            f"{(int(s[i + 1]) - int(s[i])) * 1e-9:.3f} s in the TF of {e.name} (no transform "
+            f"between {format_stamp(s[i])} and {format_stamp(s[i + 1])}; the first at "
+            f"{format_stamp(k)}); lookups across gaps longer than {limit} are refused",
+            "TF without such dropouts, --max-tf-gap SECONDS to interpolate across longer gaps"
+            + (f", or {remedy}" if remedy else ""),
+        )
+
     def describe(self) -> list[dict[str, Any]]:
         """Every edge as `Edge.describe()` plus its depth, tree order (roots first, depth first)."""
         children: dict[str, list[str]] = {}
@@ -420,17 +575,15 @@ class TfBuffer:
         roots = sorted(f for f in self.frames if f not in self.parents)
         out: list[dict[str, Any]] = []
         seen: set[tuple[str, str]] = set()
-
-        def walk(frame: str, depth: int):
-            for child in children.get(frame, []):
+        for r in roots:  # depth first with an explicit stack: trees thousands of frames deep
+            stack = [(r, child, 0) for child in reversed(children.get(r, []))]
+            while stack:
+                frame, child, depth = stack.pop()
                 if (frame, child) in seen:
                     continue
                 seen.add((frame, child))
                 out.append(dict(self.edges[(frame, child)].describe(), depth=depth))
-                walk(child, depth + 1)
-
-        for r in roots:
-            walk(r, 0)
+                stack += [(child, c, depth + 1) for c in reversed(children.get(child, []))]
         for key in sorted(set(self.edges) - seen):  # edges in cycles
             out.append(dict(self.edges[key].describe(), depth=0))
         return out

@@ -11,6 +11,7 @@ replaced with `force`. `check_output_path` runs the same checks before any slow 
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import secrets
 from collections.abc import Iterator
@@ -21,19 +22,45 @@ import numpy as np
 
 from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
+from fpe_jax.io import scene
 
 PREDICTION_TOPIC = "/future_pose"
 OBSERVATION_TOPIC = "/opp/pose"
 _ZERO_COV = [0.0] * 36  # mcap_ros2 wants a list (not an array) for float64[36]
 
 
-def check_output_path(path, force: bool) -> Path:
+def check_not_input(path, inputs) -> None:
+    """Raise InputError if the output `path` is the same file as any of `inputs` (paths, None
+    skipped), however spelled: relative, through a symlink, or a hard link (same device and
+    inode), so an output never replaces what the command reads, `--force` or not."""
+    try:
+        out = os.stat(path)
+    except OSError:  # nothing there (or nothing reachable): it cannot be an input
+        return
+    for given in inputs:
+        if given is None:
+            continue
+        try:
+            st = os.stat(given)
+        except (OSError, TypeError, ValueError):
+            continue
+        if (st.st_dev, st.st_ino) == (out.st_dev, out.st_ino):
+            raise InputError(
+                path,
+                f"is the same file as the input {str(given)!r}; refusing to overwrite it",
+                "an output path that is not one of the command's inputs",
+            )
+
+
+def check_output_path(path, force: bool, inputs=()) -> Path:
     """Fail early (before any work) if `path` cannot be written as asked.
 
     Raises InputError if its folder does not exist or cannot be written (read-only folder or file
-    system), if it is a folder, or if it exists and `force` is false. Returns it as a `Path`.
+    system), if it is a folder, if it is the same file as one of `inputs` (`check_not_input`,
+    whatever `force` says), or if it exists and `force` is false. Returns it as a `Path`.
     """
     p = Path(path)
+    check_not_input(p, inputs)
     try:
         os.stat(p.parent)  # is_dir() says False for a name too long, stat says why
         os.lstat(p) if p.name else None
@@ -51,7 +78,7 @@ def check_output_path(path, force: bool) -> Path:
         raise InputError(p, f"its folder {str(p.parent)!r} is not writable", "a writable folder")
     # access() grants root everything; only creating a file shows a folder (such as /sys) that
     # refuses files: a hidden probe, created and removed at once
-    probe = p.with_name(f".{p.name[:64]}.{os.getpid()}.{secrets.token_hex(4)}.probe")
+    probe = p.with_name(f".{_short_name(p)}.{os.getpid()}.{secrets.token_hex(4)}.probe")
     try:
         os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
     except OSError as e:
@@ -60,6 +87,12 @@ def check_output_path(path, force: bool) -> Path:
         ) from None
     probe.unlink(missing_ok=True)
     return p
+
+
+def _short_name(p: Path, n_bytes: int = 64) -> str:
+    """The start of p's name, at most n_bytes bytes (whole characters), for temporary names."""
+    name = os.fsencode(p.name)[:n_bytes]
+    return os.fsdecode(name).encode("utf-8", "surrogateescape").decode("utf-8", "ignore") or "out"
 
 
 def check_output_paths(paths, force: bool) -> None:
@@ -76,8 +109,9 @@ def atomic_output(path, force: bool) -> Iterator[Path]:
     write (disk full, permissions) is an InputError naming the target.
     """
     target = check_output_path(path, force)
-    # Our own unique name (not mkstemp) so the file gets the user's umask permissions.
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.part")
+    # Our own unique name (not mkstemp) so the file gets the user's umask permissions; short,
+    # so a target name near the file system's 255-byte limit still has a temporary twin.
+    tmp = target.with_name(f".{_short_name(target)}.{os.getpid()}.{secrets.token_hex(4)}.part")
     try:
         yield tmp
         if target.exists() and not force:  # appeared while we were writing
@@ -233,26 +267,24 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
     return _write_ros2_mcap(path, events, force)
 
 
-def _marker(ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple) -> dict:
-    r, g, b, a = rgba
-    return {
-        "header": {"stamp": rm.stamp_dict(ns), "frame_id": "map"},
-        "ns": "future_pose",
-        "id": ident,
-        "type": kind,
-        "action": 0,  # ADD (replaces the previous marker with the same ns and id)
-        "pose": {
-            "position": {"x": 0.0, "y": 0.0, "z": 0.0},
-            "orientation": rm.yaw_to_quaternion(0),
-        },
-        "scale": {"x": 0.08, "y": 0.08, "z": 0.08},
-        "color": {"r": r, "g": g, "b": b, "a": a},
-        "points": [{"x": x, "y": y, "z": 0.0} for x, y in points],
-    }
+def _marker(
+    ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple, space="future_pose"
+) -> dict:
+    return scene.ros2_marker(ns, "map", space, ident, kind, rgba, points=points)
 
 
 def write_predictions(
-    path, stamps_s, poses, dt_s: float, *, drive=None, cov_m2=None, force: bool = False
+    path,
+    stamps_s,
+    poses,
+    dt_s: float,
+    *,
+    drive=None,
+    cov_m2=None,
+    track_xy_m=None,
+    track_closed: bool = False,
+    valid=None,
+    force: bool = False,
 ) -> Path:
     """Write predicted poses as CSV or ROS 2 MCAP, chosen by the suffix of `path`.
 
@@ -262,15 +294,24 @@ def write_predictions(
         poses: (N, H, 3) predicted x [m], y [m], yaw [rad] at stamps_s + step * dt_s, step 1..H.
         dt_s: prediction step [s].
         drive: the observed `Drive`; its poses are written alongside (MCAP only).
-        cov_m2: optional (N, H, 2, 2) map-frame covariance of each predicted position [m^2];
-            CSV only, as three more columns `cov_xx_m2,cov_xy_m2,cov_yy_m2`.
+        cov_m2: optional (N, H, 2, 2) map-frame covariance of each predicted position [m^2]:
+            in CSV three more columns `cov_xx_m2,cov_xy_m2,cov_yy_m2`; in MCAP the ellipses.
+        track_xy_m: optional (K, 2) track line x [m], y [m] (the waypoints); MCAP only.
+        track_closed: whether the track is a loop (its line is drawn closed).
+        valid: optional (N,) bool, whether each prediction had enough history
+            (`fpe_jax.history.history_valid`): CSV a last column `valid` (1 / 0); MCAP the
+            markers of an invalid prediction in the namespace `future_pose/invalid`, grey, and
+            its path and ellipses left out (`fpe_jax.io.scene`). Default: all valid.
         force: replace an existing file.
 
     CSV: header `stamp,step,horizon_s,x,y,yaw`, one row per (observation, step), 9 decimals.
     MCAP: one visualization_msgs/msg/MarkerArray per observation on /future_pose (frame `map`,
     stamp = observation stamp): a SPHERE_LIST of the H predicted points and a LINE_STRIP through
-    them; plus the observations as geometry_msgs/msg/PoseStamped on /opp/pose. Markers carry no
-    yaw: use the CSV for predicted headings.
+    them; plus the observations as geometry_msgs/msg/PoseStamped on /opp/pose. The scene of
+    `fpe_jax.io.scene`, in ROS 2 types: nav_msgs/msg/Path on /future_pose/path (header.stamp =
+    observation stamp, pose k stamped stamp + k * dt_s, yaw included), the 1-sigma ellipses as
+    flat SPHERE markers on /future_pose/ellipses (when `cov_m2` is given), and the track as a
+    LINE_STRIP on /track (once, at the first message's time, when `track_xy_m` is given).
     """
     suffix = Path(path).suffix.lower()
     if suffix not in (".csv", ".mcap"):
@@ -295,24 +336,46 @@ def write_predictions(
             cols += [c[:, 0, 0], c[:, 0, 1], c[:, 1, 1]]
             fmt += ["%.9g"] * 3
             header += ",cov_xx_m2,cov_xy_m2,cov_yy_m2"
+        if valid is not None:
+            cols.append(np.repeat(np.asarray(valid, dtype=np.int64), h))
+            fmt.append("%d")
+            header += ",valid"
         with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
             np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",", header=header, comments="")
         return Path(path)
 
     ns = _stamps_ns(path, stamps, "predictions")
+    steps_ns = ns[:, None] + rm.seconds_to_ns(np.arange(1, h + 1) * float(dt_s))
+    cov = np.full((n, h, 2, 2), np.nan) if cov_m2 is None else np.asarray(cov_m2, np.float64)
+    ok = np.ones(n, dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    if cov.shape != (n, h, 2, 2) or ok.shape != (n,):
+        raise ValueError(
+            f"write_predictions: cov_m2 {cov.shape} or valid {ok.shape} does not match poses"
+            f" {poses.shape} (expected (N, H, 2, 2) and (N,))"
+        )
     events = []
     for k in range(n):
         pts = poses[k, :, :2].tolist()
+        good = bool(ok[k])
+        space, rgb = (
+            ("future_pose", (1.0, 0.5, 0.0)) if good else ("future_pose/invalid", (0.5,) * 3)
+        )
         markers = [
-            _marker(ns[k], 0, rm.MARKER_SPHERE_LIST, pts, (1.0, 0.5, 0.0, 1.0)),
-            _marker(ns[k], 1, rm.MARKER_LINE_STRIP, pts, (1.0, 0.5, 0.0, 0.6)),
+            _marker(ns[k], 0, rm.MARKER_SPHERE_LIST, pts, (*rgb, 1.0), space),
+            _marker(ns[k], 1, rm.MARKER_LINE_STRIP, pts, (*rgb, 0.6), space),
         ]
         events.append(
             (int(ns[k]), PREDICTION_TOPIC, "visualization_msgs/MarkerArray", {"markers": markers})
         )
+        drawn = scene.prediction_scene(int(ns[k]), poses[k], cov[k], steps_ns[k], good)
+        events += [(int(ns[k]), *e) for e in scene.ros2_prediction(int(ns[k]), drawn, "map")]
     if drive is not None:
         obs = dict(t_s=drive.t_s, xy_m=drive.xy_m, yaw_rad=drive.yaw_rad)
         events += _pose_events(path, obs, OBSERVATION_TOPIC)
+    if track_xy_m is not None and events:
+        first_ns = min(e[0] for e in events)
+        line = scene.ros2_track(track_xy_m, first_ns, "map", track_closed)
+        events.insert(0, (first_ns, scene.TRACK_TOPIC, "visualization_msgs/MarkerArray", line))
     return _write_ros2_mcap(path, events, force)
 
 
@@ -321,20 +384,33 @@ def write_drive_csv(path, drive, *, force: bool = False) -> Path:
     what `load_drive` reads back and `fpe run` reads on stdin.
 
     The yaw column is left out when some yaw is unknown (NaN), so every row still reads back.
-    Truth is not written. Returns the path.
+    Truth is not written. A drive read from a file (with integer stamps, `Drive.t_ns`) gets its
+    stamps written exactly, epoch stamps included. Returns the path.
     """
     t = np.asarray(drive.t_s, dtype=np.float64)
     cols, header = [t, drive.xy_m[:, 0], drive.xy_m[:, 1]], "t,x,y"
     if np.isfinite(drive.yaw_rad).all():
         cols.append(drive.yaw_rad)
         header += ",yaw"
+    table = np.column_stack(cols)
     with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
-        np.savetxt(f, np.column_stack(cols), fmt="%.9f", delimiter=",", header=header, comments="")
+        if drive.t_ns is None:
+            np.savetxt(f, table, fmt="%.9f", delimiter=",", header=header, comments="")
+            return Path(path)
+        body = io.StringIO()
+        np.savetxt(body, table[:, 1:], fmt="%.9f", delimiter=",")
+        f.write(header + "\n")
+        for ns, rest in zip(drive.t_ns.tolist(), body.getvalue().splitlines()):
+            sign, a = ("-" if ns < 0 else ""), abs(ns)
+            f.write(f"{sign}{a // 1_000_000_000}.{a % 1_000_000_000:09d},{rest}\n")
     return Path(path)
 
 
-def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) -> Path:
-    """Write (N, H, 3) poses as `.npy`, or as CSV with columns car,step,horizon_s,x,y,yaw.
+def write_poses(
+    path, poses: np.ndarray, dt_s: float, *, force: bool = False, off_track=None
+) -> Path:
+    """Write (N, H, 3) poses as `.npy`, or as CSV with columns car,step,horizon_s,x,y,yaw, and
+    off_track (1 for a car far from the track, 0 else) when `off_track` (N,) bool is given.
 
     Written to a temporary file in the target's folder and renamed into place, so a failure
     never leaves a partial file; an existing file is replaced only with `force`.
@@ -348,20 +424,25 @@ def write_poses(path, poses: np.ndarray, dt_s: float, *, force: bool = False) ->
             with open(tmp, "xb") as f:
                 np.save(f, poses)
         else:
-            _write_poses_csv(tmp, poses, dt_s)
+            _write_poses_csv(tmp, poses, dt_s, off_track)
     return target
 
 
-def _write_poses_csv(path: Path, poses: np.ndarray, dt_s: float, rows_per_block: int = 200_000):
+def _write_poses_csv(
+    path: Path, poses: np.ndarray, dt_s: float, off_track=None, rows_per_block: int = 200_000
+):
     n, h, _ = poses.shape
     step = np.arange(1, h + 1)
+    fmt = ["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"] + ["%d"] * (off_track is not None)
     with open(path, "w") as f:
-        f.write("car,step,horizon_s,x,y,yaw\n")
+        f.write("car,step,horizon_s,x,y,yaw" + ",off_track" * (off_track is not None) + "\n")
         cars_per_block = max(rows_per_block // h, 1)
         for start in range(0, n, cars_per_block):
             block = poses[start : start + cars_per_block].astype(np.float64)
             k = block.shape[0]
             car = np.repeat(np.arange(start, start + k), h)
             st = np.tile(step, k)
-            table = np.column_stack([car, st, st * dt_s, block.reshape(-1, 3)])
-            np.savetxt(f, table, fmt=["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"], delimiter=",")
+            cols = [car, st, st * dt_s, block.reshape(-1, 3)]
+            if off_track is not None:
+                cols.append(np.repeat(np.asarray(off_track[start : start + k], dtype=int), h))
+            np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",")

@@ -1,0 +1,571 @@
+"""The middleware-neutral live node: input messages in, one `Runner` per opponent, outputs out.
+
+The core sees messages only as nested dicts (see `Transport`); ROS 1 and ROS 2 differ in the
+header (`seq`, `secs`/`nsecs` against `sec`/`nanosec`), which `stamp_ns` reads and `header`
+writes per flavour.
+
+Inputs (one kind per node):
+- `pose`: geometry_msgs/PoseStamped or nav_msgs/Odometry of the opponent in the map frame;
+- `tags`: apriltag_ros AprilTagDetectionArray in the camera frame, placed in the map with /tf and
+  /tf_static by `fpe_jax.io.apriltag.place_tag` (the code that reads such logs);
+- `obstacles`: f110_msgs/ObstacleArray (s, d along the waypoints): one runner per obstacle id,
+  static obstacles ignored, a track dropped after `drop_after_s` without updates.
+
+Outputs per valid prediction (each one optional, see `OUTPUTS`): visualization_msgs/MarkerArray
+(points, line, 1-sigma ellipses), nav_msgs/Path, one geometry_msgs/PoseWithCovarianceStamped per
+step, f110_msgs/ObstacleArray of the predicted state and f110_msgs/OpponentTrajectory of a line
+model's learned line.
+
+Time: every output header carries the stamp of the observation the prediction was made from; step
+k's pose is stamped with that stamp + k * dt_s (as `fpe predict`'s `stamp + horizon_s`). The
+fitted delay moves the state from the observation's stamp to the car's true time inside the
+model, so the step stamps are the times the poses predict.
+
+Bad input never stops the node: each message that cannot be used gets a rate-limited warning
+naming the topic and the problem, and nothing is published for it.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import re
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from fpe_jax.errors import InputError
+from fpe_jax.io import ros_msgs as rm
+from fpe_jax.io.apriltag import parse_tag_to_base, place_tag, tag_frame_name, tag_mount
+from fpe_jax.io.tf import STATIC_SUFFIX, Rigid, TfBuffer
+from fpe_jax.node._types import OUTPUTS
+from fpe_jax.runner import Runner
+
+MARKER_LINE_LIST = 5
+MARKER_LINE_STRIP = rm.MARKER_LINE_STRIP
+MARKER_SPHERE_LIST = rm.MARKER_SPHERE_LIST
+ELLIPSE_POINTS = 16  # segments of each 1-sigma ellipse
+TF_KEEP_S = 10.0  # the live TF buffer keeps this much of each dynamic edge
+MAX_PENDING = 64  # detections waiting for their TF
+
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "nav_msgs/msg/Odometry")
+TAG_TYPE = "apriltag_ros/msg/AprilTagDetectionArray"
+OBSTACLES_TYPE = "f110_msgs/msg/ObstacleArray"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+
+@runtime_checkable
+class Transport(Protocol):
+    """A middleware (ROS 1, ROS 2): messages as nested dicts; see docs/on-the-car.md."""
+
+    flavour: str
+
+    def subscribe(
+        self, topic: str, type_name: str | None, callback: Callable[[dict, str, int], None]
+    ) -> None: ...
+
+    def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]: ...
+
+    def spin(self, stop: threading.Event) -> None: ...
+
+    def close(self) -> None: ...
+
+
+@dataclass
+class NodeOptions:
+    """What the node reads and writes (the `fpe node` flags).
+
+    input: "pose", "tags" or "obstacles"; topic: its topic. outputs: {output name: topic or None
+    (off)} over `OUTPUTS`. The tag input's frames and mount as `fpe fit`'s flags.
+    """
+
+    input: str = "pose"
+    topic: str = "/opp/pose"
+    map_frame: str = "map"
+    tf_topics: tuple[str, ...] = ("/tf", "/tf_static")
+    tag_id: int = 0
+    tag_to_base: Any = None
+    car_frame: str = "other_base_link"
+    drop_after_s: float = 1.0
+    tf_wait_s: float = 0.5
+    max_tracks: int = 16
+    warn_every_s: float = 5.0
+    trajectory_every_s: float = 1.0
+    outputs: dict[str, str | None] = field(
+        default_factory=lambda: {k: v[0] for k, v in OUTPUTS.items()}
+    )
+
+
+# ---- message fields --------------------------------------------------------------------------
+
+
+def stamp_ns(t: dict) -> int:
+    """A ROS 1 ({secs, nsecs}) or ROS 2 ({sec, nanosec}) time as int nanoseconds."""
+    if "sec" in t:
+        return int(t["sec"]) * 1_000_000_000 + int(t["nanosec"])
+    return int(t["secs"]) * 1_000_000_000 + int(t["nsecs"])
+
+
+def time_dict(flavour: str, ns: int) -> dict:
+    """Time (or Duration) fields of `ns` nanoseconds in the flavour's spelling."""
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return {"secs": sec, "nsecs": nsec} if flavour == "ros1" else {"sec": sec, "nanosec": nsec}
+
+
+def header(flavour: str, ns: int, frame_id: str) -> dict:
+    return {"stamp": time_dict(flavour, ns), "frame_id": frame_id}
+
+
+def _pose(x: float, y: float, yaw: float) -> dict:
+    return {"position": {"x": x, "y": y, "z": 0.0}, "orientation": rm.yaw_to_quaternion(yaw)}
+
+
+def _finite(*values) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+class BadMessage(Exception):
+    """A message the node cannot use: `problem` goes into the rate-limited warning."""
+
+
+# ---- the node --------------------------------------------------------------------------------
+
+
+class Node:
+    """One runner per opponent behind a `Transport`.
+
+    Args:
+        transport: the middleware.
+        config: a tuned config dict (`fpe_jax.config.read_config`), checked against
+            `waypoints_xy_m` by the caller.
+        waypoints_xy_m: (K, 2) waypoints [m] in the map frame.
+        options: `NodeOptions`.
+        scene: optional Foxglove `SceneSink` (observations and predictions are sent to it).
+        warn: where warnings go (one line each; default stderr).
+    """
+
+    def __init__(self, transport: Transport, config: dict, waypoints_xy_m, options: NodeOptions,
+                 *, scene=None, warn: Callable[[str], None] | None = None):  # fmt: skip
+        self.transport = transport
+        self.flavour = transport.flavour
+        self.opt = options
+        self.config = config
+        self.template = Runner(config, waypoints_xy_m, source="config")
+        self.path = self.template.path
+        self.dt_s = self.template.dt_s
+        self.horizon = self.template.horizon
+        unc = config.get("uncertainty")
+        self.cov_track_m2 = None if unc is None else np.asarray(unc["cov_m2"], dtype=np.float64)
+        self.runners: dict[str, Runner] = {}
+        self.last_seen_ns: dict[str, int] = {}  # receive time (monotonic) of each track
+        self.t0_ns: int | None = None  # stamps enter the runners as seconds after this one
+        self.tf = TfBuffer(source="TF")
+        self.pending: collections.deque = collections.deque()  # detections waiting for TF
+        self.tag_to_base = parse_tag_to_base(options.tag_to_base)
+        self.tag_frame = tag_frame_name(options.tag_id, "apriltag_ros")
+        self.scene = scene
+        self._warn_out = warn or _stderr
+        self._warned: dict[tuple[str, str], list] = {}
+        self._lock = threading.Lock()
+        self._pub: dict[str, Callable[[dict], None]] = {}
+        self._last_trajectory_ns = -(10**30)
+        self.n_published = 0
+        self.update_ns: list[int] = []  # own time of each update (for the latency benchmark)
+
+    # -- setup
+
+    def start(self) -> None:
+        """Advertise the outputs and subscribe to the inputs."""
+        o = self.opt
+        for name, topic in o.outputs.items():
+            if topic and not (name == "trajectory" and self.template.model != "line"):
+                self._pub[name] = self.transport.advertise(topic, OUTPUTS[name][1])
+        if o.input == "pose":
+            self.transport.subscribe(o.topic, None, self._guard(o.topic, self._on_pose))
+        elif o.input == "tags":
+            for t in o.tf_topics:
+                self.transport.subscribe(t, TF_TYPE, self._guard(t, self._on_tf))
+            self.transport.subscribe(o.topic, TAG_TYPE, self._guard(o.topic, self._on_tags))
+        elif o.input == "obstacles":
+            self.transport.subscribe(o.topic, OBSTACLES_TYPE, self._guard(o.topic, self._on_obst))
+        else:
+            raise ValueError(f"NodeOptions.input: {o.input!r} is not pose, tags or obstacles")
+        if self.scene is not None:
+            self.scene.track(np.asarray(self.path._table[:, :2]))
+        self._publish_trajectory(time.monotonic_ns())
+
+    # -- warnings
+
+    def warn(self, topic: str, problem: str) -> None:
+        """One line per (topic, kind of problem) every warn_every_s, counting the repeats."""
+        kind = re.sub(r"[-+0-9.e]+|'[^']*'|\([^)]*\)", "#", problem)[:80]  # values vary, kinds not
+        now = time.monotonic()
+        last = self._warned.get((topic, kind))
+        if last is not None and now - last[0] < self.opt.warn_every_s:
+            last[1] += 1
+            return
+        more = f" ({last[1]} more since the last warning)" if last and last[1] else ""
+        self._warned[(topic, kind)] = [now, 0]
+        self._warn_out(f"fpe node: {topic}: {problem}; nothing published for it{more}")
+
+    def _guard(self, topic: str, handler):
+        """The callback the transport calls: every failure becomes a warning, never an exit."""
+
+        def callback(msg: dict, type_name: str, receive_ns: int) -> None:
+            try:
+                with self._lock:
+                    handler(topic, msg, type_name, receive_ns)
+            except (BadMessage, InputError) as e:
+                self.warn(topic, str(e.problem if isinstance(e, InputError) else e))
+            except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
+                self.warn(topic, f"malformed message ({type(e).__name__}: {e})")
+            except Exception as e:  # the node outlives any one message
+                self.warn(topic, f"unexpected error ({type(e).__name__}: {e})")
+
+        return callback
+
+    # -- inputs
+
+    def _check_frame(self, frame_id: str, what: str) -> None:
+        if frame_id.lstrip("/") != self.opt.map_frame:
+            raise BadMessage(
+                f"{what} in frame {frame_id!r}, expected the map frame {self.opt.map_frame!r}"
+            )
+
+    def _on_pose(self, topic: str, msg: dict, type_name: str, receive_ns: int) -> None:
+        if type_name not in POSE_TYPES:
+            raise BadMessage(f"type {type_name} is not one of {', '.join(POSE_TYPES)}")
+        hdr = msg["header"]
+        self._check_frame(hdr["frame_id"], "pose")
+        pose = msg["pose"]["pose"] if type_name.endswith("Odometry") else msg["pose"]
+        p, q = pose["position"], pose["orientation"]
+        yaw = float(rm.quaternion_to_yaw(q["x"], q["y"], q["z"], q["w"]))
+        self._observe("0", stamp_ns(hdr["stamp"]), float(p["x"]), float(p["y"]), yaw, receive_ns)
+
+    def _on_tf(self, topic: str, msg: dict, type_name: str, receive_ns: int) -> None:
+        static = topic.rstrip("/").endswith(STATIC_SUFFIX)
+        rows = []
+        for tr in msg["transforms"]:
+            p, r = tr["transform"]["translation"], tr["transform"]["rotation"]
+            rows.append((tr["header"]["frame_id"], tr["child_frame_id"],
+                         stamp_ns(tr["header"]["stamp"]), (p["x"], p["y"], p["z"]),
+                         (r["x"], r["y"], r["z"], r["w"]), static, topic))  # fmt: skip
+        self.tf.add(rows, keep_ns=int(TF_KEEP_S * 1e9))
+        self._place_pending(receive_ns)
+
+    def _on_tags(self, topic: str, msg: dict, type_name: str, receive_ns: int) -> None:
+        dets = msg["detections"]
+        if not dets:
+            return  # no tag in this image: nothing to say
+        mine = [d for d in dets if list(np.atleast_1d(d["id"])) == [self.opt.tag_id]]
+        if not mine:
+            ids = sorted({int(i) for d in dets for i in np.atleast_1d(d["id"])})
+            raise BadMessage(f"unknown tag id(s) {ids}, expected tag {self.opt.tag_id}")
+        if len(mine) > 1:
+            raise BadMessage(f"tag {self.opt.tag_id} detected {len(mine)} times in one image")
+        det = mine[0]["pose"]
+        ns = stamp_ns(det["header"]["stamp"]) or stamp_ns(msg["header"]["stamp"])
+        camera = (det["header"]["frame_id"] or msg["header"]["frame_id"]).lstrip("/")
+        pose = det["pose"]["pose"]
+        p, q = pose["position"], pose["orientation"]
+        vals = [float(v) for v in (p["x"], p["y"], p["z"], q["x"], q["y"], q["z"], q["w"])]
+        if not _finite(*vals) or sum(v * v for v in vals[3:]) < 1e-18:
+            raise BadMessage("the tag's pose is non-finite or has a zero quaternion")
+        cam_tag = Rigid.make(vals[:3], vals[3:])
+        if len(self.pending) >= MAX_PENDING:
+            self.pending.popleft()
+            self.warn(topic, f"more than {MAX_PENDING} detections wait for TF: the oldest dropped")
+        self.pending.append((topic, ns, camera, cam_tag, receive_ns))
+        self._place_pending(receive_ns)
+
+    def _place_pending(self, now_ns: int) -> None:
+        """Place the waiting detections, oldest first: each as soon as the TF buffer covers its
+        stamp; one the TF has not reached yet waits up to tf_wait_s (receive time), then is
+        dropped with a warning (TF extrapolation), as is one inside a TF gap."""
+        keep: collections.deque = collections.deque()
+        while self.pending:
+            entry = self.pending.popleft()
+            topic, ns, camera, cam_tag, receive_ns = entry
+            expired = now_ns - receive_ns > self.opt.tf_wait_s * 1e9
+            try:
+                ahead = self._tf_behind(camera, ns)
+            except InputError as e:  # no chain to this camera (yet): later detections go on
+                if expired:
+                    self.warn(topic, f"TF: {e.problem}")
+                else:
+                    keep.append(entry)
+                continue
+            if ahead:  # the TF has not reached this stamp: this and later ones wait
+                if not expired:
+                    keep.append(entry)
+                    keep.extend(self.pending)
+                    self.pending.clear()
+                    break
+                self.warn(topic, "TF extrapolation: no transform at or after the stamp arrived")
+                continue
+            try:
+                if self.tag_to_base is not None:
+                    tag_car = tag_mount(*self.tag_to_base).inv()
+                else:
+                    tag_car = self.tf.lookup(self.tag_frame, self.opt.car_frame, [ns], "detections")
+                stamps = np.array([ns], dtype=np.int64)
+                map_car = place_tag(self.tf, self.opt.map_frame, camera, stamps, cam_tag, tag_car)
+                x, y = (float(v) for v in map_car.t_m[0, :2])
+                self._observe("0", ns, x, y, float(map_car.yaw_rad()[0]), receive_ns)
+            except (BadMessage, InputError) as e:
+                self.warn(topic, f"TF: {e.problem}" if isinstance(e, InputError) else str(e))
+        self.pending = keep
+
+    def _tf_behind(self, camera: str, ns: int) -> bool:
+        """Whether a dynamic TF edge between the map and `camera` ends before stamp ns [ns]."""
+        up_a, up_b = self.tf.path(self.opt.map_frame, camera)
+        return any(not e.static and e.stamps_ns[-1] < ns for e in up_a + up_b)
+
+    def _on_obst(self, topic: str, msg: dict, type_name: str, receive_ns: int) -> None:
+        ns = stamp_ns(msg["header"]["stamp"])
+        moving = [o for o in msg["obstacles"] if not o["is_static"]]
+        if len(moving) > self.opt.max_tracks:
+            self.warn(topic, f"{len(moving)} moving obstacles, only the first "
+                      f"{self.opt.max_tracks} (--max-tracks) are tracked")  # fmt: skip
+            moving = moving[: self.opt.max_tracks]
+        updated = []
+        for o in moving:
+            car, s, d = str(int(o["id"])), float(o["s_center"]), float(o["d_center"])
+            if not _finite(s, d):
+                self.warn(topic, f"obstacle {car}: non-finite s, d ({s}, {d})")
+                continue
+            x, y = self._frenet_to_map(s, d)
+            try:
+                out = self._observe(car, ns, x, y, math.nan, receive_ns, publish=False)
+            except (BadMessage, InputError) as e:
+                self.warn(topic, f"obstacle {car}: {getattr(e, 'problem', e)}")
+                continue
+            if out is not None:
+                updated.append(out)
+        stale = [c for c, t in self.last_seen_ns.items()
+                 if receive_ns - t > self.opt.drop_after_s * 1e9]  # fmt: skip
+        for c in stale:
+            del self.runners[c], self.last_seen_ns[c]
+        if updated:
+            self._publish(updated)
+
+    def _frenet_to_map(self, s_m: float, d_m: float) -> tuple[float, float]:
+        return frenet_to_map(self.path, s_m, d_m)
+
+    # -- prediction
+
+    def _runner(self, car: str) -> Runner:
+        r = self.runners.get(car)
+        if r is None:
+            r = self.runners[car] = self.template.with_params(self.config["params"])
+        return r
+
+    def _observe(self, car: str, ns: int, x: float, y: float, yaw: float, receive_ns: int,
+                 publish: bool = True):  # fmt: skip
+        """Feed one observation to the car's runner and publish its prediction when valid.
+        Returns (car, stamp_ns, poses (H, 3), cov (H, 2, 2) or None, s_m) or None (invalid)."""
+        if not _finite(x, y):
+            raise BadMessage(f"non-finite position ({x}, {y})")
+        t0 = time.perf_counter_ns()
+        if self.t0_ns is None:
+            self.t0_ns = ns  # stamps as seconds after the first keep nanoseconds in float64
+        runner = self._runner(car)
+        poses = runner.update((ns - self.t0_ns) * 1e-9, x, y, yaw)  # raises on stamps backwards
+        self.last_seen_ns[car] = receive_ns
+        s_m = runner._s_m if runner._s_m is not None else self.path.project(x, y)
+        cov, along = self._covariance(poses, s_m)
+        self.update_ns.append(time.perf_counter_ns() - t0)
+        if self.scene is not None:
+            self.scene.observation(car, ns, x, y, yaw)
+        if not runner.valid:
+            return None
+        out = (car, ns, poses, cov, along)
+        if publish:
+            self._publish([out])
+        if self.scene is not None:
+            steps = ns + np.round(np.arange(1, self.horizon + 1) * self.dt_s * 1e9).astype(np.int64)
+            zero = np.zeros((self.horizon, 2, 2))
+            self.scene.prediction(car, ns, poses, zero if cov is None else cov, steps, True)
+        return out
+
+    def _covariance(self, poses: np.ndarray, s_m: float):
+        """(map-frame covariance (H, 2, 2) [m^2] or None, arc lengths (H,) [m] of the steps):
+        the config's per-step track-frame covariance turned by the path heading at each step."""
+        along, s = [], s_m
+        for x, y, _ in poses.tolist():
+            s = self.path.project_window(x, y, s)
+            along.append(s)
+        if self.cov_track_m2 is None:
+            return None, along
+        h = np.array([self.path.heading_at(s) for s in along])
+        c, sn = np.cos(h), np.sin(h)
+        rot = np.stack([np.stack([c, -sn], -1), np.stack([sn, c], -1)], -2)
+        return rot @ self.cov_track_m2 @ np.swapaxes(rot, -1, -2), along
+
+    # -- outputs
+
+    def step_ns(self, ns: int) -> list[int]:
+        """Stamps [ns] of the H predicted steps of an observation at `ns`."""
+        return [ns + round(k * self.dt_s * 1e9) for k in range(1, self.horizon + 1)]
+
+    def _topic(self, name: str, car: str) -> str | None:
+        """Per-opponent topics for the per-car outputs when several opponents are tracked."""
+        return None if self.opt.input != "obstacles" else f"{self.opt.outputs[name]}/{car}"
+
+    def _publisher(self, name: str, car: str):
+        sub = self._topic(name, car)
+        if sub is None:
+            return self._pub[name]
+        key = f"{name}/{car}"
+        if key not in self._pub:
+            self._pub[key] = self.transport.advertise(sub, OUTPUTS[name][1])
+        return self._pub[key]
+
+    def _publish(self, outs: list) -> None:
+        """Publish the predictions of one input message: the paths first (what a planner waits
+        for), then the predicted ObstacleArray, the markers and the covariances."""
+        f, frame = self.flavour, self.opt.map_frame
+        if "path" in self._pub:
+            for car, ns, poses, _, _ in outs:
+                self._publisher("path", car)(
+                    {
+                        "header": header(f, ns, frame),
+                        "poses": [
+                            {"header": header(f, t, frame), "pose": _pose(x, y, yaw)}
+                            for t, (x, y, yaw) in zip(self.step_ns(ns), poses.tolist())
+                        ],
+                    }
+                )
+        if "obstacles" in self._pub:
+            self._pub["obstacles"](self._obstacle_array(outs[0][1], outs))
+        if "markers" in self._pub:
+            markers = [
+                m for car, ns, poses, cov, _ in outs for m in self._markers(car, ns, poses, cov)
+            ]
+            self._pub["markers"]({"markers": markers})
+        if "covariance" in self._pub:
+            for car, ns, poses, cov, _ in outs:
+                if cov is None:
+                    continue
+                pub = self._publisher("covariance", car)
+                for t, (x, y, yaw), c in zip(self.step_ns(ns), poses.tolist(), cov.tolist()):
+                    full = [0.0] * 36
+                    full[0], full[1], full[6], full[7] = c[0][0], c[0][1], c[1][0], c[1][1]
+                    pub({"header": header(f, t, frame),
+                         "pose": {"pose": _pose(x, y, yaw), "covariance": full}})  # fmt: skip
+        self.n_published += len(outs)
+        self._publish_trajectory(time.monotonic_ns())
+
+    def _marker(self, car, ns, ident, kind, points, rgba, width=0.08) -> dict:
+        r, g, b, a = rgba
+        return {
+            "header": header(self.flavour, ns, self.opt.map_frame),
+            "ns": f"future_pose/{car}",
+            "id": ident,
+            "type": kind,
+            "action": 0,
+            "pose": _pose(0.0, 0.0, 0.0),
+            "scale": {"x": width, "y": width, "z": width},
+            "color": {"r": r, "g": g, "b": b, "a": a},
+            # a track that stops being predicted disappears instead of freezing
+            "lifetime": time_dict(self.flavour, 500_000_000),
+            "points": [{"x": x, "y": y, "z": 0.0} for x, y in points],
+        }
+
+    def _markers(self, car, ns, poses, cov) -> list[dict]:
+        pts = poses[:, :2].tolist()
+        out = [
+            self._marker(car, ns, 0, MARKER_SPHERE_LIST, pts, (0.0, 1.0, 0.0, 1.0)),
+            self._marker(car, ns, 1, MARKER_LINE_STRIP, pts, (0.0, 1.0, 0.0, 0.6), 0.03),
+        ]
+        if cov is not None:
+            rings = ellipse_points(poses[:, :2], cov)  # (H, n + 1, 2)
+            seg = np.stack([rings[:, :-1], rings[:, 1:]], axis=2).reshape(-1, 2).tolist()
+            out.append(self._marker(car, ns, 2, MARKER_LINE_LIST, seg, (0.0, 0.6, 1.0, 0.8), 0.02))
+        return out
+
+    def _obstacle_array(self, ns: int, outs) -> dict:
+        """f110_msgs/ObstacleArray of the predicted state at the first step (stamp + dt_s)."""
+        obstacles = []
+        for car, _, poses, _, along in outs:
+            d = [self._offset(x, y, s) for (x, y, _), s in zip(poses.tolist(), along)]
+            o = {
+                "id": int(car),
+                "s_start": along[0] - 0.25, "s_end": along[0] + 0.25,
+                "d_right": d[0] - 0.15, "d_left": d[0] + 0.15,
+                "s_center": along[0], "d_center": d[0], "size": 0.5,
+                "vs": (along[1] - along[0]) / self.dt_s, "vd": (d[1] - d[0]) / self.dt_s,
+                "is_static": False, "is_visible": True,
+            }  # fmt: skip
+            if self.flavour == "ros1":
+                var = (np.zeros(2) if self.cov_track_m2 is None
+                       else np.diag(self.cov_track_m2[0]))  # fmt: skip
+                var1 = np.zeros(2) if self.cov_track_m2 is None else np.diag(self.cov_track_m2[1])
+                vvar = (var + var1) / self.dt_s**2  # two steps' errors taken as independent
+                o |= {"s_var": float(var[0]), "d_var": float(var[1]),
+                      "vs_var": float(vvar[0]), "vd_var": float(vvar[1])}  # fmt: skip
+            obstacles.append(o)
+        return {"header": header(self.flavour, ns, self.opt.map_frame), "obstacles": obstacles}
+
+    def _offset(self, x: float, y: float, s_m: float) -> float:
+        cx, cy = self.path.point_at(s_m)
+        h = self.path.heading_at(s_m)
+        return (y - cy) * math.cos(h) - (x - cx) * math.sin(h)
+
+    def _publish_trajectory(self, now_ns: int) -> None:
+        """The line model's learned line and speed profile, every trajectory_every_s."""
+        if "trajectory" not in self._pub:
+            return
+        if now_ns - self._last_trajectory_ns < self.opt.trajectory_every_s * 1e9:
+            return
+        self._last_trajectory_ns = now_ns
+        self._pub["trajectory"](self.trajectory_message())
+
+    def trajectory_message(self, stamp: int = 0) -> dict:
+        """f110_msgs/OpponentTrajectory of the config's line: one OppWpnt per line point."""
+        p = self.config["params"]
+        offset, speed = p["line_offset_m"], p["line_speed_mps"]
+        n = len(offset)
+        length = self.path.length_m
+        span = length / n if self.path.closed else length / max(n - 1, 1)
+        d_var = 0.0 if self.cov_track_m2 is None else float(self.cov_track_m2[-1][1][1])
+        wpnts = []
+        for k in range(n):
+            s = k * span
+            x, y = self._frenet_to_map(s, float(offset[k]))
+            wpnts.append({"id": k, "s_m": s, "d_m": float(offset[k]), "x_m": x, "y_m": y,
+                          "proj_vs_mps": float(speed[k]), "vd_mps": 0.0, "d_var": d_var,
+                          "vs_var": 0.0})  # fmt: skip
+        msg = {"header": header(self.flavour, stamp, self.opt.map_frame),
+               "lap_count": 0, "opp_is_on_trajectory": True, "oppwpnts": wpnts}  # fmt: skip
+        if self.flavour == "ros1":
+            msg["id"] = 0
+        return msg
+
+
+def frenet_to_map(path, s_m: float, d_m: float) -> tuple[float, float]:
+    """Map position x [m], y [m] of arc length s [m] and offset d [m] (left positive) along a
+    `RunnerPath` (the frame of ForzaETH's obstacles: the waypoints given to the node)."""
+    cx, cy = path.point_at(s_m)
+    h = path.heading_at(s_m)
+    return cx - d_m * math.sin(h), cy + d_m * math.cos(h)
+
+
+def ellipse_points(center_m: np.ndarray, cov_m2: np.ndarray, n: int = ELLIPSE_POINTS):
+    """(..., n + 1, 2) closed rings x [m], y [m] on the 1-sigma ellipses of (..., 2, 2)
+    covariances [m^2] around (..., 2) centres."""
+    vals, vecs = np.linalg.eigh(cov_m2)
+    a = np.linspace(0.0, 2.0 * np.pi, n + 1)
+    axes = vecs * np.sqrt(np.maximum(vals, 0.0))[..., None, :]  # columns: the scaled axes
+    ring = np.einsum("...ij,jk->...ki", axes, np.stack([np.cos(a), np.sin(a)]))
+    return ring + center_m[..., None, :]
+
+
+def _stderr(line: str) -> None:
+    import sys
+
+    print(line, file=sys.stderr, flush=True)

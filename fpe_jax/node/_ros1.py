@@ -1,0 +1,187 @@
+"""ROS 1 transport of the live node: rospy from Debian, messages as nested dicts.
+
+Debian's ROS 1 Python packages (python3-rospy, python3-genpy, the message packages) live in
+/usr/lib/python3/dist-packages, which a virtual environment does not see: importing this module
+appends that folder to sys.path (after the environment's own packages, so its NumPy wins).
+Message classes Debian does not ship (apriltag_ros, f110_msgs) are generated at run time with
+genpy from the type store's full definitions (`fpe_jax.node.typestore("ros1")`), no catkin.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+import sys
+import threading
+import time
+import warnings
+from collections.abc import Callable
+
+from fpe_jax.errors import InputError
+from fpe_jax.node._types import full_definition, typestore
+
+DEBIAN_DIST = "/usr/lib/python3/dist-packages"
+if DEBIAN_DIST not in sys.path:
+    sys.path.append(DEBIAN_DIST)
+
+try:
+    import genpy
+    import genpy.dynamic
+    import rospy
+except ImportError as e:  # pragma: no cover - depends on the machine
+    raise InputError(
+        "--ros1",
+        f"rospy / genpy cannot be imported ({e})",
+        "Debian's ROS 1 packages: apt-get install python3-rospy python3-genpy ros-core "
+        "python3-geometry-msgs python3-nav-msgs python3-visualization-msgs python3-tf2-msgs",
+    ) from None
+
+_CLASSES: dict[str, type] = {}
+_LOCK = threading.Lock()
+
+
+def ros1_name(type_name: str) -> str:
+    """ "pkg/msg/Type" -> "pkg/Type"."""
+    return type_name.replace("/msg/", "/")
+
+
+def message_class(type_name: str) -> type:
+    """The genpy class of a type ("pkg/msg/Type" or "pkg/Type"): the installed package's, else
+    one generated from the type store's definition (same md5 as a catkin build's)."""
+    key = ros1_name(type_name)
+    with _LOCK:
+        if key in _CLASSES:
+            return _CLASSES[key]
+        pkg, name = key.split("/")
+        try:
+            cls = getattr(importlib.import_module(f"{pkg}.msg"), name)
+        except (ImportError, AttributeError):
+            full = f"{pkg}/msg/{name}"
+            if full not in typestore("ros1").types:
+                raise ValueError(f"unknown ROS 1 message type {key!r}") from None
+            cls = genpy.dynamic.generate_dynamic(key, full_definition("ros1", full))[key]
+        _CLASSES[key] = cls
+        return cls
+
+
+def to_dict(msg) -> dict:
+    """A genpy message as nested dicts (times as {secs, nsecs}, arrays as lists)."""
+    out = {}
+    for slot in msg.__slots__:
+        out[slot] = _value_to_py(getattr(msg, slot))
+    return out
+
+
+def _value_to_py(v):
+    if isinstance(v, genpy.Message):
+        return to_dict(v)
+    if isinstance(v, genpy.TVal):
+        return {"secs": v.secs, "nsecs": v.nsecs}
+    if isinstance(v, list | tuple):
+        return [_value_to_py(x) for x in v]
+    return v
+
+
+def from_dict(cls: type, d: dict):
+    """A genpy message of class `cls` from nested dicts; missing fields keep their defaults, an
+    unknown field is a ValueError naming the type and the field."""
+    slots, convert, flat = _plan(cls)
+    if flat and len(d) == len(slots) and all(k in d for k in slots):
+        msg = cls.__new__(cls)  # every field given, all primitive: no defaults to build first
+        for k in slots:
+            setattr(msg, k, d[k])
+        return msg
+    msg = cls()
+    for k, v in d.items():
+        if k not in convert:
+            raise ValueError(f"{cls._type} has no field {k!r} (fields: {', '.join(slots)})")
+        c = convert[k]
+        setattr(msg, k, v if c is None else c(v))
+    return msg
+
+
+@functools.cache
+def _plan(cls: type) -> tuple[tuple[str, ...], dict, bool]:
+    """(slots, {slot: converter or None for a value taken as is}, all slots primitive)."""
+    convert = {}
+    for slot, slot_type in zip(cls.__slots__, cls._slot_types):
+        base, array = slot_type.split("[", 1)[0], "[" in slot_type
+        if base in ("time", "duration"):
+            make = genpy.Time if base == "time" else genpy.Duration
+            one = lambda x, make=make: make(x["secs"], x["nsecs"]) if isinstance(x, dict) else x  # noqa: E731
+        elif "/" in base or base == "Header":
+            sub = message_class("std_msgs/Header" if base == "Header" else base)
+            one = lambda x, sub=sub: from_dict(sub, x) if isinstance(x, dict) else x  # noqa: E731
+        else:
+            convert[slot] = list if array and base not in ("uint8", "char") else None
+            continue
+        convert[slot] = (lambda v, one=one: [one(x) for x in v]) if array else one
+    flat = all(c is None for c in convert.values())
+    return tuple(cls.__slots__), convert, flat
+
+
+class Ros1Transport:
+    """The `Transport` of the node over rospy (one ROS 1 node per process).
+
+    Args:
+        name: the node's name (`rospy.init_node`; the master must be reachable).
+        queue_size: per input subscription; older messages are dropped under a flood.
+    """
+
+    flavour = "ros1"
+
+    def __init__(self, name: str = "future_pose_estimator", queue_size: int = 100):
+        rospy.init_node(name, anonymous=False, disable_signals=True)
+        self.queue_size = queue_size
+        self._subs: list = []
+        self._pubs: list = []
+
+    @staticmethod
+    def param(name: str, default=None):
+        """The private ROS parameter ~name, or `default` when it is not set."""
+        return rospy.get_param(f"~{name}", default)
+
+    def subscribe(self, topic: str, type_name: str | None, callback) -> None:
+        if type_name is None:
+
+            def raw(msg, topic=topic):
+                t = msg._connection_header["type"]
+                try:
+                    cls = message_class(t)
+                    decoded = cls().deserialize(msg._buff)
+                except Exception as e:  # an undecodable message reaches the node as one
+                    callback({"_undecodable": str(e)}, f"{t.replace('/', '/msg/', 1)}", 0)
+                    return
+                callback(to_dict(decoded), t.replace("/", "/msg/", 1), time.time_ns())
+
+            sub = rospy.Subscriber(topic, rospy.AnyMsg, raw, queue_size=self.queue_size,
+                                   tcp_nodelay=True)  # fmt: skip
+        else:
+            cls = message_class(type_name)
+            sub = rospy.Subscriber(
+                topic,
+                cls,
+                lambda m: callback(to_dict(m), type_name, time.time_ns()),
+                queue_size=self.queue_size,
+                tcp_nodelay=True,
+            )
+        self._subs.append(sub)
+
+    def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]:
+        cls = message_class(type_name)
+        pub = rospy.Publisher(topic, cls, queue_size=10, tcp_nodelay=True)
+        self._pubs.append(pub)
+        return lambda d: pub.publish(from_dict(cls, d))
+
+    def spin(self, stop: threading.Event) -> None:
+        while not stop.is_set() and not rospy.is_shutdown():
+            stop.wait(0.05)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.unregister()
+        for p in self._pubs:
+            p.unregister()
+        with warnings.catch_warnings():  # rospy's shutdown calls deprecated threading APIs
+            warnings.simplefilter("ignore", DeprecationWarning)
+            rospy.signal_shutdown("fpe node stopped")

@@ -1,0 +1,226 @@
+"""The node core without middleware: a fake in-memory transport, bad input between good ones."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fpe_jax.config import params_to_config
+from fpe_jax.history import drive_valid
+from fpe_jax.node._core import Node, NodeOptions
+from fpe_jax.params import presets
+from fpe_jax.runner import Runner
+from fpe_jax.sim import simulate
+
+
+class FakeTransport:
+    flavour = "ros2"
+
+    def __init__(self):
+        self.subs, self.out = {}, {}
+
+    def subscribe(self, topic, type_name, callback):
+        self.subs[topic] = callback
+
+    def advertise(self, topic, type_name):
+        self.out[topic] = []
+        return self.out[topic].append
+
+    def spin(self, stop):
+        pass
+
+    def close(self):
+        pass
+
+
+def pose_msg(ns, x, y, frame="map"):
+    return {
+        "header": {"stamp": {"sec": ns // 10**9, "nanosec": ns % 10**9}, "frame_id": frame},
+        "pose": {"position": {"x": x, "y": y, "z": 0.0},
+                 "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0}},
+    }  # fmt: skip
+
+
+def test_bad_input_between_good_messages_changes_nothing():
+    res = simulate("oval", duration_s=6.0, seed=1)
+    d = res.drive
+    cfg = params_to_config(presets["default"])
+    warnings = []
+    t = FakeTransport()
+    node = Node(t, cfg, res.centerline_xy_m, NodeOptions(input="pose", topic="/opp"),
+                warn=warnings.append)  # fmt: skip
+    node.start()
+    cb = t.subs["/opp"]
+    ps = "geometry_msgs/msg/PoseStamped"
+    bad = [  # each builds a bad message from the stamp of the good one before it
+        lambda ns: (pose_msg(ns + 1, math.nan, 1.0), ps),
+        lambda ns: (pose_msg(ns + 1, math.inf, 1.0), ps),
+        lambda ns: (pose_msg(ns + 1, 1.0, 1.0, frame="odom"), ps),
+        lambda ns: (pose_msg(ns - 1, 1.0, 1.0), ps),  # stamp backwards
+        lambda ns: ({"header": {}}, ps),  # malformed
+        lambda ns: (pose_msg(ns + 1, 1.0, 1.0), "std_msgs/msg/String"),  # wrong type
+    ]
+    ref, want = Runner(cfg, res.centerline_xy_m), []
+    base = 10**18
+    for k, (ts, (x, y)) in enumerate(zip(d.t_s, d.xy_m)):
+        ns = base + round(float(ts) * 1e9)
+        cb(pose_msg(ns, float(x), float(y)), ps, 0)
+        poses = ref.update((ns - base) * 1e-9, float(x), float(y), None)
+        if ref.valid:
+            want.append((ns, poses))
+        if k and k < 40:
+            cb(*bad[k % len(bad)](ns), 0)
+    paths = t.out["/future_pose/path"]
+    assert len(paths) == len(want)
+    for m, (ns, poses) in zip(paths, want):
+        assert m["header"]["stamp"] == {"sec": ns // 10**9, "nanosec": ns % 10**9}
+        xy = [[p["pose"]["position"]["x"], p["pose"]["position"]["y"]] for p in m["poses"]]
+        np.testing.assert_allclose(xy, poses[:, :2], atol=1e-9, rtol=0)
+    # one rate-limited line per kind of problem, naming the topic
+    # NaN and inf are one kind of problem: one line for both within the warning interval
+    problems = ["non-finite position", "frame 'odom'", "is not after", "malformed", "type std_msgs"]
+    assert len(warnings) == len(problems), warnings
+    assert all(any(p in w for w in warnings) for p in problems), warnings
+    assert all(w.startswith("fpe node: /opp: ") for w in warnings)
+    # no prediction from too little history: the first published is the first valid row
+    valid = drive_valid(d, cfg["settings"]["history"])
+    assert len(want) == int(valid.sum())
+
+
+def test_runner_validity_equals_the_drive_rule():
+    res = simulate("oval", duration_s=4.0, seed=2)
+    d = res.drive
+    cfg = params_to_config(presets["default"])
+    r = Runner(cfg, res.centerline_xy_m)
+    got = []
+    for ts, (x, y), yaw in zip(d.t_s, d.xy_m, d.yaw_rad):
+        r.update(float(ts), float(x), float(y), float(yaw))
+        got.append(r.valid)
+    want = drive_valid(d, cfg["settings"]["history"])
+    assert got == want.tolist()
+    assert not got[0] and any(got)
+
+
+def ros2_dict(msg):
+    """A log message object as a ROS 2 message dict (the fake transport's flavour)."""
+    fields = getattr(msg, "__dataclass_fields__", None) or getattr(msg, "__slots__", None)
+    if isinstance(msg, str | bytes | int | float) or fields is None:
+        if isinstance(msg, np.ndarray):
+            return msg.tolist()
+        if isinstance(msg, list | tuple):
+            return [ros2_dict(v) for v in msg]
+        return msg
+    return {k: ros2_dict(getattr(msg, k)) for k in fields if k != "__msgtype__"}
+
+
+def test_tag_input_with_bad_detections_and_a_flood_of_obstacles(tmp_path):
+    """The seed's layout through the core: unknown tag ids, NaN poses, an unknown camera frame
+    and detections stamped before the TF buffer between good ones; the good ones predict as
+    the runner does on the rows the log reader composes (the same placement code)."""
+    import copy
+
+    from fpe_jax.io.drives import load_drive
+    from fpe_jax.io.logs import open_log
+    from fpe_jax.sim import Camera, write_simulation
+
+    res = simulate("oval", duration_s=8.0, seed=3, camera=Camera())
+    write_simulation(res, tmp_path / "sim")
+    log = open_log(tmp_path / "sim" / "drive.mcap")
+    cfg = params_to_config(presets["default"])
+    t, warnings = FakeTransport(), []
+    node = Node(t, cfg, res.centerline_xy_m, NodeOptions(input="tags", topic="/tag_detections"),
+                warn=warnings.append)  # fmt: skip
+    node.start()
+    n_bad = 0
+    for topic, msgtype, log_ns, msg in log.messages(["/tf", "/tf_static", "/tag_detections"]):
+        d = ros2_dict(msg)
+        t.subs[topic](d, msgtype, log_ns)
+        if topic == "/tag_detections" and d["detections"]:
+            n_bad += 1
+            bad = copy.deepcopy(d)
+            kind = n_bad % 4
+            if kind == 0:
+                bad["detections"][0]["id"] = [5]  # an unknown tag
+            elif kind == 1:
+                bad["detections"][0]["pose"]["pose"]["pose"]["position"]["x"] = math.nan
+            elif kind == 2:
+                bad["detections"][0]["pose"]["header"]["frame_id"] = "no_such_camera"
+            else:  # before every transform of the buffer: TF extrapolation into the past
+                bad["detections"][0]["pose"]["header"]["stamp"] = {"sec": 0, "nanosec": 1}
+                bad["header"]["stamp"] = {"sec": 0, "nanosec": 1}
+            t.subs[topic](bad, msgtype, log_ns)
+    drive = load_drive(tmp_path / "sim" / "drive.mcap", pose_topic="/tag_detections")
+    ref, want = Runner(cfg, res.centerline_xy_m), []
+    for ts, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad):
+        poses = ref.update(float(ts) - float(drive.t_s[0]), float(x), float(y), float(yaw))
+        if ref.valid:
+            want.append(poses)
+    paths = t.out["/future_pose/path"]
+    assert len(paths) == len(want)
+    for m, poses in zip(paths, want):
+        xy = [[p["pose"]["position"]["x"], p["pose"]["position"]["y"]] for p in m["poses"]]
+        np.testing.assert_allclose(xy, poses[:, :2], atol=1e-6, rtol=0)
+    for problem in ("unknown tag id", "non-finite", "no_such_camera", "TF"):
+        assert any(problem in w for w in warnings), (problem, warnings)
+
+    # 100 obstacles in one message: the first --max-tracks tracked, one warning
+    t2, w2 = FakeTransport(), []
+    opts = NodeOptions(input="obstacles", topic="/obst", max_tracks=8, drop_after_s=0.5)
+    node2 = Node(t2, cfg, res.centerline_xy_m, opts, warn=w2.append)
+    node2.start()
+    for j in range(6):
+        obst = [{"id": i, "s_center": 1.0 + 0.1 * j + i, "d_center": 0.0, "is_static": i % 2 == 0}
+                for i in range(100)]  # fmt: skip
+        hdr = {"stamp": {"sec": 1, "nanosec": j * 50_000_000}, "frame_id": "map"}
+        t2.subs["/obst"]({"header": hdr, "obstacles": obst}, "f110_msgs/msg/ObstacleArray", j)
+    assert set(node2.runners) == {str(i) for i in range(1, 16, 2)}  # moving ones only
+    assert sum("moving obstacles" in w for w in w2) == 1
+    # a track not updated for drop_after_s is dropped
+    hdr = {"stamp": {"sec": 2, "nanosec": 0}, "frame_id": "map"}
+    one = [{"id": 1, "s_center": 5.0, "d_center": 0.0, "is_static": False}]
+    t2.subs["/obst"]({"header": hdr, "obstacles": one}, "f110_msgs/msg/ObstacleArray", 10**9)
+    assert sorted(node2.runners) == ["1"]
+
+
+def test_missing_files_and_mismatched_waypoints_stop_at_start(tmp_path, capsys):
+    import argparse
+
+    from fpe_jax.cli import main
+    from fpe_jax.config import write_config
+    from fpe_jax.errors import InputError
+    from fpe_jax.io.writers import write_xy_csv
+    from fpe_jax.node import _cli
+
+    assert main(["node", "--ros1", "--config", str(tmp_path / "no.json"), "--waypoints", "x"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no.json: does not exist" in err[0]
+    # --params-file: the exported YAML gives the config and the waypoints beside it
+    res = simulate("oval", duration_s=2.0, seed=1)
+    write_xy_csv(tmp_path / "wp.csv", res.centerline_xy_m)
+    write_config(tmp_path / "cfg.json", params_to_config(presets["default"]))
+    argv = ["export", str(tmp_path / "cfg.json"), "--format", "ros2", "--out"]
+    assert main([*argv, str(tmp_path / "p.yaml"), "--waypoints", str(tmp_path / "wp.csv")]) == 0
+    parser = argparse.ArgumentParser()
+    _cli.add_parser(parser.add_subparsers())
+    args = parser.parse_args(["node", "--ros2", "--params-file", str(tmp_path / "p.yaml")])
+    cfg, xy, opts = _cli.options_from_args(args, FakeTransport())
+    assert cfg["params"] == params_to_config(presets["default"])["params"]
+    assert opts.input == "tags" and opts.topic == "/tag_detections"
+    np.testing.assert_allclose(xy, res.centerline_xy_m, atol=1e-6)
+    # no waypoints at all: refused
+    args = parser.parse_args(["node", "--ros2", "--config", str(tmp_path / "cfg.json")])
+    with pytest.raises(InputError, match="no waypoints"):
+        _cli.options_from_args(args, FakeTransport())
+
+
+def test_the_node_imports_no_jax():
+    import subprocess
+    import sys
+
+    from test_runner import CHECK_NO_JAX, NO_JAX
+
+    code = NO_JAX + "import fpe_jax.node, fpe_jax.node._cli, fpe_jax.node._core\n" + CHECK_NO_JAX
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr

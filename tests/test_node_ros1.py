@@ -1,0 +1,347 @@
+"""`fpe node --ros1` against a real roscore on 127.0.0.1: a simulated drive played into topics at
+40 Hz, every published prediction compared with `fpe predict` / the runner on the same data."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros1_helpers import need_ros1, ros1_dict, roscore
+
+from fpe_jax.cli import main
+from fpe_jax.config import params_to_config, write_config
+from fpe_jax.io.logs import open_log
+from fpe_jax.params import presets
+from fpe_jax.runner import Runner, RunnerPath, load_waypoints_xy
+
+ROOT = Path(__file__).resolve().parents[1]
+RATE_HZ = 40.0
+# rospy (Debian's) calls threading APIs Python 3.11 deprecates, from its own threads
+# and leaves its connection sockets to the garbage collector
+pytestmark = [
+    pytest.mark.filterwarnings("ignore::DeprecationWarning"),
+    pytest.mark.filterwarnings("ignore::ResourceWarning"),
+    pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning"),
+]
+H = 10
+COV = [[[0.01 * (k + 1), 0.002], [0.002, 0.004 * (k + 1)]] for k in range(H)]
+
+
+@pytest.fixture(scope="module")
+def ros(tmp_path_factory):
+    """(environment, rospy) with a roscore running and this process a ROS node (the player)."""
+    need_ros1()
+    tmp = tmp_path_factory.mktemp("ros")
+    with roscore(tmp) as env:
+        saved = {k: os.environ.get(k) for k in env}
+        os.environ.update(env)
+        from fpe_jax.node import _ros1
+
+        _ros1.rospy.init_node("fpe_test_player", anonymous=True, disable_signals=True)
+        try:
+            yield env, _ros1
+        finally:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                _ros1.rospy.signal_shutdown("test done")
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """A 12 s simulated drive in the seed's layout, a config with per-step covariance, and
+    `fpe predict`'s CSV of it."""
+    tmp = tmp_path_factory.mktemp("drive")
+    assert (
+        main(["simulate", "--sensor", "apriltag", "--duration", "12", "--out", str(tmp / "sim")])
+        == 0
+    )
+    cfg = params_to_config(presets["default"], uncertainty={"frame": "track", "cov_m2": COV})
+    write_config(tmp / "cfg.json", cfg)
+    wp, log = tmp / "sim" / "waypoints.csv", tmp / "sim" / "drive.mcap"
+    argv = ["predict", str(log), "--config", str(tmp / "cfg.json"), "--waypoints", str(wp)]
+    assert main([*argv, "--out", str(tmp / "pred.csv")]) == 0
+    return tmp, cfg
+
+
+def start_node(env, *args) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "fpe_jax.cli", "node", "--ros1", *args],
+        env=env | {"PYTHONUNBUFFERED": "1"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+
+
+def stop_node(proc) -> str:
+    proc.send_signal(2)
+    try:
+        _, err = proc.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+        raise AssertionError(f"the node did not stop on SIGINT: {err}") from None
+    assert proc.returncode == 0, err
+    return err
+
+
+class Collector:
+    def __init__(self, r1, topic, type_name):
+        self.msgs, self.lock = [], threading.Lock()
+        cls = r1.message_class(type_name)
+        self.sub = r1.rospy.Subscriber(topic, cls, self.add, queue_size=1000, tcp_nodelay=True)
+
+    def add(self, m):
+        with self.lock:
+            self.msgs.append(m)
+
+
+def wait_connected(pubs, subs, proc, timeout=60.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise AssertionError(f"the node exited: {proc.communicate()[1]}")
+        if all(p.get_num_connections() > 0 for p in pubs) and all(
+            s.get_num_connections() > 0 for s in subs
+        ):
+            return
+        time.sleep(0.1)
+    raise AssertionError("the node did not connect")
+
+
+def wait_for(pred, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not pred():
+        time.sleep(0.05)
+
+
+def ns_of(t) -> int:
+    return t.secs * 1_000_000_000 + t.nsecs
+
+
+def test_tag_input_matches_fpe_predict_none_dropped(ros, drive):
+    env, r1 = ros
+    tmp, _ = drive
+    log = open_log(tmp / "sim" / "drive.mcap")
+    msgs = list(log.messages(["/tf", "/tf_static", "/tag_detections"]))
+    # a loaded machine can hold the TF thread back: a generous wait keeps every detection
+    wp = str(tmp / "sim" / "waypoints.csv")
+    proc = start_node(env, "--config", str(tmp / "cfg.json"), "--waypoints", wp, "--tf-wait", "5")
+    try:
+        pubs = {
+            "/tf": r1.rospy.Publisher(
+                "/tf", r1.message_class("tf2_msgs/TFMessage"), queue_size=1000
+            ),
+            "/tf_static": r1.rospy.Publisher(
+                "/tf_static", r1.message_class("tf2_msgs/TFMessage"), queue_size=10, latch=True
+            ),
+            "/tag_detections": r1.rospy.Publisher(
+                "/tag_detections",
+                r1.message_class("apriltag_ros/AprilTagDetectionArray"),
+                queue_size=1000,
+            ),
+        }
+        paths = Collector(r1, "/future_pose/path", "nav_msgs/Path")
+        markers = Collector(r1, "/future_pose", "visualization_msgs/MarkerArray")
+        covs = Collector(r1, "/future_pose/covariance", "geometry_msgs/PoseWithCovarianceStamped")
+        wait_connected(pubs.values(), [paths.sub, markers.sub, covs.sub], proc)
+        static = [m for m in msgs if m[0] == "/tf_static"]
+        for topic, msgtype, _, msg in static:  # latched: the node holds it before the drive
+            pubs[topic].publish(r1.from_dict(r1.message_class(msgtype), ros1_dict(msg)))
+        time.sleep(1.0)
+        for topic, msgtype, _, msg in [m for m in msgs if m[0] != "/tf_static"]:
+            cls = r1.message_class(msgtype)
+            pubs[topic].publish(r1.from_dict(cls, ros1_dict(msg)))
+            if topic == "/tag_detections":
+                time.sleep(1.0 / RATE_HZ)
+        pred = np.genfromtxt(tmp / "pred.csv", delimiter=",", names=True)
+        valid = pred[pred["valid"] == 1]
+        n_want = len(valid) // H
+        wait_for(lambda: len(paths.msgs) >= n_want and len(covs.msgs) >= n_want * H)
+    finally:
+        err = stop_node(proc)
+    by_stamp = {}
+    for row in valid.reshape(-1, H):
+        by_stamp[round(row["stamp"][0] * 1e9)] = row
+    got = sorted(ns_of(m.header.stamp) for m in paths.msgs)
+    missing = [k for k in sorted(by_stamp) if min(abs(k - g) for g in got) > 2]
+    assert len(paths.msgs) == n_want, (missing, err)  # none dropped, none extra
+    for m in paths.msgs:
+        ns = ns_of(m.header.stamp)
+        row = by_stamp[min(by_stamp, key=lambda k: abs(k - ns))]
+        assert abs(row["stamp"][0] * 1e9 - ns) < 2.0  # the observation's stamp (CSV rounds to 1 ns)
+        assert m.header.frame_id == "map"
+        xy = np.array([[p.pose.position.x, p.pose.position.y] for p in m.poses])
+        np.testing.assert_allclose(xy, np.column_stack([row["x"], row["y"]]), atol=1e-6, rtol=0)
+        yaw = [2 * np.arctan2(p.pose.orientation.z, p.pose.orientation.w) for p in m.poses]
+        dyaw = (np.array(yaw) - row["yaw"] + np.pi) % (2 * np.pi) - np.pi
+        np.testing.assert_allclose(dyaw, 0.0, atol=1e-6)
+        steps = [ns_of(p.header.stamp) - ns for p in m.poses]
+        assert steps == [round(k * 0.1e9) for k in range(1, H + 1)]
+    assert len(markers.msgs) == n_want
+    kinds = [mk.type for mk in markers.msgs[0].markers]
+    assert kinds == [7, 4, 5]  # points, line, the ellipses
+    assert len(covs.msgs) == n_want * H
+    # covariance: the config's track-frame one turned into the map frame (trace is invariant)
+    traces = sorted({round(c.pose.covariance[0] + c.pose.covariance[7], 9) for c in covs.msgs})
+    assert traces == sorted({round(c[0][0] + c[1][1], 9) for c in COV})
+    assert "stopped after" in err
+
+
+def test_obstacle_input_four_opponents(ros, drive, tmp_path):
+    """Four opponents in one ObstacleArray at 40 Hz: per-id paths equal each one's runner."""
+    env, r1 = ros
+    tmp, cfg = drive
+    wp_file = tmp / "sim" / "waypoints.csv"
+    xy_wp = load_waypoints_xy(wp_file)
+    path = RunnerPath(xy_wp)
+    from fpe_jax.node._core import frenet_to_map
+
+    truth = next(
+        msg for _, _, _, msg in open_log(tmp / "sim" / "drive.mcap").messages(["/opp/odom"])
+    )
+    del truth
+    odom = [
+        (msg.pose.pose.position.x, msg.pose.pose.position.y)
+        for _, _, _, msg in open_log(tmp / "sim" / "drive.mcap").messages(["/opp/odom"])
+    ]
+    n_rows, ids = 120, [3, 7, 11, 20]
+    frames = []
+    s_prev = {}
+    for j in range(n_rows):
+        obst = []
+        for k, ident in enumerate(ids):
+            x, y = odom[j * 2 + 60 * k]
+            s = (
+                path.project(x, y)
+                if ident not in s_prev
+                else path.project_window(x, y, s_prev[ident])
+            )
+            s_prev[ident] = s
+            cx, cy = path.point_at(s)
+            h = path.heading_at(s)
+            d = (y - cy) * np.cos(h) - (x - cx) * np.sin(h)
+            obst.append({"id": ident, "s_center": s % path.length_m, "d_center": float(d),
+                         "is_static": False, "is_visible": True})  # fmt: skip
+        obst.append({"id": 99, "s_center": 1.0, "d_center": 0.0, "is_static": True})
+        frames.append((1_000_000_000 + j * 25_000_000, obst))
+    proc = start_node(
+        env, "--config", str(tmp / "cfg.json"), "--waypoints", str(wp_file),
+        "--obstacles-topic", "/perception/obstacles",
+    )  # fmt: skip
+    try:
+        cls = r1.message_class("f110_msgs/ObstacleArray")
+        pub = r1.rospy.Publisher("/perception/obstacles", cls, queue_size=1000)
+        subs = {i: Collector(r1, f"/future_pose/path/{i}", "nav_msgs/Path") for i in ids}
+        out = Collector(r1, "/future_pose/obstacles", "f110_msgs/ObstacleArray")
+        wait_connected([pub], [out.sub], proc)
+        # the per-opponent topics appear with the first valid prediction: warm up connections
+        for ns, obst in frames:
+            pub.publish(r1.from_dict(cls, {"header": {"stamp": {"secs": ns // 10**9,
+                        "nsecs": ns % 10**9}, "frame_id": "map"}, "obstacles": obst}))  # fmt: skip
+            time.sleep(1.0 / RATE_HZ)
+        want = {}
+        for i in ids:
+            r = Runner(cfg, xy_wp)
+            want[i] = []
+            for ns, obst in frames:
+                o = next(o for o in obst if o["id"] == i)
+                x, y = frenet_to_map(path, o["s_center"], o["d_center"])
+                poses = r.update((ns - frames[0][0]) * 1e-9, x, y, None)
+                if r.valid:
+                    want[i].append((ns, poses))
+        wait_for(lambda: len(out.msgs) >= len(frames) - 3)
+        time.sleep(0.5)
+    finally:
+        err = stop_node(proc)
+    for i in ids:
+        got = {ns_of(m.header.stamp): m for m in subs[i].msgs}
+        # a subscriber connects to a per-opponent topic after its first message: from then on all
+        assert len(got) >= len(want[i]) - 5, (i, len(got), len(want[i]), err)
+        first = min(got)
+        expect = [(ns, p) for ns, p in want[i] if ns >= first]
+        assert sorted(got) == [ns for ns, _ in expect], err
+        for ns, poses in expect:
+            xy = np.array([[p.pose.position.x, p.pose.position.y] for p in got[ns].poses])
+            np.testing.assert_allclose(xy, poses[:, :2], atol=1e-6, rtol=0)
+    # the predicted ObstacleArray: one per input message once all four are valid, never id 99
+    assert all(o.id in ids for m in out.msgs for o in m.obstacles)
+    assert max(len(m.obstacles) for m in out.msgs) == 4
+    assert json.dumps(sorted({o.id for m in out.msgs for o in m.obstacles})) == json.dumps(ids)
+
+
+def test_bad_input_on_a_running_node(ros, drive):
+    """NaN / inf poses, a wrong frame, stamps going backwards and a 1 kHz flood between good
+    PoseStamped messages: the good ones predict as the runner does, SIGTERM ends the node."""
+    env, r1 = ros
+    tmp, cfg = drive
+    wp = tmp / "sim" / "waypoints.csv"
+    odom = [
+        (msg.pose.pose.position.x, msg.pose.pose.position.y)
+        for _, _, _, msg in open_log(tmp / "sim" / "drive.mcap").messages(["/opp/odom"])
+    ]
+    args = ["--config", str(tmp / "cfg.json"), "--waypoints", str(wp), "--no-markers"]
+    proc = start_node(env, *args, "--pose-topic", "/opp/pose_bad_test", "--no-covariance")
+    cls = r1.message_class("geometry_msgs/PoseStamped")
+
+    def msg(ns, x, y, frame="map"):
+        stamp = {"secs": ns // 10**9, "nsecs": ns % 10**9}
+        return r1.from_dict(cls, {"header": {"stamp": stamp, "frame_id": frame},
+                                  "pose": {"position": {"x": x, "y": y}}})  # fmt: skip
+
+    try:
+        pub = r1.rospy.Publisher("/opp/pose_bad_test", cls, queue_size=1000)
+        paths = Collector(r1, "/future_pose/path", "nav_msgs/Path")
+        wait_connected([pub], [paths.sub], proc)
+        good, base = [], 5 * 10**9
+        for j in range(80):
+            ns = base + j * 25_000_000
+            x, y = odom[2 * j]
+            pub.publish(msg(ns, x, y))
+            good.append((ns, x, y))
+            kind = j % 4
+            if kind == 0:
+                pub.publish(msg(ns + 1, float("nan"), y))
+            elif kind == 1:
+                pub.publish(msg(ns + 1, x, float("inf")))
+            elif kind == 2:
+                pub.publish(msg(ns + 1, x, y, frame="odom"))
+            else:
+                pub.publish(msg(ns - 10_000_000, x + 1.0, y))  # stamp going backwards
+            if j == 40:  # a 1 kHz flood of stale messages
+                for _ in range(300):
+                    pub.publish(msg(base, 0.0, 0.0))
+                    time.sleep(0.001)
+            time.sleep(1.0 / RATE_HZ)
+        ref, want = Runner(cfg, load_waypoints_xy(wp)), []
+        for ns, x, y in good:
+            poses = ref.update((ns - base) * 1e-9, x, y, None)
+            if ref.valid:
+                want.append((ns, poses))
+        wait_for(lambda: len(paths.msgs) >= len(want))
+    finally:
+        proc.send_signal(15)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    got = {ns_of(m.header.stamp): m for m in paths.msgs}
+    assert sorted(got) == [ns for ns, _ in want], err
+    for ns, poses in want:
+        xy = np.array([[p.pose.position.x, p.pose.position.y] for p in got[ns].poses])
+        np.testing.assert_allclose(xy, poses[:, :2], atol=1e-6, rtol=0)
+    for problem in ("non-finite position", "frame 'odom'", "is not after"):
+        assert problem in err, (problem, err)
+    assert len(err.splitlines()) < 20, err  # rate-limited: not one line per bad message

@@ -1,0 +1,138 @@
+"""An output path that names one of the command's inputs is refused, --force or not, whatever the
+spelling (relative, symlink, hard link), and the input is left as it was."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from fpe_jax import io
+from fpe_jax.cli import main
+from fpe_jax.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "data"
+
+
+def _inputs(tmp_path: Path) -> dict[str, Path]:
+    """Copies of a drive, its waypoints, cars and a config in tmp_path."""
+    files = dict(
+        drive=DATA / "samples" / "drive.csv",
+        waypoints=DATA / "tracks" / "oval.csv",
+        cars=DATA / "samples" / "cars.csv",
+        config=Path(__file__).resolve().parents[1] / "fit" / "sim-oval.json",
+    )
+    out = {}
+    for name, src in files.items():
+        out[name] = tmp_path / src.name
+        shutil.copyfile(src, out[name])
+    return out
+
+
+def _spellings(tmp_path: Path, target: Path) -> list[str]:
+    """Other names of `target`: relative with ./, a symlink, a hard link."""
+    link = tmp_path / f"link-{target.name}"
+    link.symlink_to(target)
+    hard = tmp_path / f"hard-{target.name}"
+    os.link(target, hard)
+    rel = os.path.relpath(target, Path.cwd())
+    return [str(target), "./" + rel if not rel.startswith("..") else rel, str(link), str(hard)]
+
+
+def _refused(argv: list, capsys, *inputs: Path) -> None:
+    before = {p: p.read_bytes() for p in inputs}
+    assert main([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert "same file as the input" in err, err
+    assert "Traceback" not in err
+    for p, data in before.items():
+        assert p.read_bytes() == data, f"{p} was changed"
+
+
+@pytest.mark.parametrize("force", [[], ["--force"]])
+def test_predict_convert_batch_refuse_an_input_as_out(tmp_path, capsys, force):
+    f = _inputs(tmp_path)
+    wp, drive = f["waypoints"], f["drive"]
+    for out in _spellings(tmp_path, drive):
+        _refused(
+            ["predict", drive, "--waypoints", wp, "--preset", "linear", "--out", out, *force],
+            capsys,
+            drive,
+        )
+        _refused(["convert", drive, "--out", out, *force], capsys, drive)
+    for out in _spellings(tmp_path, wp)[1:]:
+        _refused(
+            ["predict", drive, "--waypoints", wp, "--preset", "linear", "--out", out, *force],
+            capsys,
+            wp,
+        )
+    cars = f["cars"]
+    for out in _spellings(tmp_path, cars):
+        _refused(
+            ["batch", cars, "--waypoints", wp, "--preset", "linear", "--out", out, *force],
+            capsys,
+            cars,
+        )
+
+
+@pytest.mark.parametrize("force", [[], ["--force"]])
+def test_fit_refuses_the_waypoints_or_a_drive_as_out(tmp_path, capsys, force):
+    f = _inputs(tmp_path)
+    wp, drive = f["waypoints"], f["drive"]
+    for target in (wp, drive):
+        for out in _spellings(tmp_path, target)[:2]:
+            argv = ["fit", drive, "--waypoints", wp, "--out", out, *force]
+            _refused(argv, capsys, wp, drive)
+
+
+def test_fit_refuses_a_recipe_waypoints_file_as_its_out(tmp_path, capsys):
+    f = _inputs(tmp_path)
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(
+        f'out = "{f["waypoints"]}"\nwaypoints = "{f["waypoints"]}"\n'
+        f'[[drives]]\npath = "{f["drive"]}"\n'
+    )
+    _refused(["fit", recipe, "--force"], capsys, f["waypoints"], f["drive"])
+
+
+def test_simulate_refuses_to_replace_its_track_file(tmp_path, capsys):
+    folder = tmp_path / "sim"
+    folder.mkdir()
+    track = folder / "waypoints.csv"  # the name simulate writes its centre line to
+    shutil.copyfile(DATA / "tracks" / "oval.csv", track)
+    argv = ["simulate", "--track", track, "--duration", "5", "--out", folder, "--force"]
+    _refused(argv, capsys, track)
+    link = tmp_path / "elsewhere.csv"
+    link.symlink_to(track)
+    argv = ["simulate", "--track", link, "--duration", "5", "--out", folder, "--force"]
+    _refused(argv, capsys, track)
+
+
+def test_check_not_input_library(tmp_path):
+    a = tmp_path / "a.csv"
+    a.write_text("x\n")
+    io.check_not_input(tmp_path / "new.csv", [a])  # nothing there yet: fine
+    io.check_not_input(a, [None, tmp_path / "missing.csv"])
+    other = tmp_path / "b.csv"
+    other.write_text("x\n")
+    io.check_not_input(other, [a])  # equal content, different file: fine
+    with pytest.raises(InputError, match="same file as the input"):
+        io.check_output_path(tmp_path / "." / "a.csv", True, inputs=[a])
+
+
+def test_recipes_show_a_refit_that_leaves_the_committed_configs_alone():
+    """Each recipe's comment shows a command writing under out/, and says that without --out it
+    writes (and with --force regenerates) the committed config beside it."""
+    recipes = sorted((ROOT / "fit").glob("*.toml"))
+    assert recipes
+    for recipe in recipes:
+        comments = [line for line in recipe.read_text().splitlines() if line.startswith("#")]
+        text = "\n".join(comments)
+        rel = recipe.relative_to(ROOT)
+        assert f"fpe fit {rel} --out out/{recipe.stem}.json" in text, rel
+        commands = [c for c in comments if "fpe fit" in c]
+        assert all("--out out/" in c for c in commands), commands
+        assert "regenerates that file" in text and f"fit/{recipe.stem}.json" in text
