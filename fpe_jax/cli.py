@@ -407,7 +407,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "stream predictions: observations on stdin, JSON lines out",
         "fpe run --config tuned.json --waypoints track.csv < drive.csv",
     )
-    p.add_argument("--config", help="a tuned config JSON (required without --adapt)")
+    p.add_argument("--config", help="a tuned config JSON (default: none; required without --adapt)")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     p.add_argument(
         "--rate",
@@ -425,7 +425,11 @@ def _build_parser() -> argparse.ArgumentParser:
 
     from fpe_jax.node import _cli as node_cli  # JAX-free
 
-    node_cli.add_parser(sub)
+    node_cli.add_parser(
+        sub,
+        formatter_class=_HelpFormatter,
+        epilog="example:\n  fpe node --ros1 --config car/config.json --waypoints car/track.csv",
+    )
 
     p = command(
         "demo",

@@ -43,7 +43,7 @@ def add_arguments(p) -> None:
         type=float,
         default=1.0,
         metavar="FACTOR",
-        help="replay FACTOR times as fast as recorded (default 1)",
+        help="replay FACTOR times as fast as recorded",
     )
     p.add_argument("--loop", action="store_true", help="replay again and again until Ctrl-C")
     p.add_argument(
