@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import io
+import json
 import sys
 from pathlib import Path
 
@@ -43,6 +44,32 @@ def cli_runner(
     expect = (expect,) if isinstance(expect, int) else tuple(expect)
     assert rc in expect, (rc, expect, err)
     return rc, out, err
+
+
+def csv_lines(rows) -> list[str]:
+    return ["t,x,y,yaw"] + [",".join(repr(float(v)) for v in r) for r in rows]
+
+
+def fpe_run(monkeypatch, capsys, argv, lines) -> tuple[int, list[dict], list[str]]:
+    """In-process `fpe run ARGV` on the stdin `lines`: (exit status, replies, stderr lines)."""
+    monkeypatch.setattr(sys, "stdin", io.StringIO("".join(f"{line}\n" for line in lines)))
+    capsys.readouterr()
+    from fpe_jax import cli
+
+    rc = cli.main(["run", *argv])
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    return rc, [json.loads(line) for line in out.splitlines()], err.strip().splitlines()
+
+
+def expected(cfg, wp, rows) -> list[dict]:
+    """What a fresh runner replies for the rows (t, x, y, yaw) in order."""
+    r = Runner(cfg, wp)
+    replies = []
+    for t, x, y, yaw in rows:
+        poses = r.update(t, x, y, yaw).tolist()
+        replies.append({"stamp": float(t), "poses": poses, "valid": r.valid})
+    return replies
 
 
 # ---- trees -------------------------------------------------------------------------------------
