@@ -177,15 +177,15 @@ def _drive_options(args) -> dict:
 
 def _run_options(args, say) -> dict:
     """The pipeline's options of `_add_run_flags`, with progress shown by `say`."""
-    opts = dict(cache=not getattr(args, "no_cache", False), progress=say, warn=_warn(args))
+    opts = dict(cache=not getattr(args, "no_cache", False), progress=say, warn=_warn)
     if hasattr(args, "allow_off_track"):
         opts["allow_off_track"] = args.allow_off_track
     return opts
 
 
-def _warn(args):
+def _warn(msg: str) -> None:
     """How the pipeline's warnings reach the user: one line on stderr, `--quiet` or not."""
-    return lambda msg: print(f"fpe {args.command}: {msg}", file=sys.stderr)
+    print(f"fpe: {msg}", file=sys.stderr)
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -644,7 +644,7 @@ def _predict_adaptive(args) -> int:
         force=args.force,
         log_options=_drive_options(args),
         allow_off_track=args.allow_off_track,
-        warn=_warn(args),
+        warn=_warn,
     )
     n, h = res.poses_m.shape[:2]
     print(f"wrote {n} predictions x {h} steps to {args.out}", file=sys.stderr)
@@ -729,7 +729,7 @@ def cmd_convert(args) -> int:
     from fpe_jax import pipeline
 
     drive = pipeline.convert_log(
-        args.log, args.out, force=args.force, log_options=_drive_options(args), warn=_warn(args)
+        args.log, args.out, force=args.force, log_options=_drive_options(args), warn=_warn
     )
     print(f"wrote {len(drive.t_s)} poses to {args.out}", file=sys.stderr)
     return 0

@@ -93,6 +93,43 @@ def test_predict_cars_writes_what_fpe_batch_writes(tmp_path, capsys):
     assert seen[-1] == (len(res.poses_m), len(res.poses_m))
 
 
+def test_predict_cars_warns_of_cars_off_the_track(tmp_path):
+    from fpe_jax import io
+
+    cars = np.array(io.read_cars(CARS), dtype=np.float64)
+    cars[:2, :2] += 500.0  # two cars in another map frame
+    warned = []
+    res = pipeline.predict_cars(cars, WAYPOINTS, out=tmp_path / "p.csv", warn=warned.append)
+    assert res.off_track.tolist() == [True, True] + [False] * (len(cars) - 2)
+    assert len(warned) == 1 and "the cars" in warned[0]
+    rows = np.loadtxt(tmp_path / "p.csv", delimiter=",", skiprows=1)
+    assert rows[:, -1].reshape(len(cars), -1)[:, 0].tolist() == res.off_track.tolist()
+
+
+def test_predict_log_adaptive_writes_what_fpe_predict_adapt_writes(tmp_path, capsys):
+    argv = ["predict", LOG, "--waypoints", WAYPOINTS, "--adapt", "--delay", "0.1"]
+    run_cli(capsys, *argv, "--out", f"{tmp_path}/c.csv", "--save-state", f"{tmp_path}/c.json")
+    kw = dict(delay_s=0.1, out=tmp_path / "p.csv", save_state=tmp_path / "p.json")
+    res = pipeline.predict_log_adaptive(LOG, WAYPOINTS, **kw)
+    assert (tmp_path / "p.csv").read_bytes() == (tmp_path / "c.csv").read_bytes()
+    learned, cli_learned = (json.loads((tmp_path / f).read_text()) for f in ("p.json", "c.json"))
+    assert learned["line"] == cli_learned["line"] and learned["params"] == cli_learned["params"]
+    assert res.poses_m.shape == (len(res.stamps_s), 10, 3)
+
+
+def test_pipelines_never_write_over_their_inputs(tmp_path):
+    log = tmp_path / "drive.csv"
+    pipeline.convert_log(LOG, log)
+    before = log.read_bytes()
+    for f, kw in (
+        (pipeline.convert_log, {}),
+        (pipeline.predict_log, dict(waypoints=WAYPOINTS)),
+    ):
+        with pytest.raises(InputError, match="drive.csv"):
+            f(log, out=log, force=True, **kw)
+    assert log.read_bytes() == before
+
+
 def test_plot_log_draws_what_fpe_plot_draws(tmp_path, capsys, tuned):
     run_cli(capsys, "plot", LOG, "--waypoints", WAYPOINTS, "--config", tuned, "--out",
             f"{tmp_path}/c.png")  # fmt: skip
