@@ -19,6 +19,7 @@ demo: $(VENV)
 test: $(VENV)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(BIN)/lint-imports
 	$(BIN)/pytest -q
 
 bench: $(VENV)

@@ -22,9 +22,16 @@ from fpe_jax.spec import ESTIMATORS, FIT_MODELS, FIT_NAMES, SOLVERS
 def _add_log_flags(p: argparse.ArgumentParser) -> None:
     """Flags shared by every command that reads a drive log."""
     p.add_argument("--pose-topic", help="topic with the observed poses (default: the only one)")
-    p.add_argument("--truth-topic", help="optional ground-truth topic (e.g. the car's odometry)")
     p.add_argument(
-        "--rate", type=float, metavar="HZ", help="sample rate of a header-less x,y,z CSV"
+        "--truth-topic",
+        help="ground-truth topic, e.g. the car's odometry (default: the only Odometry topic "
+        "other than the pose topic, if there is one)",
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        metavar="HZ",
+        help="sample rate of a header-less x,y,z CSV (default: none; required for such a file)",
     )
     p.add_argument("--log-time", action="store_true", help="use recording time, not header.stamp")
     p.add_argument("--tf-parent", default="map", help="TF parent frame (default: map)")
@@ -58,8 +65,12 @@ def _add_predictor_flags(p: argparse.ArgumentParser, *, required: bool) -> None:
     """--waypoints and exactly one of --preset / --config (optional: the 'default' preset)."""
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     src = p.add_mutually_exclusive_group(required=required)
-    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
-    src.add_argument("--config", help="a tuned config JSON written by `fpe fit`")
+    src.add_argument(
+        "--preset", help="a built-in preset (see `fpe presets`; default: 'default' unless --config)"
+    )
+    src.add_argument(
+        "--config", help="a tuned config JSON written by `fpe fit` (default: none, a preset)"
+    )
     _add_settings_flags(p, "with --preset")
 
 
@@ -74,13 +85,21 @@ SETTINGS_FLAGS = {
 
 def _add_settings_flags(p: argparse.ArgumentParser, when: str) -> None:
     g = p.add_argument_group(f"car and prediction settings ({when}; default: the preset's)")
-    g.add_argument("--wheelbase", type=float, metavar="M", help="wheelbase [m] (F1TENTH 0.325)")
-    g.add_argument("--max-steer", type=float, metavar="RAD", help="steering limit [rad]")
-    g.add_argument("--dt", type=float, metavar="S", help="prediction step [s] (0.1)")
-    g.add_argument("--horizon", type=int, metavar="N", help="number of steps (10)")
+    g.add_argument(
+        "--wheelbase", type=float, metavar="M", help="wheelbase [m] (default: 0.325, F1TENTH)"
+    )
+    g.add_argument(
+        "--max-steer",
+        type=float,
+        metavar="RAD",
+        help="steering limit [rad] (default: 0.4189; seed presets 0.5236)",
+    )
+    g.add_argument("--dt", type=float, metavar="S", help="prediction step [s] (default: 0.1)")
+    g.add_argument("--horizon", type=int, metavar="N", help="number of steps (default: 10)")
 
 
 def _add_adapt_flags(p: argparse.ArgumentParser, save: bool) -> None:
+    """--adapt and --delay; with save, --save-state (of `fpe predict`)."""
     p.add_argument(
         "--adapt",
         action="store_true",
@@ -91,40 +110,19 @@ def _add_adapt_flags(p: argparse.ArgumentParser, save: bool) -> None:
         "--delay",
         type=float,
         metavar="S",
-        help="with --adapt and no --config: your sensor's detection delay [s] (default 0)",
+        help="with --adapt and no --config: your sensor's detection delay [s] (default: 0)",
     )
     if save:
         p.add_argument(
             "--save-state",
             metavar="OUT.json",
-            help="with --adapt: write what it learned as a config",
+            help="with --adapt: write what it learned as a config (default: none)",
         )
 
 
 def _settings_from_args(args) -> dict:
     """{flag: (Settings field, value)} of the settings flags given (None where omitted)."""
     return {f: (k, getattr(args, f[2:].replace("-", "_"))) for f, k in SETTINGS_FLAGS.items()}
-
-
-def _check_on_track(args, drive, track, source: str, name: str) -> None:
-    """Exit 2 (InputError) unless the drive's observations follow the track's waypoints (see
-    `fpe_jax.geometry.check_on_track`); `track` is a Track or `path.build_path`'s dict, in the
-    drive's frame."""
-    import numpy as np
-
-    from fpe_jax.geometry._path import check_on_track
-
-    xy, heading = (
-        track[k] if isinstance(track, dict) else getattr(track, k) for k in ("xy_m", "heading_rad")
-    )
-    check_on_track(
-        drive.xy_m,
-        np.asarray(xy),
-        np.asarray(heading),
-        source=source,
-        drive=name,
-        allow=args.allow_off_track,
-    )
 
 
 def _add_run_flags(p: argparse.ArgumentParser, off_track: bool = False) -> None:
@@ -144,41 +142,15 @@ def _add_run_flags(p: argparse.ArgumentParser, off_track: bool = False) -> None:
         )
 
 
-def _start_jax(args, say, x64: bool = True, executables: bool = True):
-    """Import JAX for a command (telling `say`): float64 unless told, the compilation cache
-    unless --no-cache (of whole executables, or with executables=False of JAX's XLA output:
-    `cache.enable`)."""
-    say("loading JAX")
-    import jax
-
-    if x64:
-        jax.config.update("jax_enable_x64", True)
-    from fpe_jax.compile import _cache as cache
-
-    if getattr(args, "no_cache", False):
-        cache.disable()
-    else:
-        cache.enable(executables)
-    return jax
-
-
 def _progress(args):
     from fpe_jax.progress import Progress
 
     return Progress(quiet=getattr(args, "quiet", False))
 
 
-def _load_predictor(args):
-    """(Params, Waypoints) of --preset / --config with the settings flags; a line-model config
-    is checked against the --waypoints it will run on."""
-    from fpe_jax import io
-    from fpe_jax.io.config import load_params
-
-    wp = io.load_waypoints(args.waypoints)
-    settings = _settings_from_args(args)
-    where = (args.waypoints, wp.xy_m)
-    params = load_params(preset=args.preset, config=args.config, settings=settings, waypoints=where)
-    return params, wp
+def _predictor_options(args) -> dict:
+    """The pipeline's predictor arguments of `_add_predictor_flags`."""
+    return dict(preset=args.preset, config=args.config, settings=_settings_from_args(args))
 
 
 def _log_options(args) -> dict:
@@ -194,34 +166,74 @@ def _log_options(args) -> dict:
     )
 
 
-def _load_drive_from_args(args):
-    from fpe_jax import io
-
-    drive = io.load_drive(
-        args.log,
+def _drive_options(args) -> dict:
+    """`io.load_drive`'s options from the `_add_log_flags` values."""
+    return _log_options(args) | dict(
         log_time=args.log_time,
         drop_outside_tf=args.drop_outside_tf,
         max_tf_gap_s=args.max_tf_gap,
-        **_log_options(args),
     )
-    if note := io.dropped_note(drive):
-        print(f"fpe: {note}", file=sys.stderr)
-    return drive
+
+
+def _run_options(args, say) -> dict:
+    """The pipeline's options of `_add_run_flags`, with progress shown by `say`."""
+    opts = dict(cache=not getattr(args, "no_cache", False), progress=say, warn=_warn)
+    if hasattr(args, "allow_off_track"):
+        opts["allow_off_track"] = args.allow_off_track
+    return opts
+
+
+def _warn(msg: str) -> None:
+    """How the pipeline's warnings reach the user: one line on stderr, `--quiet` or not."""
+    print(f"fpe: {msg}", file=sys.stderr)
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Help that keeps the example's layout and says every option's default: an option whose
+    help does not is marked "(required)", "(default: off)" for a switch, or "(default: VALUE)"."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if not action.option_strings or "default" in text or action.default == argparse.SUPPRESS:
+            return text
+        if action.required:
+            return f"{text} (required)"
+        if isinstance(action, argparse._StoreTrueAction):
+            return f"{text} (default: off)"
+        if action.default is None:
+            return text
+        return f"{text} (default: {action.default})"
 
 
 def _build_parser() -> argparse.ArgumentParser:
+    from fpe_jax import __version__  # the package root imports nothing eagerly
+
     parser = argparse.ArgumentParser(
-        prog="fpe", description="Near-future pose prediction for race cars, fitted to your drives."
+        prog="fpe",
+        description="Near-future pose prediction for race cars, fitted to your drives.",
+        epilog="example:\n  fpe demo",
+        formatter_class=_HelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    def command(name: str, help: str) -> argparse.ArgumentParser:
-        """The subparser of `fpe NAME`, which runs `cmd_NAME`."""
-        p = sub.add_parser(name, help=help)
+    def command(name: str, help: str, example: str) -> argparse.ArgumentParser:
+        """The subparser of `fpe NAME`, which runs `cmd_NAME`; its help ends with `example`."""
+        p = sub.add_parser(
+            name,
+            help=help,
+            description=help,
+            epilog=f"example:\n  {example}",
+            formatter_class=_HelpFormatter,
+        )
         p.set_defaults(func=globals()[f"cmd_{name}"])
         return p
 
-    p = command("predict", "predict every observation of a drive log")
+    p = command(
+        "predict",
+        "predict every observation of a drive log",
+        "fpe predict drive.mcap --waypoints track.csv --config tuned.json --out pred.csv",
+    )
     p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
     _add_predictor_flags(p, required=False)
     p.add_argument("--out", required=True, help="PRED.csv or PRED.mcap")
@@ -231,13 +243,21 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_run_flags(p, off_track=True)
 
     p = command(
-        "fit", "learn the car's line and fit the predictor to drives; report held-out metrics"
+        "fit",
+        "learn the car's line and fit the predictor to drives; report held-out metrics",
+        "fpe fit lap1.mcap lap2.mcap --waypoints track.csv --out tuned.json",
     )
     p.add_argument("logs", nargs="+", metavar="LOG", help="drive logs, or one recipe .toml")
-    p.add_argument("--waypoints", help="waypoint / centerline / raceline file")
-    p.add_argument("--out", help="CONFIG.json to write (a recipe may name it)")
-    p.add_argument("--holdout", type=float, help="held-out fraction at each drive's end (0.3)")
-    p.add_argument("--test", nargs="+", metavar="LOG", help="separate held-out drives instead")
+    p.add_argument(
+        "--waypoints", help="waypoint / centerline / raceline file (default: the recipe's)"
+    )
+    p.add_argument("--out", help="CONFIG.json to write (default: the recipe's out)")
+    p.add_argument(
+        "--holdout", type=float, help="held-out fraction at each drive's end (default: 0.3)"
+    )
+    p.add_argument(
+        "--test", nargs="+", metavar="LOG", help="separate held-out drives instead (default: none)"
+    )
     p.add_argument(
         "--model",
         choices=FIT_MODELS,
@@ -256,7 +276,9 @@ def _build_parser() -> argparse.ArgumentParser:
         help="the line model's state estimator: kalman (default; a Kalman filter in the track "
         "frame) or theil-sen (robust lines through the recent observations)",
     )
-    p.add_argument("--blend", choices=("auto", "position", "heading"), help="blend mode (auto)")
+    p.add_argument(
+        "--blend", choices=("auto", "position", "heading"), help="blend mode (default: auto)"
+    )
     _add_settings_flags(p, "saved in the config; a recipe may set them in [settings]")
     p.add_argument(
         "--solver",
@@ -267,43 +289,64 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
-    p = command("evaluate", "metrics of a config or preset on a drive log")
+    p = command(
+        "evaluate",
+        "metrics of a config or preset on a drive log",
+        "fpe evaluate test.mcap --waypoints track.csv --config tuned.json",
+    )
     p.add_argument("log", help="drive log (any supported format)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
-    p = command("cache", "the compilation cache: its path, size and entries; clear it")
+    p = command(
+        "cache", "the compilation cache: its path, size and entries; clear it", "fpe cache info"
+    )
     p.add_argument("action", choices=("info", "clear"), help="info: path, size; clear: empty it")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
-    command("presets", "list the built-in presets")
+    command("presets", "list the built-in presets", "fpe presets")
 
     p = command(
-        "info", "topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path"
+        "info",
+        "topics, rates, TF tree, pose/truth topics of a log; a waypoint file's path",
+        "fpe info drive.mcap --waypoints track.csv",
     )
     p.add_argument(
         "log", nargs="?", help="drive log: .mcap, rosbag2 folder, .bag or CSV (or --waypoints)"
     )
     p.add_argument(
         "--waypoints",
-        help="describe this waypoint file too: loop or open, length, what cleaning removed",
+        help="describe this waypoint file too: loop or open, length, what cleaning removed "
+        "(default: none)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_log_flags(p)
 
-    p = command("simulate", "simulate a leading car's drive and its detections")
+    p = command(
+        "simulate",
+        "simulate a leading car's drive and its detections",
+        "fpe simulate --track hairpin --duration 120 --out sim/",
+    )
     p.add_argument(
         "--track",
         default="oval",
         help="oval | hairpin | random:SEED | a centerline/waypoint file (default: oval)",
     )
-    p.add_argument("--raceline", help="optional raceline file (with speeds) the driver follows")
+    p.add_argument(
+        "--raceline",
+        help="raceline file (with speeds) the driver follows (default: none, the centerline)",
+    )
     p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds (def. 60)")
     p.add_argument("--latency", type=float, default=0.3, metavar="S", help="detection latency")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    p.add_argument("--half-width", type=float, metavar="M", help="track half-width in metres")
+    p.add_argument(
+        "--half-width",
+        type=float,
+        metavar="M",
+        help="track half-width [m] (default: the built-in track's, else 1.1)",
+    )
     p.add_argument("--stops-per-min", type=float, default=0.0, help="mean stops per minute")
     p.add_argument(
         "--sensor",
@@ -315,13 +358,21 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="folder for drive.mcap, waypoints.csv, scenario")
     p.add_argument("--force", action="store_true", help="write into an existing non-empty folder")
 
-    p = command("convert", "write a drive log's observed poses as CSV t,x,y,yaw")
+    p = command(
+        "convert",
+        "write a drive log's observed poses as CSV t,x,y,yaw",
+        "fpe convert drive.mcap --out drive.csv",
+    )
     p.add_argument("log", help="drive log: .mcap, rosbag2 folder, .bag or CSV")
     p.add_argument("--out", required=True, help="DRIVE.csv (what `fpe run` reads on stdin)")
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_log_flags(p)
 
-    p = command("batch", "predict many cars at once (chunked, compiled once)")
+    p = command(
+        "batch",
+        "predict many cars at once (chunked, compiled once)",
+        "fpe batch cars.csv --waypoints track.csv --config tuned.json --out poses.npy",
+    )
     p.add_argument("states", help="cars: CSV with header x,y,yaw,v[,yaw_rate], or .npy (N, 4|5)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="OUT.npy (N, H, 3) or OUT.csv")
@@ -330,7 +381,11 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     _add_run_flags(p)
 
-    p = command("export", "export a tuned config for the car: JSON, ROS 2, StableHLO")
+    p = command(
+        "export",
+        "export a tuned config for the car: JSON, ROS 2, StableHLO",
+        "fpe export tuned.json --format all --out car/",
+    )
     p.add_argument("config", help="a tuned config JSON written by `fpe fit`")
     p.add_argument(
         "--format",
@@ -347,29 +402,49 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--force", action="store_true", help="overwrite existing files")
 
-    p = command("run", "stream predictions: observations on stdin, JSON lines out")
-    p.add_argument("--config", help="a tuned config JSON (required without --adapt)")
+    p = command(
+        "run",
+        "stream predictions: observations on stdin, JSON lines out",
+        "fpe run --config tuned.json --waypoints track.csv < drive.csv",
+    )
+    p.add_argument("--config", help="a tuned config JSON (default: none; required without --adapt)")
     p.add_argument("--waypoints", required=True, help="waypoint / centerline / raceline file")
     p.add_argument(
         "--rate",
         type=float,
         metavar="HZ",
-        help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses",
+        help="stamps from the rate (line k at k/HZ s): the original's header-less x,y,z poses "
+        "(default: none, stamps from each line)",
     )
     _add_adapt_flags(p, save=False)
-    p.add_argument("--allow-off-track", action="store_true", help="warn, not fail, when the "
-                   "first observations are off the waypoints")  # fmt: skip
+    p.add_argument(
+        "--allow-off-track",
+        action="store_true",
+        help="warn, not fail, when the first observations are off the waypoints",
+    )
 
     from fpe_jax.node import _cli as node_cli  # JAX-free
 
-    node_cli.add_parser(sub)
+    node_cli.add_parser(
+        sub,
+        formatter_class=_HelpFormatter,
+        epilog="example:\n  fpe node --ros1 --config car/config.json --waypoints car/track.csv",
+    )
 
-    p = command("demo", "simulate, fit, compare with every preset, plot and export (~1 min)")
+    p = command(
+        "demo",
+        "simulate, fit, compare with every preset, plot and export",
+        "fpe demo --out out/demo",
+    )
     p.add_argument("--out", default="out/demo", help="folder for plots and config (out/demo)")
     _add_run_flags(p)
     p.add_argument("--force", action="store_true", help="replace the demo's files in --out")
 
-    p = command("plot", "draw a drive with its 1 s predictions (trajectory overlay)")
+    p = command(
+        "plot",
+        "draw a drive with its 1 s predictions (trajectory overlay)",
+        "fpe plot drive.mcap --waypoints track.csv --config tuned.json --out drive.png",
+    )
     p.add_argument("log", help="drive log (any supported format)")
     _add_predictor_flags(p, required=True)
     p.add_argument("--out", required=True, help="FIG.png (or .pdf, .svg)")
@@ -377,9 +452,18 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
-    from fpe_jax.node import _view
+    from fpe_jax.node import _view  # JAX-free
 
-    _view.add_parser(sub)
+    p = command(
+        "view",
+        "predict a drive log and show it in Foxglove (live WebSocket or MCAP)",
+        "fpe view drive.mcap --waypoints track.csv --config tuned.json --foxglove",
+    )
+    p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
+    _add_predictor_flags(p, required=False)
+    _view.add_arguments(p)
+    _add_log_flags(p)
+    _add_run_flags(p, off_track=True)
     return parser
 
 
@@ -419,174 +503,58 @@ def cmd_run(args) -> int:
     return run_stream(runner, iter(sys.stdin.readline, ""), sys.stdout, sys.stderr, rate_hz)
 
 
-def _fit_inputs(args, say=lambda msg: None):
-    """(drives, waypoints, descriptions, test drives, test waypoints, options) for `fpe fit`."""
-    from fpe_jax import io
-    from fpe_jax.fit._recipe import load_recipe
-
-    # the flags given override the recipe's values, or the defaults
-    flags = dict(holdout=args.holdout, blend=args.blend, model=args.model, solver=args.solver)
-    flags["estimator"] = args.estimator
-    flags = {k: v for k, v in flags.items() if v is not None}
-    if len(args.logs) == 1 and args.logs[0].endswith(".toml"):
-        r = load_recipe(args.logs[0])
-        opts = dict(
-            holdout=r.holdout,
-            fit=r.fit,
-            blend=r.blend,
-            model=r.model,
-            solver=r.solver,
-            estimator=r.estimator,
-            settings=r.settings,
-            waypoints=r.waypoints,
-        )
-        return r.drives, r.test_drives, args.out or r.out, opts | flags | {"inputs": r.inputs}
-    if not args.waypoints:
-        raise InputError("--waypoints", "missing", "a waypoint file for the drives")
-    wp = io.load_waypoints(args.waypoints).xy_m
-
-    def read(logs, what):
-        entries = []
-        for i, log in enumerate(logs, 1):
-            say(f"reading {what} {i}/{len(logs)}: {log}")
-            args.log = log
-            entries.append((_load_drive_from_args(args), wp, log))
-        return entries
-
-    drives, tests = read(args.logs, "drive"), read(args.test or [], "test drive")
-    opts = dict(holdout=0.3, fit=None, blend="auto", model=None, solver=None, settings={})
-    opts["estimator"] = None
-    opts["inputs"] = [*args.logs, *(args.test or []), args.waypoints]
-    return drives, tests, args.out, opts | {"waypoints": args.waypoints} | flags
-
-
-def _solver_option(name: str | None):
-    """The solver `fit` gets for a --solver (or recipe) name: None for the default (bfgs), so a
-    warm fit loads its stored solve without importing optimistix (~0.1-0.3 s, `fit._Static`)."""
-    from fpe_jax.fit._recipe import solver_named
-
-    name = name or SOLVERS[0]
-    return None if name == SOLVERS[0] else solver_named(name, "--solver")
-
-
-def _local_drives(entries):
-    """(drive, waypoints, description) entries in their local frames (see drive.local_frame)."""
-    from fpe_jax.drive import local_frame
-
-    return [(*local_frame(d, wp)[:2], desc) for d, wp, desc in entries]
-
-
-def _waypoint_provenance(path, entries) -> dict | None:
-    """{"file": absolute path, "sha256": waypoints_sha256} of the waypoint file every drive of
-    `entries` ((drive, waypoints, description)) ran on; None when there is none or they differ."""
-    from fpe_jax.geometry._path import waypoints_sha256
-
-    sha = {waypoints_sha256(wp) for _, wp, _ in entries}
-    if path is None or len(sha) != 1:
-        return None
-    return {"file": str(Path(path).resolve()), "sha256": sha.pop()}
-
-
 def cmd_fit(args) -> int:
-    from fpe_jax import io
-    from fpe_jax.io.config import params_to_config, write_config
+    from fpe_jax import pipeline
 
-    fit_names = None if args.fit is None else spec.check_fit_names(args.fit, "--fit", "value")
-    if args.holdout is not None:
-        spec.check_fraction(args.holdout, "--holdout", "value")
-    if args.out is None and not args.logs[0].endswith(".toml"):
-        raise InputError("--out", "missing", "CONFIG.json to write")
-    if args.out:
-        io.check_output_path(args.out, args.force, (*args.logs, *(args.test or ()), args.waypoints))
     with _progress(args) as say:
-        say("reading drives")
-        drives, tests, out, opts = _fit_inputs(args, say)
-        drives, tests = _local_drives(drives), _local_drives(tests)
-        if out is None:
-            raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
-        io.check_output_path(out, args.force, opts["inputs"])
-        _start_jax(args, say)
-        from fpe_jax.fit._fit import fit
-        from fpe_jax.fit._report import format_fitted, format_table, line_section, provenance
-        from fpe_jax.geometry._track import Track
-        from fpe_jax.io.config import apply_settings
-        from fpe_jax.model._params import presets
-
-        # the recipe's [settings], then the flags on top
-        init = apply_settings(presets["default"], opts["settings"], str(args.logs[0]))
-        flags = {k: v for k, v in _settings_from_args(args).items() if v[1] is not None}
-        init = apply_settings(init, flags)
-
-        tracks = [Track.from_waypoints(wp) for _, wp, _ in drives]
-        test_tracks = [Track.from_waypoints(wp) for _, wp, _ in tests] or None
-        wp_source = args.waypoints or f"{args.logs[0]}: the waypoints"
-        for (d, _, desc), tr in zip(drives + tests, tracks + (test_tracks or []), strict=True):
-            _check_on_track(args, d, tr, wp_source, desc)
-        result = fit(
-            [d for d, _, _ in drives],
-            tracks,
-            free=fit_names or opts["fit"] or None,
-            model=opts["model"] or "line",
-            blend=opts["blend"],
-            holdout=opts["holdout"],
-            test_drives=[d for d, _, _ in tests] or None,
-            test_tracks=test_tracks,
-            solver=_solver_option(opts["solver"]),
-            estimator=opts["estimator"] or spec.LINE_ESTIMATOR,
-            init=init,
-            progress=say,
+        res = pipeline.fit_logs(
+            args.logs,
+            args.waypoints,
+            out=args.out,
+            test=args.test,
+            holdout=args.holdout,
+            fit=args.fit,
+            model=args.model,
+            estimator=args.estimator,
+            blend=args.blend,
+            solver=args.solver,
+            settings=_settings_from_args(args),
+            force=args.force,
+            log_options=_drive_options(args),
+            **_run_options(args, say),
         )
-    meta = drives[0][0].meta
-    topics = {"pose": meta.get("pose_topic"), "truth": meta.get("truth_topic")}
-    sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
-    prov = provenance(result, sources, topics)
-    wp_file = _waypoint_provenance(opts["waypoints"], drives + tests)
-    if wp_file is not None:  # what `fpe export` uses when --waypoints is omitted
-        prov["waypoints"] = wp_file
-    line = line_section(result, None if wp_file is None else wp_file["file"])
-    cfg = params_to_config(
-        result.params, uncertainty=result.uncertainty, provenance=prov, line=line
-    )
-    write_config(out, cfg, force=args.force)
+    from fpe_jax.fit._report import format_fitted, format_table
+
+    result = res.result
     print(format_fitted(result))
     print("\nheld-out:\n" + format_table(result.report))
     print("\n" + _coverage_line(result.report["fitted"]))
-    print(f"wrote {out}")
+    print(f"wrote {res.out}")
     return 0
 
 
 def cmd_evaluate(args) -> int:
     import json
 
-    from fpe_jax.io.config import read_config
+    from fpe_jax import pipeline
 
     with _progress(args) as say:
-        _start_jax(args, say)
-        from fpe_jax.drive import local_frame
-        from fpe_jax.evaluate._evaluate import Dataset, evaluate, make_targets
-        from fpe_jax.geometry._track import Track
-
-        say("reading the drive and waypoints")
-        params, waypoints = _load_predictor(args)
-        cfg = read_config(args.config) if args.config else {}
-        unc = cfg.get("uncertainty")
-        # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
-        drive, wp, _, _ = local_frame(_load_drive_from_args(args), waypoints.xy_m)
-        track = Track.from_waypoints(wp)
-        _check_on_track(args, drive, track, args.waypoints, args.log)
-        data = Dataset(drive, track, make_targets(drive, params.settings))
-        if len(data.targets.rows) == 0:
-            raise InputError(args.log, "no prediction has a target", "a longer drive")
-        say(f"predicting {len(data.targets.rows)} observations and scoring them")
-        metrics = evaluate(params, [data], uncertainty=unc)
+        res = pipeline.evaluate_log(
+            args.log,
+            args.waypoints,
+            **_predictor_options(args),
+            log_options=_drive_options(args),
+            **_run_options(args, say),
+        )
     from fpe_jax.fit._report import format_table
 
+    metrics = res.metrics
     name = args.config or args.preset
     if args.json:  # strict JSON: a metric without a value is null, never NaN
         print(json.dumps(_finite_or_null(metrics), indent=2, allow_nan=False))
     else:
         print(format_table({name: metrics}))
-        if unc is not None:
+        if res.predictor.uncertainty is not None:
             print(_coverage_line(metrics))
     return 0
 
@@ -637,119 +605,52 @@ def cmd_presets(args) -> int:
 
 
 def cmd_predict(args) -> int:
-    import numpy as np
+    from fpe_jax import pipeline
 
-    from fpe_jax import io
-    from fpe_jax.io.config import read_config
-
-    io.check_output_path(args.out, args.force, inputs=(args.log, args.waypoints, args.config))
-    if Path(args.out).suffix.lower() not in (".csv", ".mcap"):  # before the slow part
-        raise InputError(args.out, "unknown output format", ".csv or .mcap")
     if args.adapt or args.save_state or args.delay is not None:
         return _predict_adaptive(args)
     with _progress(args) as say:
-        _start_jax(args, say)
-        from fpe_jax.drive import local_frame
-        from fpe_jax.evaluate._evaluate import covariance_map, path_heading, prediction_covariance
-        from fpe_jax.geometry._track import Track
-        from fpe_jax.model._history import drive_valid
-        from fpe_jax.predict._predict import predict_rows, states_from_drive
-
-        say("reading the drive and waypoints")
-        params, waypoints = _load_predictor(args)
-        unc = read_config(args.config).get("uncertainty") if args.config else None
-        drive = _load_drive_from_args(args)
-        # epoch stamps and UTM-sized coordinates are removed (in float64) before float32 sees them
-        local, wp, t0_s, origin = local_frame(drive, waypoints.xy_m)
-        track = Track.from_waypoints(wp)
-        _check_on_track(args, local, track, args.waypoints, args.log)
-        say(f"predicting {len(drive.t_s)} observations")
-        states = states_from_drive(params, local, track)
-        poses = predict_rows(params, states, track)
-        cov = None
-        if unc is not None:  # the config's ellipses, turned into the map frame
-            cov_track = prediction_covariance(params, states, track, unc)
-            cov = covariance_map(cov_track, path_heading(track, poses.xy_m, states))
-        stamps_s = local.t_s + t0_s
-        poses = np.array(poses.packed(), dtype=np.float64)  # a writable copy
-        poses[..., :2] += origin
-        say(f"writing {args.out}")
-        dt_s = params.settings.dt_s
-        valid = drive_valid(local, params.settings.history)
-        io.write_predictions(
-            args.out,
-            stamps_s,
-            poses,
-            dt_s,
-            drive=drive,
-            cov_m2=cov,
-            valid=valid,
-            track_xy_m=waypoints.xy_m,
-            track_closed=track.closed,
+        res = pipeline.predict_log(
+            args.log,
+            args.waypoints,
+            **_predictor_options(args),
+            out=args.out,
             force=args.force,
+            log_options=_drive_options(args),
+            **_run_options(args, say),
         )
-    print(
-        f"wrote {len(stamps_s)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr
-    )
+    n, h = res.poses_m.shape[:2]
+    print(f"wrote {n} predictions x {h} steps to {args.out}", file=sys.stderr)
     return 0
 
 
 def _predict_adaptive(args) -> int:
     """`fpe predict --adapt`: the learning runner over the drive in stream order (no JAX)."""
-    from fpe_jax import io
-    from fpe_jax.geometry._path import build_path
-    from fpe_jax.io.config import check_waypoints, read_config, write_config
-    from fpe_jax.runner._adapt import predict_drive_adaptive
+    from fpe_jax import pipeline
 
     if not args.adapt:
         flag = "--save-state" if args.save_state else "--delay"
         raise InputError(flag, "given without --adapt", f"--adapt {flag} ...")
     if args.preset:
         raise InputError("--preset", "given with --adapt", "--config, or neither")
+    res = pipeline.predict_log_adaptive(
+        args.log,
+        args.waypoints,
+        config=args.config,
+        settings=_settings_from_args(args),
+        delay_s=args.delay,
+        out=args.out,
+        save_state=args.save_state,
+        force=args.force,
+        log_options=_drive_options(args),
+        allow_off_track=args.allow_off_track,
+        warn=_warn,
+    )
+    n, h = res.poses_m.shape[:2]
+    print(f"wrote {n} predictions x {h} steps to {args.out}", file=sys.stderr)
     if args.save_state:
-        io.check_output_path(
-            args.save_state, args.force, inputs=(args.log, args.waypoints, args.config)
-        )
-    wp = io.load_waypoints(args.waypoints).xy_m
-    cfg = None
-    if args.config:
-        cfg = read_config(args.config)
-        check_waypoints(cfg, args.config, wp, args.waypoints)
-    settings = {k: v for k, v in _settings_from_args(args).values() if v is not None}
-    drive = _load_drive_from_args(args)
-    _check_on_track(args, drive, build_path(wp), args.waypoints, args.log)
-    kw = dict(settings=settings or None, delay_s=args.delay)
-    runner, poses = predict_drive_adaptive(drive, wp, cfg, **kw)
-    io.write_predictions(args.out, drive.t_s, poses, runner.dt_s, drive=drive, force=args.force)
-    print(f"wrote {len(poses)} predictions x {poses.shape[1]} steps to {args.out}", file=sys.stderr)
-    if args.save_state:
-        prov = {"drives": [str(args.log)], "started_from": str(args.config or "waypoints")}
-        write_config(args.save_state, runner.state_config(prov), force=args.force)
-        print(f"wrote {args.save_state} ({runner.laps} laps learned)", file=sys.stderr)
+        print(f"wrote {args.save_state} ({res.runner.laps} laps learned)", file=sys.stderr)
     return 0
-
-
-def _describe_waypoints(path) -> dict:
-    """JSON-ready summary of a waypoint file and of the path the predictors build from it."""
-    from fpe_jax import io
-    from fpe_jax.geometry._path import build_path
-
-    wp = io.load_waypoints(path)
-    p = build_path(wp.xy_m, source=str(path))
-    return {
-        "source": str(path),
-        "format": wp.format,
-        "n_waypoints": len(wp.xy_m),
-        "closed": p["closed"],
-        "length_m": p["length_m"],
-        "n_points": len(p["xy_m"]),
-        "ds_m": p["ds_m"],
-        "min_step_m": p["min_step_m"],
-        "removed": {
-            "near_duplicate_idx": p["removed_close_idx"].tolist(),
-            "backtracking_idx": p["removed_backtrack_idx"].tolist(),
-        },
-    }
 
 
 def _index_ranges(idx: list[int]) -> str:
@@ -766,13 +667,9 @@ def _index_ranges(idx: list[int]) -> str:
 def cmd_info(args) -> int:
     import json
 
-    from fpe_jax import io
+    from fpe_jax import pipeline
 
-    if args.log is None and args.waypoints is None:
-        raise InputError("LOG", "missing", "a drive log, or --waypoints W to describe waypoints")
-    info = {} if args.log is None else io.describe_log(args.log, **_log_options(args))
-    if args.waypoints is not None:
-        info["waypoints"] = _describe_waypoints(args.waypoints)
+    info = pipeline.describe(args.log, args.waypoints, _log_options(args))
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -829,100 +726,58 @@ def _print_tf(info: dict) -> None:
 
 
 def cmd_convert(args) -> int:
-    from fpe_jax import io
+    from fpe_jax import pipeline
 
-    io.check_output_path(args.out, args.force, inputs=(args.log,))
-    if Path(args.out).suffix.lower() != ".csv":
-        raise InputError(args.out, "unknown output format", ".csv")
-    drive = _load_drive_from_args(args)
-    io.write_drive_csv(args.out, drive, force=args.force)
+    drive = pipeline.convert_log(
+        args.log, args.out, force=args.force, log_options=_drive_options(args), warn=_warn
+    )
     print(f"wrote {len(drive.t_s)} poses to {args.out}", file=sys.stderr)
     return 0
 
 
 def cmd_simulate(args) -> int:
-    import dataclasses
+    from fpe_jax import pipeline
 
-    from fpe_jax import io
-    from fpe_jax.sim import _sim as sim
-
-    out = Path(args.out)
-    spec.check_simulation(args.duration, args.latency, args.seed, args.stops_per_min, "simulate")
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "is a file", "a folder to write the simulated drive into")
-    if out.is_dir() and any(out.iterdir()) and not args.force:  # fail before simulating
-        raise InputError(out, "exists and is not empty; pass --force to write into it")
-    if not out.exists():
-        io.check_output_path(out, False)  # its parent exists and is writable
-    sim.check_simulation_out(out, (args.track, args.raceline))
-    res = sim.simulate(
+    res = pipeline.simulate_to(
+        args.out,
         args.track,
         duration_s=args.duration,
         latency_s=args.latency,
         seed=args.seed,
         raceline=args.raceline,
         half_width_m=args.half_width,
-        driver=dataclasses.replace(sim.Driver(), stops_per_min=args.stops_per_min),
-        camera=sim.Camera() if args.sensor == "apriltag" else None,
+        stops_per_min=args.stops_per_min,
+        sensor=args.sensor,
+        force=args.force,
     )
-    sim.write_simulation(res, out, force=args.force)
     d = res.drive
     print(
         f"wrote {len(d.t_s)} detections, {len(d.truth_t_s)} truth poses "
-        f"({args.duration:g} s on {res.scenario['track']}) to {out}/",
+        f"({args.duration:g} s on {res.scenario['track']}) to {Path(args.out)}/",
         file=sys.stderr,
     )
     return 0
 
 
 def cmd_batch(args) -> int:
-    import time
+    from fpe_jax import pipeline
 
-    import numpy as np
-
-    from fpe_jax import io
-
-    out = io.check_output_path(args.out, args.force, (args.states, args.waypoints, args.config))
-    if out.suffix.lower() not in (".npy", ".csv"):
-        raise InputError(out, f"unknown output type {out.suffix!r}", "OUT.npy or OUT.csv")
-    spec.check_chunk(args.chunk)
     with _progress(args) as say:
-        # the predictor runs in --dtype (batch.py pins it); its chunk function is a plain jit
-        _start_jax(args, say, x64=False, executables=False)
-        from fpe_jax.drive import map_origin
-        from fpe_jax.geometry._path import on_track_m
-        from fpe_jax.geometry._track import Track
-        from fpe_jax.predict._batch import (
-            off_track_cars,
-            off_track_summary,
-            predict_chunked,
-            with_origin,
+        res = pipeline.predict_cars(
+            args.states,
+            args.waypoints,
+            **_predictor_options(args),
+            out=args.out,
+            dtype=args.dtype,
+            chunk=args.chunk,
+            force=args.force,
+            on_chunk=lambda done, n: say.count("predicting cars", done, n),
+            **_run_options(args, say),
         )
-
-        say("reading the cars and waypoints")
-        params, waypoints = _load_predictor(args)
-        wp = waypoints.xy_m
-        origin = map_origin(wp)  # removed in float64 before the (float32) computation
-        track = Track.from_waypoints(wp - origin)
-        cars = np.asarray(io.read_cars(args.states), dtype=np.float64)  # its own float64 copy
-        cars[:, :2] -= origin
-        say(f"predicting {len(cars)} cars")
-        t0 = time.perf_counter()
-        progress = lambda done, n: say.count("predicting cars", done, n)
-        poses = predict_chunked(
-            params, cars, track, dtype=args.dtype, chunk=args.chunk, progress=progress
-        )
-        wall_s = time.perf_counter() - t0
-        poses = with_origin(poses, origin)  # float64 where float32 cannot hold map coordinates
-        off = off_track_cars(params, cars[:, :2], track)
-        near_m = on_track_m(np.asarray(track.xy_m))
-        if warning := off_track_summary(off, args.states, near_m):
-            print(f"fpe batch: {warning}", file=sys.stderr)
-        say(f"writing {out}")
-        io.write_poses(out, poses, params.settings.dt_s, force=args.force, off_track=off)
+    n, h = res.poses_m.shape[:2]
     print(
-        f"wrote {len(cars)} cars x {poses.shape[1]} steps to {out} "
-        f"({args.dtype}, {wall_s:.2f} s incl. compilation)",
+        f"wrote {n} cars x {h} steps to {Path(args.out)} "
+        f"({args.dtype}, {res.wall_s:.2f} s incl. compilation)",
         file=sys.stderr,
     )
     return 0
@@ -933,7 +788,9 @@ def cmd_demo(args) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(out, "is not a folder", "a folder for the demo's plots and config")
     with _progress(args) as say:
-        _start_jax(args, say)
+        from fpe_jax import pipeline
+
+        pipeline.start_jax(say, cache=not args.no_cache)
         from fpe_jax.demo import run_demo
         from fpe_jax.fit._report import format_fitted, format_table
 
@@ -958,30 +815,41 @@ def cmd_demo(args) -> int:
 
 
 def cmd_plot(args) -> int:
-    from fpe_jax import io
-    from fpe_jax.plots import FIGURE_SUFFIXES
+    from fpe_jax import pipeline
 
-    out = io.check_output_path(args.out, args.force)
-    if out.suffix.lower() not in FIGURE_SUFFIXES:
-        raise InputError(out, f"unknown figure type {out.suffix!r}", " or ".join(FIGURE_SUFFIXES))
     with _progress(args) as say:
-        _start_jax(args, say)
-        from fpe_jax.plots import plot_drive
-
-        say("reading the drive and waypoints")
-        params, waypoints = _load_predictor(args)
-        name = args.preset or f"config {Path(args.config).name}"
-        drive = _load_drive_from_args(args)
-        from fpe_jax.geometry._path import build_path
-
-        _check_on_track(args, drive, build_path(waypoints.xy_m), args.waypoints, args.log)
-        m = plot_drive(drive, waypoints.xy_m, params, name, out, source=args.log, progress=say)
+        res = pipeline.plot_log(
+            args.log,
+            args.waypoints,
+            args.out,
+            **_predictor_options(args),
+            force=args.force,
+            log_options=_drive_options(args),
+            **_run_options(args, say),
+        )
+    m = res.metrics
     print(
-        f"wrote {out}: {m['n_predictions']} predictions, ADE {m['ade_m']:.3f} m, "
+        f"wrote {res.out}: {m['n_predictions']} predictions, ADE {m['ade_m']:.3f} m, "
         f"FDE {m['fde_m']:.3f} m",
         file=sys.stderr,
     )
     return 0
+
+
+def cmd_view(args) -> int:
+    from fpe_jax import pipeline
+    from fpe_jax.node import _view
+
+    _view.check_args(args)  # before the slow part
+    with _progress(args) as say:
+        res = pipeline.predict_log(
+            args.log,
+            args.waypoints,
+            **_predictor_options(args),
+            log_options=_drive_options(args),
+            **_run_options(args, say),
+        )
+    return _view.show(args, _view.predicted(res))
 
 
 def _one_line(msg: str) -> str:

@@ -380,38 +380,20 @@ FIGURE_SUFFIXES = (".png", ".pdf", ".svg")
 
 
 def plot_drive(
-    drive,
-    waypoints_xy_m: np.ndarray,
-    params,
-    name: str,
-    out,
-    *,
-    source: str,
-    progress=lambda m: None,
-) -> dict:
-    """`fpe plot`: a user's drive with one predictor's 1 s predictions, whole and zoomed on the
-    stretch where it misses most; writes `out` and returns the metrics of those predictions.
+    drive, waypoints_xy_m: np.ndarray, held, name: str, metrics: dict, out, *, source: str
+) -> Path:
+    """`fpe plot`'s figure: a user's drive with one predictor's 1 s predictions, whole and zoomed
+    on the stretch where it misses most; writes `out`.
 
     Args:
-        drive: the drive (`Drive`); its truth (if any) or its later observations are the targets.
+        drive: the drive (`Drive`) in the map frame.
         waypoints_xy_m: (K, 2) the path the predictor follows [m].
-        params: the predictor (`Params`); name: its label.
+        held: `evaluate.Heldout` of the predictor `name`, in the same frame.
+        metrics: `metrics.summarize` of those predictions (for the title).
         out: figure path (.png, .pdf or .svg).
-        source: what the drive is (for the title and errors).
-        progress: called with a short message at each phase.
+        source: what the drive is (for the title).
     """
-    from fpe_jax.errors import InputError
-    from fpe_jax.evaluate._evaluate import heldout_predictions
-    from fpe_jax.evaluate._metrics import errors_m, summarize
-    from fpe_jax.geometry._track import Track
-
-    track = Track.from_waypoints(waypoints_xy_m)
-    progress(f"predicting {len(drive.t_s)} observations")
-    held = heldout_predictions(drive, track, {name: params})
-    if len(held.rows) == 0:
-        raise InputError(source, "no observation has a later one to compare with", "a longer drive")
-    m = summarize(errors_m(held.pred_xy_m[name], held.target_xy_m, held.mask))
-    progress(f"drawing {out}")
+    m = metrics
     fig = trajectory_figure(
         waypoints_xy_m,
         drive,
@@ -420,8 +402,7 @@ def plot_drive(
         title=f"{Path(source).name}: {name}\nADE {m['ade_m']:.3f} m, FDE {m['fde_m']:.3f} m "
         f"over {m['n_predictions']} predictions; zoom where it misses most",
     )
-    save(fig, out)
-    return m
+    return save(fig, out)
 
 
 def line_figure(params, length_m: float, closed: bool, *, title: str):

@@ -6,8 +6,16 @@ import tempfile
 from pathlib import Path
 
 # the compilation cache of the tests and of the commands they start is a temporary folder: never
-# the user's, and each session starts cold (subprocesses inherit the environment)
-os.environ["FPE_CACHE_DIR"] = tempfile.mkdtemp(prefix="fpe-test-cache-")
+# the user's, and each session starts cold (subprocesses inherit the environment). The workers
+# of one parallel run (pytest-xdist) share it, so each executable is compiled once per run; its
+# writes are atomic renames, so a worker reads an executable whole or compiles it itself.
+_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+if _RUN:
+    _CACHE = Path(tempfile.gettempdir()) / f"fpe-test-cache-{_RUN}"
+    _CACHE.mkdir(exist_ok=True)
+    os.environ["FPE_CACHE_DIR"] = str(_CACHE)
+else:
+    os.environ["FPE_CACHE_DIR"] = tempfile.mkdtemp(prefix="fpe-test-cache-")
 
 # a suite started in the background (`make test &`, nohup) inherits SIGINT ignored, and so would
 # every command it starts: the Ctrl-C tests need the interactive default, in here and in children
@@ -32,3 +40,9 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data not found at {SHARED_DATA} (../shared/data beside the checkout)")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def fpe_cache_dir() -> Path:
+    """The session's compilation cache (`FPE_CACHE_DIR`), shared by every test and command."""
+    return Path(os.environ["FPE_CACHE_DIR"])

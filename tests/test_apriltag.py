@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import _to_rosbags, cli_runner, shipped_typestore, write_rosbags
 from rosbags.typesys import Stores
-from test_io import _to_rosbags, shipped_typestore, write_rosbags
 
-from fpe_jax import cli, io
+from fpe_jax import io
 from fpe_jax.errors import InputError
 from fpe_jax.io import apriltag as at
 from fpe_jax.io import ros_msgs as rm
@@ -567,9 +567,7 @@ def test_drop_outside_tf_drops_and_counts(drive_sim, tmp_path):
 
 
 def _fpe(capsys, *args) -> tuple[int, str, str]:
-    rc = cli.main([str(a) for a in args])
-    out, err = capsys.readouterr()
-    return rc, out, err
+    return cli_runner(capsys, args)
 
 
 def _bad(tmp_path, name, events):

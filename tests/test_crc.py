@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_io import make_series, series_events
+from helpers import make_series, series_events
 
 from fpe_jax import io
 from fpe_jax.errors import InputError
@@ -173,7 +173,7 @@ def test_damaged_summary_is_reported_before_decoding(tmp_path):
 
 def test_chunks_without_crcs_still_read(tmp_path):
     """rosbags' writer stores every chunk CRC as 0 ("not computed"): nothing to check, no error."""
-    from test_io import write_rosbags
+    from helpers import write_rosbags
 
     s = make_series(12)
     folder = write_rosbags(tmp_path / "bag", series_events("/p", "geometry_msgs/PoseStamped", s))

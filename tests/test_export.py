@@ -12,7 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
-from test_runner import NO_JAX as BLOCK_JAX  # blocks importing JAX
+from helpers import FRESH
+from helpers import NO_JAX as BLOCK_JAX  # blocks importing JAX
 
 from fpe_jax import Params, Settings, State, Track, predict_batch, predict_drive
 from fpe_jax.cli import main
@@ -86,24 +87,6 @@ def test_round_trip_runner_matches_jax(case):
     _, want = predict_drive(case["params"], drive, case["track"])
     assert np.max(np.abs(got[..., :2] - want[..., :2])) <= TOL_M
     assert np.max(np.abs(np.angle(np.exp(1j * (got[..., 2] - want[..., 2]))))) <= TOL_M
-
-
-FRESH = """
-import sys
-import jax
-import numpy as np
-from fpe_jax.io.export import load
-
-f = load(sys.argv[1])
-inputs = np.load(sys.argv[2])
-out = {}
-for b in (1, 7, 1000):
-    out[f"b{b}"] = f(**{k: inputs[k][:b] for k in inputs.files})
-# omitted optional inputs: the State defaults, s_m NaN (a global projection on the track)
-out["defaults"] = f(*(inputs[k][:7] for k in ("x_m", "y_m", "yaw_rad", "v_mps")))
-assert not jax.config.jax_enable_x64  # the loader's float64 does not leak into the process
-np.savez(sys.argv[3], **out)
-"""
 
 
 def test_round_trip_stablehlo_in_a_fresh_process(case):

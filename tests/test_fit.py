@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
-from test_export import FRESH  # the fresh-process loader script of the export tests
+from helpers import FRESH  # the fresh-process loader script of the export tests
 
 from fpe_jax import io, spec
 from fpe_jax.cli import main

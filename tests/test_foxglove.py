@@ -379,6 +379,7 @@ def runs(tmp_path_factory):
     out["poses"] = table[:, 3:6].reshape(-1, H, 3)
     out["cov"] = table[:, 6:9].reshape(-1, H, 3)
     out["stamps_ns"] = rm.seconds_to_ns(table[::H, 0])
+    out["valid"] = table[::H, -1] == 1  # the last column: enough history
     return out
 
 
@@ -430,12 +431,13 @@ def test_fpe_predict_mcap_gains_the_scene_in_ros2_types(runs):
             f, decoder_factories=[DecoderFactory()]
         ).iter_decoded_messages():
             got.setdefault(channel.topic, []).append((schema.name, message.log_time, msg))
-    n = len(runs["stamps_ns"])
+    n, valid = len(runs["stamps_ns"]), runs["valid"]
+    assert 0 < valid.sum() < n  # the first predictions lack history
     assert {k: (len(v), v[0][0]) for k, v in got.items()} == {
         "/future_pose": (n, "visualization_msgs/msg/MarkerArray"),  # as before
         "/opp/pose": (n, "geometry_msgs/msg/PoseStamped"),  # as before
         "/track": (1, "visualization_msgs/msg/MarkerArray"),
-        "/future_pose/path": (n, "nav_msgs/msg/Path"),
+        "/future_pose/path": (valid.sum(), "nav_msgs/msg/Path"),  # valid predictions only
         "/future_pose/ellipses": (n, "visualization_msgs/msg/MarkerArray"),
     }
     old = np.array([[[p.x, p.y] for p in m.markers[0].points] for _, _, m in got["/future_pose"]])
@@ -448,22 +450,26 @@ def test_fpe_predict_mcap_gains_the_scene_in_ros2_types(runs):
             for m in paths
         ]
     )
-    np.testing.assert_allclose(xyyaw[..., :2], runs["poses"][..., :2], rtol=0, atol=5e-9)
-    dyaw = np.angle(np.exp(1j * (xyyaw[..., 2] - runs["poses"][..., 2])))
+    poses = runs["poses"][valid]
+    np.testing.assert_allclose(xyyaw[..., :2], poses[..., :2], rtol=0, atol=5e-9)
+    dyaw = np.angle(np.exp(1j * (xyyaw[..., 2] - poses[..., 2])))
     np.testing.assert_allclose(dyaw, 0.0, atol=5e-9)
     stamp = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in paths])
-    np.testing.assert_array_equal(stamp, runs["stamps_ns"])
+    np.testing.assert_array_equal(stamp, runs["stamps_ns"][valid])
     steps = np.array(
         [[p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in m.poses] for m in paths]
     )
     np.testing.assert_array_equal(
-        steps - stamp[:, None], np.tile(np.arange(1, H + 1) * 10**8, (n, 1))
+        steps - stamp[:, None], np.tile(np.arange(1, H + 1) * 10**8, (len(paths), 1))
     )
 
+    # every prediction clears the ellipses; a valid one draws one per step
     ell = [m for _, _, m in got["/future_pose/ellipses"]]
-    assert all(m.markers[0].action == 3 and len(m.markers) == H + 1 for m in ell)
+    assert all(m.markers[0].action == 3 for m in ell)
+    assert [len(m.markers) for m in ell] == [H + 1 if v else 1 for v in valid]
+    ell = [m for m, v in zip(ell, valid, strict=True) if v]
     sizes = np.array([[[mk.scale.x, mk.scale.y] for mk in m.markers[1:]] for m in ell])
-    cxx, cxy, cyy = np.moveaxis(runs["cov"], -1, 0)
+    cxx, cxy, cyy = np.moveaxis(runs["cov"][valid], -1, 0)
     np.testing.assert_allclose(
         (sizes[..., 0] * sizes[..., 1] / 4) ** 2, cxx * cyy - cxy**2, rtol=1e-6
     )
@@ -474,7 +480,7 @@ def test_fpe_predict_mcap_gains_the_scene_in_ros2_types(runs):
     np.testing.assert_array_equal(pts, np.vstack([wp, wp[:1]]))  # the oval is a loop
 
     with AnyReader([runs["mcap"]]) as r:  # still a plain ROS 2 log for rosbags
-        assert sum(1 for _ in r.messages()) == 4 * n + 1
+        assert sum(1 for _ in r.messages()) == 3 * n + valid.sum() + 1
 
 
 @pytest.mark.parametrize(

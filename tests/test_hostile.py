@@ -23,10 +23,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import cli_runner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fpe_jax import cli, spec
+from fpe_jax import spec
 from fpe_jax.fit._recipe import DRIVE_KEYS, SIMULATE_KEYS
 from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.model._params import presets
@@ -62,18 +63,6 @@ def snapshot(folder: Path) -> dict[str, bytes | None]:
         str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else None)
         for p in sorted(folder.rglob("*"))
     }
-
-
-def run_cli(capsys, argv, stdin: str | None = None, monkeypatch=None) -> tuple[int, str, str]:
-    """In-process `fpe ARGV`: (exit status, stdout, stderr), stderr checked for the contract."""
-    if stdin is not None:
-        monkeypatch.setattr(sys, "stdin", io.StringIO(stdin))
-    capsys.readouterr()
-    rc = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    assert "Traceback" not in err, err
-    assert rc in (0, 2), (rc, err)
-    return rc, out, err
 
 
 def assert_error_line(err: str) -> None:
@@ -132,7 +121,7 @@ FILE_BYTES = st.one_of(TABLE.map(str.encode), st.binary(max_size=40))
 def test_drive_csv(capsys, content, rate):
     with user_folder({"drive.csv": content}) as (folder, before):
         argv = ["convert", folder / "drive.csv", "--out", folder / "out.csv"]
-        rc, _, err = run_cli(capsys, argv + (["--rate", rate] if rate else []))
+        rc, _, err = cli_runner(capsys, argv + (["--rate", rate] if rate else []))
         if rc == 2:
             assert_error_line(err)
             assert snapshot(folder) == before
@@ -159,7 +148,7 @@ def _is_float(c: str) -> bool:
 @given(content=FILE_BYTES)
 def test_waypoint_csv(capsys, content):
     with user_folder({"wp.csv": content}) as (folder, before):
-        rc, out, err = run_cli(capsys, ["info", "--waypoints", folder / "wp.csv", "--json"])
+        rc, out, err = cli_runner(capsys, ["info", "--waypoints", folder / "wp.csv", "--json"])
         assert snapshot(folder) == before
         if rc == 2:
             assert_error_line(err)
@@ -201,7 +190,7 @@ def test_batch_cars(capsys, cars):
     name, content = cars
     with user_folder({name: content, "wp.csv": SQUARE_WP}) as (folder, before):
         argv = ["batch", folder / name, "--waypoints", folder / "wp.csv", "--preset", "default"]
-        rc, _, err = run_cli(capsys, [*argv, "--out", folder / "out.npy", "--quiet"])
+        rc, _, err = cli_runner(capsys, [*argv, "--out", folder / "out.npy", "--quiet"])
         if rc == 2:
             assert_error_line(err)
             assert snapshot(folder) == before
@@ -300,7 +289,7 @@ def test_recipe(capsys, monkeypatch, recipe):
     files["r/c.json"] = "a user's file"  # never replaced without --force
     with user_folder(files) as (folder, before):
         try:
-            rc, _, err = run_cli(capsys, ["fit", folder / "r" / "r.toml"])
+            rc, _, err = cli_runner(capsys, ["fit", folder / "r" / "r.toml"])
         except Reached:
             return  # a valid recipe: nothing written yet
         assert rc == 2
@@ -385,7 +374,7 @@ def streams_with_bad_lines(draw, rows):
 def test_stream_bad_lines_are_skipped_and_poison_nothing(capsys, monkeypatch, stream_case, data):
     argv, cfg, wp, rows = stream_case
     lines, bad_at = data.draw(streams_with_bad_lines(rows))
-    rc, out, err = run_cli(capsys, argv, "\n".join(lines) + "\n", monkeypatch)
+    rc, out, err = cli_runner(capsys, argv, "\n".join(lines) + "\n", monkeypatch)
     assert rc == 0, err
     warned = [int(line.split()[3].rstrip(":")) for line in err.strip().splitlines()]
     assert warned == bad_at, err
@@ -412,7 +401,7 @@ def test_stream_bad_lines_are_skipped_and_poison_nothing(capsys, monkeypatch, st
 def test_stream_anything(capsys, monkeypatch, stream_case, lines, rate):
     argv = stream_case[0] + (["--rate", rate] if rate else [])
     stdin = "\n".join(line.replace("\n", " ").replace("\r", " ") for line in lines) + "\n"
-    rc, out, err = run_cli(capsys, argv, stdin, monkeypatch)
+    rc, out, err = cli_runner(capsys, argv, stdin, monkeypatch)
     for line in err.strip().splitlines():
         assert line.startswith(("fpe run: line ", "fpe: error: ")), err
     if rc == 2:
@@ -465,7 +454,7 @@ def test_output_paths(capsys, command, target, force):
             "convert": ["convert", folder / "drive.csv", "--out", out],
             "simulate": ["simulate", "--duration", "1", "--out", out],
         }[command]
-        rc, _, err = run_cli(capsys, argv + (["--force"] if force else []))
+        rc, _, err = cli_runner(capsys, argv + (["--force"] if force else []))
         after = snapshot(folder)
         assert sorted(os.listdir()) == cwd_before
         if rc == 2:

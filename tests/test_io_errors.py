@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_io import PS, TF, make_series, series_events, write_mcap
+from helpers import PS, TF, cli_runner, make_series, series_events, write_mcap
 
 from fpe_jax import cli, io
 from fpe_jax.errors import InputError
@@ -146,8 +146,7 @@ DRIVE_CASES = [
 
 
 def _run(argv, capsys) -> str:
-    assert cli.main([str(a) for a in argv]) == 2
-    err = capsys.readouterr().err
+    err = cli_runner(capsys, argv, expect=2)[2]
     assert err.count("\n") == 1 and err.startswith("fpe: error: "), err
     return err
 

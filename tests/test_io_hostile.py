@@ -336,11 +336,12 @@ cli.entry()
 
 
 def _flood(n_bad: int):
+    """Two observations on the 10 m circle with n_bad malformed lines between them."""
     yield "t,x,y\n"
-    yield "0.0,10.0,0.0\n"  # on the test's circle of radius 10 m
+    yield "0.0,10.0,0.0\n"
     for _ in range(n_bad):
         yield "oops,1,2\n"
-    yield "0.1,9.9995,0.1\n"
+    yield "0.1,10.0,0.1\n"
 
 
 def test_run_counts_skipped_lines_in_flat_memory_and_rate_limits_messages(monkeypatch):

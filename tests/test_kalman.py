@@ -317,7 +317,7 @@ def kalman_line(wp, drive) -> Params:
 
 
 def test_runner_parity_with_outliers_and_gaps():
-    from test_runner import assert_parity, run_drive
+    from helpers import assert_parity, run_drive
 
     from fpe_jax.geometry._path import waypoints_sha256
     from fpe_jax.runner._runner import Runner

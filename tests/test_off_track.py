@@ -9,7 +9,7 @@ import re
 
 import numpy as np
 import pytest
-from test_stream import csv_lines, expected, fpe_run
+from helpers import csv_lines, expected, fpe_run
 
 from fpe_jax.cli import main
 from fpe_jax.errors import InputError

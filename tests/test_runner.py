@@ -12,9 +12,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import CASES, predictor, track_drive
+from helpers import CASES, NO_JAX, assert_parity, predictor, run_drive, track_drive
 
-from fpe_jax import Drive, Params, Settings, Track, predict_drive, presets
+from fpe_jax import Params, Settings, Track, predict_drive, presets
 from fpe_jax.errors import InputError
 from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.io.stream import _Skip, parse_line
@@ -24,36 +24,11 @@ from fpe_jax.runner._runner import GoalScan, Runner, RunnerPath, run_stream
 from fpe_jax.spec import SCHEMA_VERSION
 
 ROOT = Path(__file__).resolve().parents[1]
-TOL_M = 1e-6
 
-# Run in a subprocess before anything else: importing JAX (or what needs it) fails there.
-NO_JAX = """
-import sys
-class NoJax:
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] in ("jax", "jaxlib", "equinox", "optimistix"):
-            raise ImportError(f"{name} is blocked: this process has no JAX")
-sys.meta_path.insert(0, NoJax())
-"""
 CHECK_NO_JAX = """
 leaked = [m for m in ("jax", "jaxlib", "equinox", "optimistix") if m in sys.modules]
 assert not leaked, leaked
 """
-
-
-def run_drive(r: Runner, drive: Drive) -> np.ndarray:
-    """(N, H, 3) runner predictions for every observation of a drive."""
-    return np.stack(
-        [r.update(t, x, y, yaw) for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad)]
-    )
-
-
-def assert_parity(pred_runner: np.ndarray, pred_jax: np.ndarray) -> None:
-    assert pred_runner.shape == pred_jax.shape
-    assert np.all(np.isfinite(pred_runner))
-    assert np.max(np.abs(pred_runner[..., :2] - pred_jax[..., :2])) <= TOL_M
-    dyaw = np.angle(np.exp(1j * (pred_runner[..., 2] - pred_jax[..., 2])))
-    assert np.max(np.abs(dyaw)) <= TOL_M
 
 
 @pytest.fixture(scope="module")

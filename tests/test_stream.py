@@ -3,7 +3,6 @@ without poisoning the rest, restarted clocks, closed or full stdout, broken pipe
 
 from __future__ import annotations
 
-import io
 import json
 import signal
 import subprocess
@@ -12,12 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import csv_lines, expected, fpe_run
 
 from fpe_jax import cli
 from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.io.stream import read_observations
 from fpe_jax.model._params import presets
-from fpe_jax.runner._runner import Runner
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,30 +39,6 @@ def files(tmp_path, oval):
     write_config(tmp_path / "cfg.json", cfg)
     np.savetxt(tmp_path / "wp.csv", wp, delimiter=",", fmt="%.17g")
     return ["--config", str(tmp_path / "cfg.json"), "--waypoints", str(tmp_path / "wp.csv")]
-
-
-def csv_lines(rows) -> list[str]:
-    return ["t,x,y,yaw"] + [",".join(repr(float(v)) for v in r) for r in rows]
-
-
-def fpe_run(monkeypatch, capsys, argv, lines) -> tuple[int, list[dict], list[str]]:
-    """In-process `fpe run ARGV` on the stdin `lines`: (exit status, replies, stderr lines)."""
-    monkeypatch.setattr(sys, "stdin", io.StringIO("".join(f"{line}\n" for line in lines)))
-    capsys.readouterr()
-    rc = cli.main(["run", *argv])
-    out, err = capsys.readouterr()
-    assert "Traceback" not in err
-    return rc, [json.loads(line) for line in out.splitlines()], err.strip().splitlines()
-
-
-def expected(cfg, wp, rows) -> list[dict]:
-    """What a fresh runner predicts for the rows (t, x, y, yaw) in order."""
-    r = Runner(cfg, wp)
-    out = []
-    for t, x, y, yaw in rows:
-        poses = r.update(t, x, y, yaw).tolist()
-        out.append({"stamp": float(t), "poses": poses, "valid": r.valid})
-    return out
 
 
 @pytest.mark.parametrize(

@@ -1161,7 +1161,13 @@ def write_markdown(results: dict, path: Path) -> None:
         lines += commands_markdown(results["commands"], fit, results["summary"])
     lines += ["", "## Full-size car and track", ""] + fullsize_markdown(results.get("fullsize"))
     lines += ["", "![throughput](throughput.png)", ""]
-    path.write_text("\n".join(lines) + "\n")
+    # the hand-kept record of earlier runs at the file's end survives a regeneration
+    old = path.read_text() if path.exists() else ""
+    history = old[old.index(HISTORY) :] if HISTORY in old else ""
+    path.write_text("\n".join(lines) + "\n" + history)
+
+
+HISTORY = "\n## History\n"
 
 
 def plot(results: dict, path: Path) -> None:

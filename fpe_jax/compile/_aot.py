@@ -37,12 +37,10 @@ from fpe_jax.compile import _cache as cache
 _MEMO: dict[str, Executable] = {}
 _LOCK = threading.Lock()
 # XLA's CPU backend has two code generators for fused loops. On these programs (vmapped history
-# windows, short scans, many small reductions) its older loop emitters compile much faster and
-# run as fast: the states of a 10-minute drive compiled in 1.85-2.19 s instead of 2.26-2.90 s,
-# ran in the same 68-95 ms and gave bitwise the same values (jax 0.10.2, 3 pairs). Functions in
-# FUSION_EMITTERS keep XLA's defaults: the fit's solver compiled in 1.4 s instead of 2.9 s with
-# the loop emitters, but its steps, the work a warm fit repeats, took 7 % longer on the
-# 10-minute drive and a third longer on the 60-minute one.
+# windows, short scans, many small reductions) its older loop emitters compile faster and run as
+# fast, with bitwise the same values. Functions in FUSION_EMITTERS keep XLA's defaults: the
+# fit's solver also compiles faster with the loop emitters, but its steps, the work a warm fit
+# repeats, run slower (experiments/benchmarks/results.md, History).
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 FUSION_EMITTERS: set = set()
 

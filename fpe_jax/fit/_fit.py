@@ -64,10 +64,9 @@ ESTIMATOR_GROUPS = {"kalman": ("filter",), "theil-sen": ()}
 # The filter's noise values and gate are fitted under a prior: a residual sqrt(FILTER_PRIOR_M2)
 # log(value / FILTER_DEFAULTS) each, so a factor e away from the default costs as much as
 # FILTER_PRIOR_M2 / 2 [m^2] of squared prediction error. The prediction error says little about
-# them on one short drive: fitted freely on the first 60 % of the Levine lap they went to a
-# 4.5 m/s^2 filter gated at 1 sigma that predicted the held-out 40 % worse (FDE 0.471 m against
-# 0.447 m unfitted), also when the line was cross-fitted. With this prior: 0.447 m (oval 0.437,
-# hairpin 0.378, Austin 0.476 m); a long drive moves them (its squared errors outweigh it).
+# them on one short drive: fitted freely on the first 60 % of the Levine lap they went to a stiff
+# filter gated at 1 sigma that predicted the held-out 40 % worse (docs/model.md); a long drive
+# moves them (its squared errors outweigh the prior).
 FILTER_PRIOR_M2 = 100.0
 FIT_MODELS = ("auto", *MODEL_FIT)  # spec.FIT_MODELS, which the CLI offers without JAX
 # The line model predicts every study best: on the approaches study's eight drives (Levine
@@ -95,12 +94,8 @@ MAX_STEPS = {"minimise": 1000, "least_squares": 200}
 SOLVER_NAMES = {"BFGS": "bfgs", "LevenbergMarquardt": "lm"}
 # BFGS minimises loss / (target points x BFGS_LOSS_UNIT_M2). Its first inverse Hessian is the
 # identity, so this unit sets the first steps' length: on the raw sum (~1e4 on a 10-minute
-# drive) most line-search trials were rejected. Measured over the solver study's drives plus a
-# 60-minute one (units 1e-3, 1/300, 1e-2, 3e-2 m^2): 1/300 took the fewest steps overall, at the
-# same loss to 1e-8 but on Monza (another local minimum, 5e-6 apart). Steps against the raw sum:
-# 10-minute oval 234 -> 85, Levine 124 -> 93 (experiments/results/solvers.md). Rechecked with
-# the flat solve and the predicted-decrease stop (`fpe_jax.fit`), over the study's drives and
-# the benchmark's 10-minute one: units 1e-2, 1/300, 1e-3, 1/3000 took 596, 552, 789, 1003 steps.
+# drive) most line-search trials were rejected. Of the units tried (1e-3 to 3e-2 m^2), 1/300
+# took the fewest steps over the solver study's drives (experiments/results/solvers.md).
 BFGS_LOSS_UNIT_M2 = 1.0 / 300
 # On a long drive BFGS first minimises the loss of every k-th target row, k = rows //
 # PRESOLVE_ROWS (at least 2), to a looser stop (PRESOLVE_DECREASE_RTOL), then goes on over all
@@ -108,9 +103,8 @@ BFGS_LOSS_UNIT_M2 = 1.0 / 300
 # the basin and the curvature, which a subsample of these 10 Hz rows shows nearly as well as the
 # whole drive; the steps over all rows then only refine, with the curvature already known.
 # experiments/results/presolve.md compares it with solving over all rows from the start on
-# 5-minute drives (the same loss, fewer steps over all rows); on the benchmark's 10-minute drive
-# 58 steps over all rows became 44 over every 6th and 27 over all. It costs compilation: the
-# loss is compiled for both row counts. A subsample of a few dozen rows can lead to another
+# 5-minute drives (the same loss, fewer steps over all rows). It costs compilation: the loss is
+# compiled for both row counts. A subsample of a few dozen rows can lead to another
 # local minimum.
 PRESOLVE_ROWS = 1024
 PRESOLVE_DECREASE_RTOL = 1e-8

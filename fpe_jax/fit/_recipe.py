@@ -3,7 +3,7 @@
 out = "levine.json"            # relative to the recipe's folder, and inside it (or absolute)
 waypoints = "../../shared/data/levine/levine-waypoints.csv"
 holdout = 0.4                  # or [[test_drives]] for separate held-out drives
-model = "auto"                 # (default) line or blend by inner validation; or "line", "blend"
+model = "auto"                 # line or blend by inner validation; or "line" (default), "blend"
 solver = "bfgs"                # or "lm"
 estimator = "kalman"           # the line model's state estimator (default); or "theil-sen"
 

@@ -120,7 +120,17 @@ def write_config(path, cfg: dict[str, Any], *, force: bool = False) -> None:
 def load_params(
     *, preset: str | None = None, config: str | None = None, settings=None, waypoints=None
 ):
-    """Params from a preset name or a config file (exactly one; default preset: 'default').
+    """Params from a preset name or a config file (see `load_params_and_config`)."""
+    return load_params_and_config(
+        preset=preset, config=config, settings=settings, waypoints=waypoints
+    )[0]
+
+
+def load_params_and_config(
+    *, preset: str | None = None, config: str | None = None, settings=None, waypoints=None
+):
+    """(Params, config dict or None) from a preset name or a config file (exactly one; default
+    preset: 'default'), reading the config once.
 
     settings: {flag: (Settings field, value)} of user settings (`spec.USER_SETTINGS`) for a
     preset; a config carries the settings it was fitted with, so they are an error there.
@@ -137,11 +147,11 @@ def load_params(
         cfg = read_config(config)
         if waypoints is not None:
             check_waypoints(cfg, config, waypoints[1], waypoints[0])
-        return config_to_params(cfg)
+        return config_to_params(cfg), cfg
     name = preset or "default"
     if name not in presets:
         raise InputError("preset", f"unknown preset {name!r}", f"one of {', '.join(presets)}")
-    return apply_settings(presets[name], settings)
+    return apply_settings(presets[name], settings), None
 
 
 def apply_settings(params, settings: dict, source: str | None = None):

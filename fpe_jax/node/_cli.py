@@ -25,7 +25,8 @@ OUTPUT_FLAGS = {
 }
 
 
-def add_parser(subparsers) -> argparse.ArgumentParser:
+def add_parser(subparsers, **kw) -> argparse.ArgumentParser:
+    """Register `fpe node` (`run` is its `func`); `kw` go to `add_parser` (formatter, epilog)."""
     from fpe_jax.node._types import OUTPUTS
 
     p = subparsers.add_parser(
@@ -33,38 +34,54 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="run the live prediction node on ROS 1 or ROS 2",
         description="Subscribe to the opponent's observations, publish its predicted poses. "
         "Flags win over private ROS 1 parameters (~config, ~waypoints, ~pose_topic, ...).",
+        **kw,
     )
     mw = p.add_mutually_exclusive_group(required=True)
     mw.add_argument("--ros1", action="store_true", help="ROS 1 through rospy (Debian packages)")
     mw.add_argument("--ros2", action="store_true", help="ROS 2 over DDS (the cyclonedds wheel)")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--config", help="a tuned config JSON written by `fpe fit` / `fpe export`")
-    src.add_argument("--preset", help="a built-in preset (see `fpe presets`)")
+    src.add_argument(
+        "--config",
+        help="a tuned config JSON written by `fpe fit` / `fpe export` (default: none; one of "
+        "--config, --preset, --params-file or the ~config parameter)",
+    )
+    src.add_argument("--preset", help="a built-in preset (see `fpe presets`; default: none)")
     src.add_argument(
         "--params-file",
         metavar="YAML",
-        help="the ROS 2 parameter file `fpe export --format ros2` writes (config and waypoints)",
+        help="the ROS 2 parameter file `fpe export --format ros2` writes (config and waypoints; "
+        "default: none)",
     )
-    p.add_argument("--waypoints", help="waypoint / centerline / raceline file (map frame)")
+    p.add_argument(
+        "--waypoints",
+        help="waypoint / centerline / raceline file (map frame; default: the ~waypoints "
+        "parameter, or the --params-file's)",
+    )
     p.add_argument(
         "--adapt",
         action="store_true",
         help="learn each opponent's line and pace during the race (from --config, or from the "
-        "waypoints and the shape prior alone)",
+        "waypoints and the shape prior alone; default: off)",
     )
     p.add_argument(
         "--delay",
         type=float,
         metavar="S",
-        help="with --adapt and no config: your sensor's detection delay [s] (default 0)",
+        help="with --adapt and no config: your sensor's detection delay [s] (default: 0)",
     )
     g = p.add_argument_group("input (one of; default: the AprilTag detections)")
-    g.add_argument("--pose-topic", metavar="T", help="PoseStamped or Odometry in the map frame")
     g.add_argument(
-        "--tag-topic", metavar="T", help="apriltag_ros AprilTagDetectionArray (/tag_detections)"
+        "--pose-topic", metavar="T", help="PoseStamped or Odometry in the map frame (default: none)"
     )
     g.add_argument(
-        "--obstacles-topic", metavar="T", help="f110_msgs/ObstacleArray (/perception/obstacles)"
+        "--tag-topic",
+        metavar="T",
+        help="apriltag_ros AprilTagDetectionArray (default: /tag_detections)",
+    )
+    g.add_argument(
+        "--obstacles-topic",
+        metavar="T",
+        help="f110_msgs/ObstacleArray, e.g. /perception/obstacles (default: none)",
     )
     g.add_argument("--tag-id", type=int, default=0, metavar="N", help="AprilTag id (default 0)")
     g.add_argument(
@@ -72,9 +89,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         metavar="X,Y,Z,YAW",
         help="the tag's mount on the leading car (default: a tag -> base transform on /tf_static)",
     )
-    g.add_argument(
-        "--map-frame", "--tf-parent", dest="map_frame", default="map", help="map frame (map)"
-    )
+    g.add_argument("--map-frame", "--tf-parent", dest="map_frame", default="map", help="map frame")
     g.add_argument(
         "--tf-child", default="other_base_link", help="the leading car's base frame (tags)"
     )
@@ -83,18 +98,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         type=float,
         default=1.0,
         metavar="S",
-        help="drop an obstacle track after S seconds without updates (1.0)",
+        help="drop an obstacle track after S seconds without updates",
     )
     g.add_argument(
         "--tf-wait",
         type=float,
         default=0.5,
         metavar="S",
-        help="how long a detection waits for the TF at its stamp before it is dropped (0.5)",
+        help="how long a detection waits for the TF at its stamp before it is dropped",
     )
-    g.add_argument(
-        "--max-tracks", type=int, default=16, metavar="N", help="most obstacles tracked (16)"
-    )
+    g.add_argument("--max-tracks", type=int, default=16, metavar="N", help="most obstacles tracked")
     o = p.add_argument_group("outputs (each can be renamed or switched off)")
     for name, flag in OUTPUT_FLAGS.items():
         o.add_argument(
@@ -123,13 +136,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         type=int,
         const=8765,
         metavar="PORT",
-        help="serve the live scene to Foxglove on 127.0.0.1:PORT (8765)",
+        help="serve the live scene to Foxglove on 127.0.0.1:PORT (default: off; PORT 8765)",
     )
-    p.add_argument("--record", metavar="X.mcap", help="record the Foxglove scene to MCAP")
+    p.add_argument(
+        "--record", metavar="X.mcap", help="record the Foxglove scene to MCAP (default: none)"
+    )
     p.add_argument(
         "--stats",
         metavar="FILE.json",
-        help="at exit, write the own update time of every observation [ns] (benchmarks)",
+        help="at exit, write the own update time of every observation [ns] (benchmarks; "
+        "default: none)",
     )
     p.set_defaults(func=run)
     return p

@@ -24,16 +24,8 @@ CAR_ID = "opp"  # the one car of a drive log (as in /opp/pose)
 DEFAULT_PORT = 8765  # Foxglove's default WebSocket port
 
 
-def add_parser(subparsers) -> None:
-    """Register `fpe view` (`run` is its `func`)."""
-    from fpe_jax import cli
-
-    p = subparsers.add_parser(
-        "view", help="predict a drive log and show it in Foxglove (live WebSocket or MCAP)"
-    )
-    p.set_defaults(func=run)
-    p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
-    cli._add_predictor_flags(p, required=False)
+def add_arguments(p) -> None:
+    """`fpe view`'s own flags (the CLI adds the predictor, log and run flags of `fpe predict`)."""
     p.add_argument(
         "--foxglove",
         type=int,
@@ -51,14 +43,30 @@ def add_parser(subparsers) -> None:
         type=float,
         default=1.0,
         metavar="FACTOR",
-        help="replay FACTOR times as fast as recorded (default 1)",
+        help="replay FACTOR times as fast as recorded",
     )
     p.add_argument("--loop", action="store_true", help="replay again and again until Ctrl-C")
-    p.add_argument("--out", help="record the scene to X.mcap (Foxglove protobuf schemas)")
+    p.add_argument(
+        "--out", help="record the scene to X.mcap (Foxglove protobuf schemas; default: none)"
+    )
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
-    p.add_argument("--map-frame", default="map", help="frame_id of every message (map)")
-    cli._add_log_flags(p)
-    cli._add_run_flags(p, off_track=True)
+    p.add_argument("--map-frame", default="map", help="frame_id of every message (default map)")
+
+
+def check_args(args) -> None:
+    """InputError for `fpe view` flags that cannot work, before anything slow runs."""
+    from fpe_jax import io
+
+    if args.foxglove is None and args.out is None:
+        raise InputError("fpe view", "nothing to do", "--foxglove [PORT] and/or --out X.mcap")
+    if args.out is not None:
+        io.check_output_path(args.out, args.force, (args.log, args.waypoints, args.config))
+        if Path(args.out).suffix.lower() != ".mcap":
+            raise InputError(args.out, "unknown output format", ".mcap")
+    if args.foxglove is not None and not 0 <= args.foxglove <= 65535:
+        raise InputError("--foxglove", f"port {args.foxglove} out of range", "0 to 65535")
+    if not (np.isfinite(args.speed) and args.speed > 0):
+        raise InputError("--speed", f"{args.speed} is not a positive number", "e.g. 1 or 4")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,44 +92,24 @@ class Predicted:
     track_closed: bool
 
 
-def predict_log(args, say) -> Predicted:
-    """`fpe predict`'s computation (the same library calls) for the parsed flags."""
-    from fpe_jax import cli
-    from fpe_jax.drive import local_frame
-    from fpe_jax.evaluate._evaluate import covariance_map, path_heading, prediction_covariance
-    from fpe_jax.geometry._track import Track
+def predicted(res) -> Predicted:
+    """The scene's view of `fpe_jax.pipeline.predict_log`'s result (`Predictions`)."""
     from fpe_jax.io import ros_msgs as rm
-    from fpe_jax.io.config import read_config
-    from fpe_jax.predict._predict import predict_rows, states_from_drive
 
-    say("reading the drive and waypoints")
-    params, waypoints = cli._load_predictor(args)
-    unc = read_config(args.config).get("uncertainty") if args.config else None
-    drive = cli._load_drive_from_args(args)
-    local, wp, t0_s, origin = local_frame(drive, waypoints.xy_m)
-    track = Track.from_waypoints(wp)
-    cli._check_on_track(args, local, track, args.waypoints, args.log)
-    say(f"predicting {len(drive.t_s)} observations")
-    states = states_from_drive(params, local, track)
-    rows = predict_rows(params, states, track)
-    poses = np.array(rows.packed(), dtype=np.float64)
-    poses[..., :2] += origin
+    drive = res.drive
+    poses = np.asarray(res.poses_m, dtype=np.float64)
     n, h, _ = poses.shape
-    cov = np.full((n, h, 2, 2), np.nan)
-    if unc is not None:
-        cov_track = prediction_covariance(params, states, track, unc)
-        cov = np.asarray(covariance_map(cov_track, path_heading(track, rows.xy_m, states)))
-    stamps_ns = rm.seconds_to_ns(local.t_s + t0_s)
-    dt_s = params.settings.dt_s
+    cov = np.full((n, h, 2, 2), np.nan) if res.cov_m2 is None else np.asarray(res.cov_m2)
+    stamps_ns = rm.seconds_to_ns(np.asarray(res.stamps_s, dtype=np.float64))
     return Predicted(
         stamps_ns=stamps_ns,
         xy_m=np.asarray(drive.xy_m, dtype=np.float64),
         yaw_rad=np.asarray(drive.yaw_rad, dtype=np.float64),
         poses=poses,
-        step_stamps_ns=stamps_ns[:, None] + rm.seconds_to_ns(np.arange(1, h + 1) * dt_s),
+        step_stamps_ns=stamps_ns[:, None] + rm.seconds_to_ns(np.arange(1, h + 1) * res.dt_s),
         cov_xy_m2=cov,
-        track_xy_m=np.asarray(waypoints.xy_m, dtype=np.float64),
-        track_closed=bool(track.closed),
+        track_xy_m=np.asarray(res.predictor.waypoints_xy_m, dtype=np.float64),
+        track_closed=bool(res.track_closed),
     )
 
 
@@ -145,22 +133,9 @@ def feed(sinks, pred: Predicted, *, speed: float | None = None, offset_ns: int =
             sink.prediction(CAR_ID, stamp + offset_ns, pred.poses[k], pred.cov_xy_m2[k], steps)
 
 
-def run(args) -> int:
-    from fpe_jax import cli, io
-
-    if args.foxglove is None and args.out is None:
-        raise InputError("fpe view", "nothing to do", "--foxglove [PORT] and/or --out X.mcap")
-    if args.out is not None:
-        io.check_output_path(args.out, args.force)
-        if Path(args.out).suffix.lower() != ".mcap":
-            raise InputError(args.out, "unknown output format", ".mcap")
-    if args.foxglove is not None and not 0 <= args.foxglove <= 65535:
-        raise InputError("--foxglove", f"port {args.foxglove} out of range", "0 to 65535")
-    if not (np.isfinite(args.speed) and args.speed > 0):
-        raise InputError("--speed", f"{args.speed} is not a positive number", "e.g. 1 or 4")
-    with cli._progress(args) as say:
-        cli._start_jax(args, say)
-        pred = predict_log(args, say)
+def show(args, pred: Predicted) -> int:
+    """Serve (--foxglove) and/or record (--out) the predicted drive, as `check_args` allowed."""
+    from fpe_jax import io
     from fpe_jax.node._foxglove import SceneSink
 
     live = None

@@ -1,0 +1,40 @@
+"""`fpe`'s own face: --version, and help that says every option's default and ends with an
+example of the command."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from fpe_jax import __version__
+from fpe_jax.cli import _build_parser, main
+
+
+def _subparsers() -> dict[str, argparse.ArgumentParser]:
+    parser = _build_parser()
+    (sub,) = (a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out == f"fpe {__version__}\n"
+
+
+@pytest.mark.parametrize("name", sorted(_subparsers()))
+def test_help_says_every_default_and_ends_with_an_example(name):
+    parser = _subparsers()[name]
+    text = parser.format_help()
+    last = text.rstrip().splitlines()
+    assert last[-2] == "example:" and last[-1].startswith(f"  fpe {name}"), text
+    formatter = parser._get_formatter()
+    for action in parser._actions:
+        if not action.option_strings or isinstance(action, argparse._HelpAction):
+            continue
+        said = formatter._get_help_string(action)
+        assert "default" in said or said.endswith("(required)"), (name, action.option_strings)
+        if action.default not in (None, False):
+            assert str(action.default) in said, (name, action.option_strings, said)
