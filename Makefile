@@ -24,6 +24,9 @@ test: $(VENV)
 
 bench: $(VENV)
 	$(BIN)/python experiments/benchmarks/run.py
+	$(BIN)/python experiments/benchmarks/node_latency.py
+	$(BIN)/python experiments/benchmarks/dds_roundtrip.py
+	$(BIN)/python experiments/benchmarks/fit_scale.py
 
 format: $(VENV)
 	$(BIN)/ruff format .
