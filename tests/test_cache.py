@@ -43,20 +43,21 @@ print(json.dumps({"y": y.tolist(), "compile_s": exe.seconds["compile_s"],
 
 def child(cache_dir: Path, timeout_s: float = 120.0, limit_bytes: int | None = None) -> dict:
     """Run _CHILD (with an address-space limit, if given); its JSON, return code and stderr."""
-
-    def limit():
-        import resource
-
-        resource.setrlimit(resource.RLIMIT_AS, (limit_bytes, limit_bytes))
-
+    # the limit is set by the child itself before anything else: a preexec_fn would fork this
+    # process, which has JAX's threads running
+    prefix = ""
+    if limit_bytes:
+        prefix = (
+            "import resource; "
+            f"resource.setrlimit(resource.RLIMIT_AS, ({limit_bytes}, {limit_bytes}))\n"
+        )
     r = subprocess.run(
-        [sys.executable, "-c", _CHILD],
+        [sys.executable, "-c", prefix + _CHILD],
         capture_output=True,
         text=True,
         cwd=ROOT,
         env={**os.environ, "FPE_CACHE_DIR": str(cache_dir)},
         timeout=timeout_s,
-        preexec_fn=limit if limit_bytes else None,
     )
     assert r.returncode == 0, r.stderr[-3000:]
     return {**json.loads(r.stdout.strip().splitlines()[-1]), "stderr": r.stderr}

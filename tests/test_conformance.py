@@ -104,7 +104,8 @@ def test_seed_conformance_through_cli(levine, shared_data, tmp_path):
     rc = main(["predict", str(obs), "--waypoints", str(wps), "--preset", "seed", "--out", str(out)])
     assert rc == 0
     rows = np.genfromtxt(out, delimiter=",", names=True)
-    assert rows.dtype.names == ("stamp", "step", "horizon_s", "x", "y", "yaw")
+    # the columns `fpe predict` writes; `valid` marks rows predicted from too little history
+    assert rows.dtype.names == ("stamp", "step", "horizon_s", "x", "y", "yaw", "valid")
     pred = np.column_stack([rows["x"], rows["y"]]).reshape(-1, 10, 2)
     np.testing.assert_allclose(rows["horizon_s"][:10], 0.1 * np.arange(1, 11), atol=1e-12)
     frac, err = _fraction_within_1mm(pred, sets)

@@ -37,7 +37,12 @@ def _write(folder: Path, rows, wp, dt_s: float, dxy) -> tuple[Path, Path]:
     folder.mkdir()
     log, wpf = folder / "drive.csv", folder / "wp.csv"
     r = rows + np.array([dt_s, dxy[0], dxy[1], 0.0])
-    log.write_text("t,x,y,yaw\n" + "".join(",".join(map(repr, map(float, x))) + "\n" for x in r))
+    # stamps as their exact decimals (a stamp on the 2^-16 s grid has 16 decimal places): the
+    # readers take a stamp's text exactly, and repr's shortest form of 1.7e9 + t is not exact
+    log.write_text(
+        "t,x,y,yaw\n"
+        + "".join(f"{x[0]:.16f}," + ",".join(map(repr, map(float, x[1:]))) + "\n" for x in r)
+    )
     w = wp + np.asarray(dxy)
     wpf.write_text("x,y\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in w))
     return log, wpf
