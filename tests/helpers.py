@@ -50,6 +50,26 @@ def csv_lines(rows) -> list[str]:
     return ["t,x,y,yaw"] + [",".join(repr(float(v)) for v in r) for r in rows]
 
 
+def oval_stream(duration_s: float, seed: int) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(default preset's config dict, centerline (K, 2) [m], rows (N, 4) t [s], x, y [m],
+    yaw [rad]) of a simulated oval drive: what `fpe run` tests stream."""
+    from fpe_jax.io.config import params_to_config
+
+    res = simulate("oval", duration_s=duration_s, seed=seed)
+    d = res.drive
+    rows = np.column_stack([d.t_s, d.xy_m, d.yaw_rad])
+    return params_to_config(presets["default"]), res.centerline_xy_m, rows
+
+
+def stream_files(folder: Path, cfg: dict, wp) -> list[str]:
+    """Write the config and waypoints into `folder`; `fpe run`'s flags naming them."""
+    from fpe_jax.io.config import write_config
+
+    write_config(folder / "cfg.json", cfg)
+    np.savetxt(folder / "wp.csv", wp, delimiter=",", fmt="%.17g")
+    return ["--config", str(folder / "cfg.json"), "--waypoints", str(folder / "wp.csv")]
+
+
 def fpe_run(monkeypatch, capsys, argv, lines) -> tuple[int, list[dict], list[str]]:
     """In-process `fpe run ARGV` on the stdin `lines`: (exit status, replies, stderr lines)."""
     monkeypatch.setattr(sys, "stdin", io.StringIO("".join(f"{line}\n" for line in lines)))

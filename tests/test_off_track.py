@@ -9,32 +9,23 @@ import re
 
 import numpy as np
 import pytest
-from helpers import csv_lines, expected, fpe_run
+from helpers import csv_lines, expected, fpe_run, oval_stream, stream_files
 
 from fpe_jax.cli import main
 from fpe_jax.errors import InputError
 from fpe_jax.geometry._path import ON_TRACK_M, build_path, waypoints_sha256
-from fpe_jax.io.config import params_to_config, write_config
-from fpe_jax.model._params import presets
 from fpe_jax.runner._runner import OFF_TRACK_START_OBS, Runner
-from fpe_jax.sim._sim import simulate
 
 
 @pytest.fixture(scope="module")
 def oval():
     """(config, centerline (K, 2) [m], rows (N, 4) t [s], x, y [m], yaw [rad]): 15 s on the oval."""
-    res = simulate("oval", duration_s=15.0, seed=5)
-    d = res.drive
-    rows = np.column_stack([d.t_s, d.xy_m, d.yaw_rad])
-    return params_to_config(presets["default"]), res.centerline_xy_m, rows
+    return oval_stream(15.0, seed=5)
 
 
 @pytest.fixture()
 def files(tmp_path, oval):
-    cfg, wp, _ = oval
-    write_config(tmp_path / "cfg.json", cfg)
-    np.savetxt(tmp_path / "wp.csv", wp, delimiter=",", fmt="%.17g")
-    return ["--config", str(tmp_path / "cfg.json"), "--waypoints", str(tmp_path / "wp.csv")]
+    return stream_files(tmp_path, *oval[:2])
 
 
 def test_an_on_track_stream_is_unchanged_bit_for_bit(monkeypatch, capsys, files, oval):

@@ -11,12 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import csv_lines, expected, fpe_run
+from helpers import csv_lines, expected, fpe_run, oval_stream, stream_files
 
 from fpe_jax import cli
-from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.io.stream import read_observations
-from fpe_jax.model._params import presets
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -25,20 +23,12 @@ ROOT = Path(__file__).resolve().parents[1]
 def oval():
     """(config dict, centerline (K, 2) [m], rows (N, 4) t [s], x, y [m], yaw [rad]) of a short
     simulated oval drive."""
-    from fpe_jax.sim._sim import simulate
-
-    res = simulate("oval", duration_s=6.0, seed=3)
-    d = res.drive
-    rows = np.column_stack([d.t_s, d.xy_m, d.yaw_rad])
-    return params_to_config(presets["default"]), res.centerline_xy_m, rows
+    return oval_stream(6.0, seed=3)
 
 
 @pytest.fixture()
 def files(tmp_path, oval):
-    cfg, wp, _ = oval
-    write_config(tmp_path / "cfg.json", cfg)
-    np.savetxt(tmp_path / "wp.csv", wp, delimiter=",", fmt="%.17g")
-    return ["--config", str(tmp_path / "cfg.json"), "--waypoints", str(tmp_path / "wp.csv")]
+    return stream_files(tmp_path, *oval[:2])
 
 
 @pytest.mark.parametrize(

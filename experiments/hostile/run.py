@@ -167,6 +167,33 @@ def _predictions(path: Path) -> np.ndarray:
     return np.genfromtxt(path, delimiter=",", names=True)
 
 
+def verdict(item, name: str, r: dict, before: dict, after: dict, expect: str, check) -> dict:
+    """The row of one case: it passes with no traceback and no user file changed between the
+    snapshots `before` and `after`, and exit 2 in 1-3 stderr lines (expect "exit2"), a non-zero
+    exit other than a crash (expect "fail"), or exit 0 (expect "ok") with `check(r) -> (ok,
+    note)` where given. Prints one line."""
+    changed = sorted(set(before.items()) ^ set(after.items()))
+    lines = len(r["err"].strip().splitlines())
+    tb = "Traceback" in r["err"]
+    ok = not tb and not changed
+    if expect == "exit2":
+        ok &= r["rc"] == 2 and 1 <= lines <= 3
+    elif expect == "fail":
+        ok &= r["rc"] in (1, 2) and 1 <= lines <= 3
+    else:
+        ok &= r["rc"] == 0
+    note = ""
+    if check is not None and (r["rc"] == 0 or expect == "fail"):
+        good, note = check(r)
+        ok &= good
+    if r["rc"] != 0 and not note:
+        note = r["err"].strip().splitlines()[-1][:150] if lines else ""
+    print(f"{item:>3} {name:48s} rc {r['rc']} {'ok' if ok else 'FAIL'} {note[:90]}")
+    return dict(item=item, case=name, rc=r["rc"], lines=lines, traceback=tb,
+                files_unchanged=not changed, ok=bool(ok), note=note,
+                wall_s=round(r["wall_s"], 1), rss_mb=round(r["rss_mb"]))  # fmt: skip
+
+
 def run_cases(work: Path) -> list[dict]:
     rows: list[dict] = []
 
@@ -182,35 +209,7 @@ def run_cases(work: Path) -> list[dict]:
         before = {k: v for k, v in snapshot(work).items() if not mine(k)}
         r = fpe(work, *argv, stdin=stdin)
         after = {k: v for k, v in snapshot(work).items() if not mine(k) or r["rc"] != 0}
-        changed = sorted(set(before.items()) ^ set(after.items()))
-        lines = len(r["err"].strip().splitlines())
-        tb = "Traceback" in r["err"]
-        ok = not tb and not changed
-        if expect == "exit2":
-            ok &= r["rc"] == 2 and 1 <= lines <= 3
-        else:
-            ok &= r["rc"] == 0
-        note = ""
-        if check is not None and r["rc"] == 0:
-            good, note = check(r)
-            ok &= good
-        if r["rc"] == 2 and not note:
-            note = r["err"].strip().splitlines()[-1][:150] if lines else ""
-        rows.append(
-            dict(
-                item=item,
-                case=name,
-                rc=r["rc"],
-                lines=lines,
-                traceback=tb,
-                files_unchanged=not changed,
-                ok=bool(ok),
-                note=note,
-                wall_s=round(r["wall_s"], 1),
-                rss_mb=round(r["rss_mb"]),
-            )
-        )
-        print(f"{item:>3} {name:48s} rc {r['rc']} {'ok' if ok else 'FAIL'} {note[:90]}")
+        rows.append(verdict(item, name, r, before, after, expect, check))
         return r
 
     pred = ["--waypoints", "wp.csv", "--quiet"]
@@ -543,21 +542,7 @@ def _io_cases(work: Path, info: dict) -> list[dict]:
         before = {k: v for k, v in snapshot(work).items() if k not in outputs}
         r = fpe(work, *argv, stdin=stdin)
         after = {k: v for k, v in snapshot(work).items() if k not in outputs or r["rc"] != 0}
-        changed = sorted(set(before.items()) ^ set(after.items()))
-        lines = len(r["err"].strip().splitlines())
-        tb = "Traceback" in r["err"]
-        ok = not tb and not changed
-        ok &= (r["rc"] == 2 and 1 <= lines <= 3) if expect == "exit2" else r["rc"] == 0
-        note = ""
-        if check is not None and r["rc"] == 0:
-            good, note = check(r)
-            ok &= good
-        if r["rc"] == 2 and not note:
-            note = r["err"].strip().splitlines()[-1][:150] if lines else ""
-        rows.append(dict(item=item, case=name, rc=r["rc"], lines=lines, traceback=tb,
-                         files_unchanged=not changed, ok=bool(ok), note=note,
-                         wall_s=round(r["wall_s"], 1), rss_mb=round(r["rss_mb"])))  # fmt: skip
-        print(f"{item:>3} {name:48s} rc {r['rc']} {'ok' if ok else 'FAIL'} {note[:90]}")
+        rows.append(verdict(item, name, r, before, after, expect, check))
         return r
 
     # 3. TF dropouts
@@ -859,26 +844,7 @@ def _offtrack_case(work: Path, rows: list, item, name, argv, *, outputs=(), expe
         r = dict(rc=p.returncode, err=p.stderr.decode(errors="replace"), out=p.stdout,
                  wall_s=time.perf_counter() - t0, rss_mb=0.0)  # fmt: skip
     after = {k: v for k, v in snapshot(work).items() if not mine(k) or r["rc"] != 0}
-    changed = sorted(set(before.items()) ^ set(after.items()))
-    lines = len(r["err"].strip().splitlines())
-    tb = "Traceback" in r["err"]
-    ok = not tb and not changed
-    if expect == "exit2":
-        ok &= r["rc"] == 2 and 1 <= lines <= 3
-    elif expect == "fail":
-        ok &= r["rc"] in (1, 2) and 1 <= lines <= 3
-    else:
-        ok &= r["rc"] == 0
-    note = ""
-    if check is not None and (r["rc"] == 0 or expect == "fail"):
-        good, note = check(r)
-        ok &= good
-    if r["rc"] != 0 and not note:
-        note = r["err"].strip().splitlines()[-1][:150] if lines else ""
-    rows.append(dict(item=item, case=name, rc=r["rc"], lines=lines, traceback=tb,
-                     files_unchanged=not changed, ok=bool(ok), note=note,
-                     wall_s=round(r["wall_s"], 1), rss_mb=round(r["rss_mb"])))  # fmt: skip
-    print(f"{item:>3} {name:48s} rc {r['rc']} {'ok' if ok else 'FAIL'} {note[:90]}")
+    rows.append(verdict(item, name, r, before, after, expect, check))
     return r
 
 

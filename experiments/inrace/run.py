@@ -180,6 +180,21 @@ def _cells(values, ref=None) -> str:
     return " | ".join(f"{v:.3f} ({v / r:.2f}x)" for v, r in zip(values, ref))
 
 
+def _lap_table(title: str, laps, runners: dict, ref_label: str) -> list[str]:
+    """A markdown table of median errors per lap, one row per runner, each with its ratio to
+    the runner `ref_label` (which is shown without)."""
+    ref = runners[ref_label]
+    lines = [
+        title,
+        "",
+        "| runner | " + " | ".join(f"lap {n}" for n in laps) + " |",
+        "|---" * (len(laps) + 1) + "|",
+    ]
+    return lines + [
+        f"| {label} | {_cells(v, None if v is ref else ref)} |" for label, v in runners.items()
+    ]
+
+
 def markdown(out: dict, wall_s: float) -> str:
     lines = [
         "# In-race learning: the adapting runner against configs fitted offline",
@@ -203,16 +218,8 @@ def markdown(out: dict, wall_s: float) -> str:
         "",
     ]
     for name, r in out.items():
-        first = r["a"][0]
-        ref = first["offline fit (separate drive)"]
-        lines += [
-            f"### {name} ({r['length_m']:.0f} m loop), race seed {RACE_SEEDS[0]}",
-            "",
-            "| runner | " + " | ".join(f"lap {n}" for n in r["laps"]) + " |",
-            "|---" * (len(r["laps"]) + 1) + "|",
-        ]
-        for label, v in first.items():
-            lines.append(f"| {label} | {_cells(v, None if v is ref else ref)} |")
+        title = f"### {name} ({r['length_m']:.0f} m loop), race seed {RACE_SEEDS[0]}"
+        lines += _lap_table(title, r["laps"], r["a"][0], "offline fit (separate drive)")
         ratios = [
             a["adapting, from the waypoints alone"][1] / a["offline fit (separate drive)"][1]
             for a in r["a"]
@@ -234,16 +241,8 @@ def markdown(out: dict, wall_s: float) -> str:
         "",
     ]
     for name, r in out.items():
-        first = r["b"][0]
-        ref = first["offline fit on the new behaviour"]
-        lines += [
-            f"### {name}, race seeds {CHANGE_SEEDS[0][0]} / {CHANGE_SEEDS[0][1]}",
-            "",
-            "| runner | " + " | ".join(f"lap {n}" for n in r["new_laps"]) + " |",
-            "|---" * (len(r["new_laps"]) + 1) + "|",
-        ]
-        for label, v in first.items():
-            lines.append(f"| {label} | {_cells(v, None if v is ref else ref)} |")
+        title = f"### {name}, race seeds {CHANGE_SEEDS[0][0]} / {CHANGE_SEEDS[0][1]}"
+        lines += _lap_table(title, r["new_laps"], r["b"][0], "offline fit on the new behaviour")
         lines += ["", "Lap 2 after the change, adapting, on races with seeds:", ""]
         for seeds, b in zip(CHANGE_SEEDS, r["b"]):
             adapt = b["adapting (from the same config)"][1]
