@@ -32,7 +32,7 @@ from fpe_jax.fit._cases import LATENCY_S
 from fpe_jax.geometry._path import waypoints_sha256
 from fpe_jax.io.config import params_to_config
 from fpe_jax.progress import Progress
-from fpe_jax.runner._adapt import AdaptiveRunner
+from fpe_jax.runner._adapt import CHANGE_DECAY, LAP_DECAY, AdaptiveRunner
 from fpe_jax.runner._runner import Runner, RunnerPath
 from fpe_jax.sim._sim import Driver, simulate
 
@@ -102,8 +102,9 @@ def per_lap(err: np.ndarray, lap: np.ndarray, laps) -> list[float]:
     ]
 
 
-def part_a(name: str, wp, cfg_old: dict, seed: int) -> dict:
-    """(a) FDE per lap on one race (seed) of the opponent's normal behaviour."""
+def part_a(name: str, wp, cfg_old: dict, seed: int) -> tuple[dict, dict]:
+    """(a) FDE per lap on one race (seed) of the opponent's normal behaviour, and how often
+    each adapting runner's change detector fired on it (an unchanged driver: ideally never)."""
     path = RunnerPath(wp)
     lap_s = path.length_m / 5.0  # a generous lap time at the default pace
     race = simulate(name, duration_s=(RACE_LAPS + 0.5) * lap_s, seed=seed).drive
@@ -114,7 +115,8 @@ def part_a(name: str, wp, cfg_old: dict, seed: int) -> dict:
         "adapting, from the waypoints alone": AdaptiveRunner(None, wp, delay_s=LATENCY_S),
         "adapting, from the offline fit": AdaptiveRunner(cfg_old, wp),
     }
-    return {label: per_lap(errors_at(r, race), lap, laps) for label, r in runners.items()}
+    table = {label: per_lap(errors_at(r, race), lap, laps) for label, r in runners.items()}
+    return table, {label: r.changes for label, r in runners.items() if hasattr(r, "changes")}
 
 
 def part_b(name: str, wp, cfg_old: dict, cfg_new: dict, kw: dict, seeds) -> dict:
@@ -154,9 +156,9 @@ def run_track(name: str, say) -> dict:
         cfg_new = fitted_config(fit_new, wp, say)
         say(f"{name}: the races")
         b = [part_b(name, wp, cfg_old, cfg_new, kw, seeds) for seeds in CHANGE_SEEDS]
-    a = [part_a(name, wp, cfg_old, seed) for seed in RACE_SEEDS]
+    a, changes = zip(*[part_a(name, wp, cfg_old, seed) for seed in RACE_SEEDS])
     return dict(
-        a=a, b=b, laps=(1, 2, 3, 5), new_laps=tuple(range(1, NEW_LAPS + 1)),
+        a=a, a_changes=changes, b=b, laps=(1, 2, 3, 5), new_laps=tuple(range(1, NEW_LAPS + 1)),
         length_m=RunnerPath(wp).length_m,
     )  # fmt: skip
 
@@ -205,8 +207,9 @@ def markdown(out: dict, wall_s: float) -> str:
         "Median distance [m] between the prediction 1 s ahead and the true position then, per "
         "lap of the opponent. Simulated drives on the built-in tracks, detection latency "
         f"{LATENCY_S} s, every prediction from the NumPy runners (`fpe_jax.runner.Runner`, "
-        "`fpe_jax.runner.AdaptiveRunner`, lap decay 0.25). Offline fits: `fpe fit`'s default "
-        f"(line model) on a separate {FIT_S:g} s drive.",
+        f"`fpe_jax.runner.AdaptiveRunner`: previous passes weigh {LAP_DECAY} per pass, "
+        f"{CHANGE_DECAY} where its change detector finds the car driving unlike them). "
+        f"Offline fits: `fpe fit`'s default (line model) on a separate {FIT_S:g} s drive.",
         "",
         "## (a) No fit drive: learning from the first lap",
         "",
@@ -228,7 +231,13 @@ def markdown(out: dict, wall_s: float) -> str:
             "",
             "Lap 2, adapting from the waypoints alone / offline fit, on races with seeds "
             + ", ".join(f"{sd}: {x:.2f}x" for sd, x in zip(RACE_SEEDS, ratios))
-            + ".",
+            + ". The change detector fired (an unchanged driver) on these races: "
+            + ", ".join(
+                f"{sd}: {c['adapting, from the waypoints alone']} / "
+                f"{c['adapting, from the offline fit']}"
+                for sd, c in zip(RACE_SEEDS, r["a_changes"])
+            )
+            + " times (from the waypoints alone / from the offline fit).",
             "",
         ]
     lines += [
