@@ -65,8 +65,9 @@ def profile_jax(samples, prior, length_m, kern, decay, change_decay, min_samples
     reset, starts a new pass: before <- current + keep x before, keep <- decay); the change
     detector's window means of the residuals against the previous passes' profile (kernel-
     smoothed, read at the sample's two points), beyond the thresholds: keep <- change_decay
-    where the car passes and, as it starts, back over the window. The profile: the sums
-    current + keep x before smoothed circularly, blended with the prior (3, P) by coverage."""
+    where the car passes and, as it starts, back over the window (a reset restarts the
+    window). The profile: the sums current + keep x before smoothed circularly, blended with
+    the prior (3, P) by coverage."""
     n = prior.shape[1]
     spacing = length_m / n
     half = (kern.shape[0] - 1) // 2
@@ -79,7 +80,11 @@ def profile_jax(samples, prior, length_m, kern, decay, change_decay, min_samples
     def step(state, row):
         cur, before, keep, last, resid, resid_at, changed = state
         t, s, d, v, age, was_reset = row
-        last = jnp.where(was_reset > 0, -jnp.inf, last)
+        reset = was_reset > 0  # the clock and the detector's window restart
+        last = jnp.where(reset, -jnp.inf, last)
+        resid = jnp.where(reset, 0.0, resid)
+        resid_at = jnp.where(reset, jnp.nan, resid_at)
+        changed = changed & ~reset
         has_v = jnp.isfinite(v) & (jnp.abs(v) <= MAX_SAMPLE_SPEED_MPS)
         v = jnp.where(has_v, v, 0.0)
         places = [
@@ -259,8 +264,9 @@ def test_it_learns_a_new_line_within_two_laps():
 
 def test_a_changed_driver_is_learned_in_one_pass_even_across_a_reset(laps):
     """Three laps on its line, then out of sight (a reset, the clock restarting) and one lap
-    0.6 m further left: the detector finds the change (and nothing before it), and the lap
-    after the reset replaces the passes before wherever it went."""
+    0.6 m further left: the detector finds the change (and nothing before it), the road ahead
+    is read with the change carried on, and the lap after the reset replaces the passes
+    before wherever it went."""
     wp, drive = laps
     r = AdaptiveRunner(None, wp)
     for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad):
@@ -270,11 +276,20 @@ def test_a_changed_driver_is_learned_in_one_pass_even_across_a_reset(laps):
     r.reset()
     xy = _moved_left(wp, drive.xy_m, 0.6)
     one_lap = drive.t_s < drive.t_s[0] + 12.0
+    ahead_read = (np.nan,)
     for t, (x, y), yaw in zip(drive.t_s[one_lap], xy[one_lap], drive.yaw_rad[one_lap]):
         r.update(t, x, y, yaw)
+        if r.changed and not np.isfinite(ahead_read[0]):  # halfway round: the road ahead
+            s_ahead = r._s_m + 10.0
+            ahead_read = (r._line_at(s_ahead)[0], r.profile()["line_offset_m"], s_ahead)
     assert r.changes >= 1
     shift = r.profile()["line_offset_m"] - before
     assert abs(np.median(shift) - 0.6) < 0.08, np.median(shift)
+    # while the change was being found, the road the car had not passed since read the old
+    # line with the change carried on (its profile itself still held the old line there)
+    read, profile, s_ahead = ahead_read
+    old_there = r._profile_at(list(profile), s_ahead)
+    assert abs(read - old_there - 0.6) < 0.2, (read, old_there)
 
 
 def test_the_saved_state_is_a_config_the_runner_and_jax_read(laps, tmp_path):

@@ -244,6 +244,7 @@ class AdaptiveRunner(Runner):
         self.changed = False
         self._residual = [0.0, 0.0]  # the detector's window means: offset [m], log speed
         self._residual_at: float | None = None  # arc length [m] of its newest sample
+        self._changed_s = -math.inf  # stamp [s] at which the change now found was found
         self._s_unwrapped: float | None = None
         self._frame = None
 
@@ -258,11 +259,12 @@ class AdaptiveRunner(Runner):
         return cls(cfg, xy, source=str(config_path or "defaults"), **kw)
 
     def reset(self) -> None:
-        """Forget the history and the track position (and its clock: the next sample at any
-        point starts a new pass there); what was learned stays."""
+        """Forget the history, the track position and the change detector's window (and the
+        clock: the next sample at any point starts a new pass there); what was learned stays."""
         super().reset()
         if hasattr(self, "_last_s"):  # Runner.__init__ resets before the state exists
             self._last_s[:] = -math.inf
+            self._residual, self._residual_at, self.changed = [0.0, 0.0], None, False
 
     def _track_frame(self, s_hint_m: float):
         self._frame = super()._track_frame(s_hint_m)
@@ -366,6 +368,7 @@ class AdaptiveRunner(Runner):
         if not self.changed or was:
             return []
         self.changes += 1
+        self._changed_s = stamp_s
         # the window that showed the change: the points of this pass up to CHANGE_WINDOW_M back
         out = []
         back = math.ceil(CHANGE_WINDOW_M / self._spacing) + 1
@@ -431,6 +434,22 @@ class AdaptiveRunner(Runner):
             k = self._kernel if self.path.closed else self._open_kernel(j)
             self._smoothed[:, j] = self._sums[:, cols] @ k  # zero beyond an open path's ends
             self._blend(j)
+
+    def _line_at(self, s_m: float) -> tuple[float, float, float]:
+        """The profile the rollout reads at arc length s_m [m]: offset [m], coverage, speed
+        [m/s]. While the detector finds the car driving unlike its previous passes, the points
+        it has not passed since hold the old behaviour: there the change seen so far carries
+        on (its window mean offset added, its speed ratio applied), so that the road ahead
+        agrees with the line and pace the car now shows behind."""
+        offset, coverage, speed = super()._line_at(s_m)
+        if not self.changed:
+            return offset, coverage, speed
+        old = sum(w for idx, w in self._spread(s_m) if self._last_s[idx] < self._changed_s)
+        return (
+            offset + old * self._residual[0],
+            coverage,
+            speed * math.exp(old * self._residual[1]),
+        )
 
     def _blend(self, j: int) -> None:
         sw, sd, svw, sv = self._smoothed[:, j]
