@@ -262,34 +262,46 @@ def test_it_learns_a_new_line_within_two_laps():
     assert 0.5 < shift < 0.7, shift
 
 
+def _changed_driver(wp, drive, **kw) -> tuple[AdaptiveRunner, np.ndarray, tuple]:
+    """Three laps of a drive, a reset (the clock restarting), one lap 0.6 m further left: the
+    runner, its offset profile before the reset, and (the offset read, the profile, s [m]) 10 m
+    ahead of the car at the first update at which it had found the change."""
+    r = AdaptiveRunner(None, wp, **kw)
+    for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad):
+        r.update(t, x, y, yaw)
+    before = r.profile()["line_offset_m"]
+    changes = r.changes
+    r.reset()
+    xy = _moved_left(wp, drive.xy_m, 0.6)
+    one_lap = drive.t_s < drive.t_s[0] + 12.0
+    ahead_read = (np.nan, None, np.nan)
+    for t, (x, y), yaw in zip(drive.t_s[one_lap], xy[one_lap], drive.yaw_rad[one_lap]):
+        r.update(t, x, y, yaw)
+        if r.changed and not np.isfinite(ahead_read[0]):
+            s_ahead = r._s_m + 10.0
+            ahead_read = (r._line_at(s_ahead)[0], r.profile()["line_offset_m"], s_ahead)
+    return r, before, (changes, *ahead_read)
+
+
 def test_a_changed_driver_is_learned_in_one_pass_even_across_a_reset(laps):
     """Three laps on its line, then out of sight (a reset, the clock restarting) and one lap
     0.6 m further left: the detector finds the change (and nothing before it), the road ahead
     is read with the change carried on, and the lap after the reset replaces the passes
-    before wherever it went."""
+    before wherever it went; without the detector a quarter of the old line stays."""
     wp, drive = laps
-    r = AdaptiveRunner(None, wp)
-    for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad):
-        r.update(t, x, y, yaw)
-    assert r.changes == 0  # an unchanged driver keeps its averaging over laps
-    before = r.profile()["line_offset_m"]
-    r.reset()
-    xy = _moved_left(wp, drive.xy_m, 0.6)
-    one_lap = drive.t_s < drive.t_s[0] + 12.0
-    ahead_read = (np.nan,)
-    for t, (x, y), yaw in zip(drive.t_s[one_lap], xy[one_lap], drive.yaw_rad[one_lap]):
-        r.update(t, x, y, yaw)
-        if r.changed and not np.isfinite(ahead_read[0]):  # halfway round: the road ahead
-            s_ahead = r._s_m + 10.0
-            ahead_read = (r._line_at(s_ahead)[0], r.profile()["line_offset_m"], s_ahead)
+    r, before, (changes_before, read, profile, s_ahead) = _changed_driver(wp, drive)
+    assert changes_before == 0  # an unchanged driver keeps its averaging over laps
     assert r.changes >= 1
     shift = r.profile()["line_offset_m"] - before
     assert abs(np.median(shift) - 0.6) < 0.08, np.median(shift)
-    # while the change was being found, the road the car had not passed since read the old
-    # line with the change carried on (its profile itself still held the old line there)
-    read, profile, s_ahead = ahead_read
+    # the road the car had not passed since read the old line with the change carried on
     old_there = r._profile_at(list(profile), s_ahead)
     assert abs(read - old_there - 0.6) < 0.2, (read, old_there)
+
+    plain, before, (_, read, _, _) = _changed_driver(wp, drive, detect_changes=False)
+    assert plain.changes == 0 and not np.isfinite(read)
+    shift = np.median(plain.profile()["line_offset_m"] - before)
+    assert 0.3 < shift < 0.52, shift  # 0.6 / (1 + 0.25 + ...) where both were seen
 
 
 def test_the_saved_state_is_a_config_the_runner_and_jax_read(laps, tmp_path):
@@ -321,6 +333,8 @@ def test_start_config_errors_and_defaults(laps):
         start_config(params_to_config(presets["default"]), wp, settings={"horizon": 20})
     with pytest.raises(InputError, match="lap_decay"):
         AdaptiveRunner(None, wp, lap_decay=0.0)
+    with pytest.raises(InputError, match="change_decay"):
+        AdaptiveRunner(None, wp, lap_decay=0.25, change_decay=0.5)
 
 
 def test_the_runner_interface_is_the_runners(laps):

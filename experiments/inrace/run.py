@@ -114,6 +114,9 @@ def part_a(name: str, wp, cfg_old: dict, seed: int) -> tuple[dict, dict]:
         "offline fit (separate drive)": Runner(cfg_old, wp),
         "adapting, from the waypoints alone": AdaptiveRunner(None, wp, delay_s=LATENCY_S),
         "adapting, from the offline fit": AdaptiveRunner(cfg_old, wp),
+        "adapting, from the offline fit, no change detector": AdaptiveRunner(
+            cfg_old, wp, detect_changes=False
+        ),
     }
     table = {label: per_lap(errors_at(r, race), lap, laps) for label, r in runners.items()}
     return table, {label: r.changes for label, r in runners.items() if hasattr(r, "changes")}
@@ -131,6 +134,7 @@ def part_b(name: str, wp, cfg_old: dict, cfg_new: dict, kw: dict, seeds) -> dict
     runners = {
         "static (fitted on the old behaviour)": Runner(cfg_old, wp),
         "adapting (from the same config)": AdaptiveRunner(cfg_old, wp),
+        "adapting, no change detector": AdaptiveRunner(cfg_old, wp, detect_changes=False),
         "offline fit on the new behaviour": Runner(cfg_new, wp),
     }
     b = {}
@@ -237,7 +241,20 @@ def markdown(out: dict, wall_s: float) -> str:
                 f"{c['adapting, from the offline fit']}"
                 for sd, c in zip(RACE_SEEDS, r["a_changes"])
             )
-            + " times (from the waypoints alone / from the offline fit).",
+            + " times (from the waypoints alone / from the offline fit). Laps 2, 3 and 5, adapting "
+            "from the offline fit with / without the change detector, on races with seeds "
+            + "; ".join(
+                f"{sd}: "
+                + ", ".join(
+                    f"{x:.3f} / {y:.3f}"
+                    for x, y in zip(
+                        a["adapting, from the offline fit"][1:],
+                        a["adapting, from the offline fit, no change detector"][1:],
+                    )
+                )
+                for sd, a in zip(RACE_SEEDS, r["a"])
+            )
+            + " m.",
             "",
         ]
     lines += [
@@ -257,9 +274,16 @@ def markdown(out: dict, wall_s: float) -> str:
             adapt = b["adapting (from the same config)"][1]
             new_fit = b["offline fit on the new behaviour"][1]
             static = b["static (fitted on the old behaviour)"][1]
+            plain = b["adapting, no change detector"][1]
+            first, static_first = (
+                b[k][0]
+                for k in ("adapting (from the same config)", "static (fitted on the old behaviour)")
+            )
             lines.append(
                 f"- {seeds[0]} / {seeds[1]}: {adapt:.3f} m = {adapt / new_fit:.2f}x the "
-                f"new-behaviour fit, {1.0 - adapt / static:.0%} better than static"
+                f"new-behaviour fit, {1.0 - adapt / static:.0%} better than static (without the "
+                f"change detector {plain:.3f} m = {plain / new_fit:.2f}x; on the first lap after "
+                f"the change {first:.3f} m against static's {static_first:.3f} m)"
             )
         lines.append("")
     return "\n".join(lines)

@@ -194,6 +194,7 @@ class AdaptiveRunner(Runner):
         delay_s: float | None = None,
         lap_decay: float = LAP_DECAY,
         change_decay: float = CHANGE_DECAY,
+        detect_changes: bool = True,
         min_samples: float = MIN_SAMPLES,
         source: str = "config",
     ):
@@ -205,7 +206,9 @@ class AdaptiveRunner(Runner):
             the ego sensor's detection delay [s] (`start_config`).
         lap_decay: weight of a point's previous passes, per newer pass, in (0, 1].
         change_decay: their weight where the change detector finds the car driving unlike
-            them, in [0, lap_decay] (lap_decay: no detector).
+            them, in [0, lap_decay].
+        detect_changes: False: no change detector (the previous passes always weigh
+            lap_decay, the road ahead is read as learned).
         min_samples: kernel-weighted samples at a point for full coverage (> 0).
         """
         if not 0.0 < lap_decay <= 1.0:
@@ -221,6 +224,7 @@ class AdaptiveRunner(Runner):
         self._waypoints_sha256 = waypoints_sha256(waypoints_xy_m)
         self.lap_decay = float(lap_decay)
         self.change_decay = float(change_decay)
+        self.detect_changes = bool(detect_changes)
         prior = [np.asarray(v, dtype=np.float64) for v in (cfg["params"][k] for k in LINE_KEYS)]
         self._prior_offset, self._prior_speed, self._prior_coverage = prior
         n = len(self._prior_offset)
@@ -310,7 +314,7 @@ class AdaptiveRunner(Runner):
             self.laps = max(self.laps, math.floor(self._s_unwrapped / length))
         places = [(0, s_m, d_m)] + ([(1, s_m - v_mps * v_age_s, v_mps)] if has_v else [])
         spread = [(kind, value, self._spread(at_m)) for kind, at_m, value in places]
-        touched = set(self._detect(stamp_s, s_m, spread))
+        touched = set(self._detect(stamp_s, s_m, spread) if self.detect_changes else [])
         for kind, value, pairs in spread:
             for idx, w in pairs:
                 self._deposit(stamp_s, idx, w, kind, value)
