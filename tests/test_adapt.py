@@ -12,7 +12,17 @@ from fpe_jax import Params, Settings, Track, cli, predict_drive, presets
 from fpe_jax.errors import InputError
 from fpe_jax.geometry._path import waypoints_sha256
 from fpe_jax.io.config import params_to_config, read_config, write_config
-from fpe_jax.runner._adapt import AdaptiveRunner, kernel, start_config
+from fpe_jax.runner._adapt import (
+    CHANGE_LOG_SPEED,
+    CHANGE_OFFSET_M,
+    CHANGE_WINDOW_M,
+    MAX_SAMPLE_SPEED_MPS,
+    MIN_RESIDUAL_SPEED_MPS,
+    PASS_GAP_S,
+    AdaptiveRunner,
+    kernel,
+    start_config,
+)
 from fpe_jax.runner._runner import Runner
 from fpe_jax.sim._sim import simulate, write_simulation
 
@@ -20,58 +30,107 @@ TOL = 1e-6
 
 
 class Recording(AdaptiveRunner):
-    """Keeps every sample it learns from: (s [m], d [m], v [m/s], the speed's age [s])."""
+    """Keeps every sample it learns from: (stamp [s], s [m], d [m], v [m/s], the speed's age
+    [s], 1 if the runner was reset just before it else 0)."""
 
-    def learn(self, s_m, d_m, v_mps, v_age_s=0.0):
-        self.seen = [*getattr(self, "seen", []), (s_m, d_m, v_mps, v_age_s)]
-        super().learn(s_m, d_m, v_mps, v_age_s)
+    def reset(self):
+        super().reset()
+        self._was_reset = True
+
+    def learn(self, stamp_s, s_m, d_m, v_mps, v_age_s=0.0):
+        row = (stamp_s, s_m, d_m, v_mps, v_age_s, float(getattr(self, "_was_reset", False)))
+        self.seen = [*getattr(self, "seen", []), row]
+        self._was_reset = False
+        super().learn(stamp_s, s_m, d_m, v_mps, v_age_s)
 
 
 def _spread(at_m, n, spacing):
-    """Each position's two profile points (2, M) and linear weights (2, M) on a loop."""
-    u = at_m / spacing
+    """A position's two profile points (2,) on a loop and their linear weights (2,)."""
+    u = (at_m % (n * spacing)) / spacing
     i = jnp.floor(u)
     f = u - i
     return jnp.stack([i % n, (i + 1) % n]).astype(jnp.int32), jnp.stack([1.0 - f, f])
 
 
+def _arc(to_m, from_m, length_m):
+    return (to_m - from_m + 0.5 * length_m) % length_m - 0.5 * length_m
+
+
 @jax.jit
-def profile_jax(s_m, d_m, v_mps, age_s, prior, length_m, kern, decay, min_samples):
-    """The profile (3, P) offset [m], speed [m/s], coverage learned from samples (M,) on a loop
-    of length_m, all at once: the offset at s, the speed at s - v age; each weighs
-    decay ** (laps between it and the point's newest sample of either kind), is spread to its
-    two points, summed, smoothed circularly and blended with the prior (3, P) by coverage."""
+def profile_jax(samples, prior, length_m, kern, decay, change_decay, min_samples):
+    """The profile (3, P) offset [m], speed [m/s], coverage learned from samples (M, 6) (stamp,
+    s, d, v, the speed's age, reset before) on a loop of length_m: the learning rule written
+    over whole arrays and scanned over the samples. Per point: the current pass's sums and the
+    passes' before (a sample more than PASS_GAP_S after the point's previous one, or after a
+    reset, starts a new pass: before <- current + keep x before, keep <- decay); the change
+    detector's window means of the residuals against the previous passes' profile (kernel-
+    smoothed, read at the sample's two points), beyond the thresholds: keep <- change_decay
+    where the car passes and, as it starts, back over the window (a reset restarts the
+    window). The profile: the sums current + keep x before smoothed circularly, blended with
+    the prior (3, P) by coverage."""
     n = prior.shape[1]
     spacing = length_m / n
-    step = jnp.diff(s_m)
-    step = (step + 0.5 * length_m) % length_m - 0.5 * length_m
-    s0 = s_m[0] % length_m
-    unwrapped = jnp.concatenate([jnp.array([s0]), s0 + jnp.cumsum(step)])
-    lap = jnp.maximum(jax.lax.cummax(jnp.floor(unwrapped / length_m)), 0.0)
-    has_v = jnp.isfinite(v_mps)
-    v = jnp.where(has_v, v_mps, 0.0)
-    idx_d, w_d = _spread(s_m % length_m, n, spacing)
-    idx_v, w_v = _spread((s_m - v * age_s) % length_m, n, spacing)
-    w_v = jnp.where(has_v[None, :], w_v, 0.0)
-    lap2 = jnp.tile(lap, 2)
-    newest = jnp.zeros(n).at[idx_d.ravel()].max(lap2).at[idx_v.ravel()].max(lap2)
-    w_d = w_d * decay ** (newest[idx_d] - lap[None, :])
-    w_v = w_v * decay ** (newest[idx_v] - lap[None, :])
-
-    def add(idx, c):
-        return jnp.zeros(n).at[idx.ravel()].add(c.ravel())
-
-    raw = jnp.stack(
-        [
-            add(idx_d, w_d),
-            add(idx_d, w_d * d_m[None, :]),
-            add(idx_v, w_v),
-            add(idx_v, w_v * v[None, :]),
-        ]
-    )
     half = (kern.shape[0] - 1) // 2
-    padded = jnp.concatenate([raw[:, -half:], raw, raw[:, :half]], axis=1)
-    sm = jax.vmap(lambda r: jnp.convolve(r, kern, mode="valid"))(padded)
+    point_m = jnp.arange(n, dtype=jnp.float64) * spacing
+
+    def smooth(raw):
+        padded = jnp.concatenate([raw[:, -half:], raw, raw[:, :half]], axis=1)
+        return jax.vmap(lambda r: jnp.convolve(r, kern, mode="valid"))(padded)
+
+    def step(state, row):
+        cur, before, keep, last, resid, resid_at, changed = state
+        t, s, d, v, age, was_reset = row
+        reset = was_reset > 0  # the clock and the detector's window restart
+        last = jnp.where(reset, -jnp.inf, last)
+        resid = jnp.where(reset, 0.0, resid)
+        resid_at = jnp.where(reset, jnp.nan, resid_at)
+        changed = changed & ~reset
+        has_v = jnp.isfinite(v) & (jnp.abs(v) <= MAX_SAMPLE_SPEED_MPS)
+        v = jnp.where(has_v, v, 0.0)
+        places = [
+            (0, _spread(s, n, spacing), d, True),
+            (1, _spread(s - v * age, n, spacing), v, has_v),
+        ]
+        in_pass = (t - last >= 0.0) & (t - last <= PASS_GAP_S)
+        prev = smooth(jnp.where(in_pass[None, :], before, cur + keep[None, :] * before))
+        r = []
+        for kind, (idx, w), value, ok in places:
+            w_sum, x_sum = w @ prev[2 * kind, idx], w @ prev[2 * kind + 1, idx]
+            known = ok & (w_sum >= min_samples)
+            before_value = x_sum / jnp.where(known, w_sum, 1.0)
+            if kind == 0:
+                res = value - before_value
+            else:
+                low = MIN_RESIDUAL_SPEED_MPS
+                res = jnp.log(jnp.maximum(value, low) / jnp.maximum(before_value, low))
+            r.append(jnp.where(known, res, 0.0))
+        a = jnp.where(
+            jnp.isnan(resid_at),
+            1.0,
+            -jnp.expm1(-jnp.abs(_arc(s, resid_at, length_m)) / CHANGE_WINDOW_M),
+        )
+        resid = resid + a * (jnp.stack(r) - resid)
+        now = (jnp.abs(resid[0]) > CHANGE_OFFSET_M) | (jnp.abs(resid[1]) > CHANGE_LOG_SPEED)
+        back = _arc(s, point_m, length_m)
+        window = in_pass & (back >= 0.0) & (back <= CHANGE_WINDOW_M) & now & ~changed
+        keep = jnp.where(window, change_decay, keep)
+        for kind, (idx, w), value, ok in places:
+            for j, wj in zip(idx, w):
+                fold = ~((t - last[j] >= 0.0) & (t - last[j] <= PASS_GAP_S))
+                b_new = jnp.where(fold, cur[:, j] + keep[j] * before[:, j], before[:, j])
+                c_new = jnp.where(fold, 0.0, cur[:, j])
+                k_new = jnp.where(now, change_decay, jnp.where(fold, decay, keep[j]))
+                c_new = c_new.at[2 * kind].add(wj).at[2 * kind + 1].add(wj * value)
+                cur = cur.at[:, j].set(jnp.where(ok, c_new, cur[:, j]))
+                before = before.at[:, j].set(jnp.where(ok, b_new, before[:, j]))
+                keep = keep.at[j].set(jnp.where(ok, k_new, keep[j]))
+                last = last.at[j].set(jnp.where(ok, t, last[j]))
+        return (cur, before, keep, last, resid, s, now), None
+
+    zeros = jnp.zeros((4, n))
+    start = (zeros, zeros, jnp.zeros(n), jnp.full(n, -jnp.inf), jnp.zeros(2), jnp.nan, False)
+    (cur, before, keep, *_), _ = jax.lax.scan(step, start, samples)
+    sm = smooth(cur + keep[None, :] * before)
     c = jnp.clip(jnp.minimum(sm[0], sm[2]) / min_samples, 0.0, 1.0)
     offset = jnp.where((sm[0] > 1e-9) & (c > 0), sm[1] / jnp.maximum(sm[0], 1e-9), 0.0)
     speed = jnp.where((sm[2] > 1e-9) & (c > 0), sm[3] / jnp.maximum(sm[2], 1e-9), 0.0)
@@ -83,10 +142,11 @@ def profile_jax(s_m, d_m, v_mps, age_s, prior, length_m, kern, decay, min_sample
 
 
 def _check_against_jax(r: Recording) -> None:
-    seen = np.array(r.seen)
     prior = np.stack([r._prior_offset, r._prior_speed, r._prior_coverage])
     kern = kernel(r._spacing, True, r._n)
-    want = profile_jax(*seen.T, prior, r.path.length_m, kern, r.lap_decay, r.min_samples)
+    want = profile_jax(
+        np.array(r.seen), prior, r.path.length_m, kern, r.lap_decay, r.change_decay, r.min_samples
+    )
     got = np.stack(list(r.profile().values()))
     assert np.max(np.abs(got - np.asarray(want))) <= TOL
 
@@ -120,6 +180,25 @@ def test_the_update_matches_a_jax_computation_of_the_same_profile(laps, start):
     _check_against_jax(r)
     cov = r.profile()["line_coverage"]
     assert np.mean(cov >= 0.99) >= 0.9 and cov.min() > 0.3, cov  # the loop seen
+    # out of sight, then 0.6 m further left on a restarted clock: new passes, the detector
+    r.reset()
+    xy = _moved_left(wp, drive.xy_m, 0.6)
+    for k, (t, (x, y), yaw) in enumerate(zip(drive.t_s[:200], xy[:200], drive.yaw_rad[:200])):
+        r.update(t, x, y, yaw)
+        if k in (30, 120):
+            _check_against_jax(r)
+    assert r.changes >= 1
+    _check_against_jax(r)
+
+
+def _moved_left(wp, xy_m, by_m):
+    """Positions (N, 2) [m] moved by_m [m] to the left of the centerline."""
+    path = Runner(start_config(None, wp), wp).path
+    out = []
+    for x, y in xy_m:
+        h = path.heading_at(path.project(x, y))
+        out.append((x - by_m * np.sin(h), y + by_m * np.cos(h)))
+    return np.array(out)
 
 
 def test_jax_profile_under_jit_and_vmap_equals_one_call(laps):
@@ -130,27 +209,27 @@ def test_jax_profile_under_jit_and_vmap_equals_one_call(laps):
     seen = np.array(r.seen)
     prior = np.zeros((3, r._n))
     kern = kernel(r._spacing, True, r._n)
-    one = profile_jax(*seen.T, prior, r.path.length_m, kern, 0.25, 0.5)
+    one = profile_jax(seen, prior, r.path.length_m, kern, 0.25, 0.0, 0.5)
     decays = jnp.array([0.25, 0.5, 1.0])
-    many = jax.vmap(lambda a: profile_jax(*seen.T, prior, r.path.length_m, kern, a, 0.5))(decays)
+    many = jax.vmap(lambda a: profile_jax(seen, prior, r.path.length_m, kern, a, 0.0, 0.5))(decays)
     np.testing.assert_allclose(many[0], one, atol=1e-12)
     assert not np.allclose(many[0], many[2])  # no decay within the first lap... but across
 
 
 def test_with_no_decay_and_no_prior_the_profile_is_fpe_line_on_the_same_samples(laps):
-    """lap_decay 1, min_samples 1, speeds taken where they were measured: the profile is
-    fpe_jax.model.line_from_samples of the runner's own samples, before its prior (all of the
-    loop covered)."""
+    """lap_decay and change_decay 1, min_samples 1, speeds taken where they were measured: the
+    profile is fpe_jax.model.line_from_samples of the runner's own samples, before its prior
+    (all of the loop covered)."""
     from fpe_jax.model._line import LineSamples, line_from_samples
 
     wp, drive = laps
 
     class Now(AdaptiveRunner):  # the speed sample at the newest position (age 0)
-        def learn(self, s_m, d_m, v_mps, v_age_s=0.0):
+        def learn(self, stamp_s, s_m, d_m, v_mps, v_age_s=0.0):
             self.seen = [*getattr(self, "seen", []), (s_m, d_m, v_mps)]
-            super().learn(s_m, d_m, v_mps, 0.0)
+            super().learn(stamp_s, s_m, d_m, v_mps, 0.0)
 
-    r = Now(None, wp, lap_decay=1.0, min_samples=1.0)
+    r = Now(None, wp, lap_decay=1.0, change_decay=1.0, min_samples=1.0)
     for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad):
         r.update(t, x, y, yaw)
     s, d, v = np.array(r.seen).T
@@ -183,6 +262,48 @@ def test_it_learns_a_new_line_within_two_laps():
     assert 0.5 < shift < 0.7, shift
 
 
+def _changed_driver(wp, drive, **kw) -> tuple[AdaptiveRunner, np.ndarray, tuple]:
+    """Three laps of a drive, a reset (the clock restarting), one lap 0.6 m further left: the
+    runner, its offset profile before the reset, and (the offset read, the profile, s [m]) 10 m
+    ahead of the car at the first update at which it had found the change."""
+    r = AdaptiveRunner(None, wp, **kw)
+    for t, (x, y), yaw in zip(drive.t_s, drive.xy_m, drive.yaw_rad):
+        r.update(t, x, y, yaw)
+    before = r.profile()["line_offset_m"]
+    changes = r.changes
+    r.reset()
+    xy = _moved_left(wp, drive.xy_m, 0.6)
+    one_lap = drive.t_s < drive.t_s[0] + 12.0
+    ahead_read = (np.nan, None, np.nan)
+    for t, (x, y), yaw in zip(drive.t_s[one_lap], xy[one_lap], drive.yaw_rad[one_lap]):
+        r.update(t, x, y, yaw)
+        if r.changed and not np.isfinite(ahead_read[0]):
+            s_ahead = r._s_m + 10.0
+            ahead_read = (r._line_at(s_ahead)[0], r.profile()["line_offset_m"], s_ahead)
+    return r, before, (changes, *ahead_read)
+
+
+def test_a_changed_driver_is_learned_in_one_pass_even_across_a_reset(laps):
+    """Three laps on its line, then out of sight (a reset, the clock restarting) and one lap
+    0.6 m further left: the detector finds the change (and nothing before it), the road ahead
+    is read with the change carried on, and the lap after the reset replaces the passes
+    before wherever it went; without the detector a quarter of the old line stays."""
+    wp, drive = laps
+    r, before, (changes_before, read, profile, s_ahead) = _changed_driver(wp, drive)
+    assert changes_before == 0  # an unchanged driver keeps its averaging over laps
+    assert r.changes >= 1
+    shift = r.profile()["line_offset_m"] - before
+    assert abs(np.median(shift) - 0.6) < 0.08, np.median(shift)
+    # the road the car had not passed since read the old line with the change carried on
+    old_there = r._profile_at(list(profile), s_ahead)
+    assert abs(read - old_there - 0.6) < 0.2, (read, old_there)
+
+    plain, before, (_, read, _, _) = _changed_driver(wp, drive, detect_changes=False)
+    assert plain.changes == 0 and not np.isfinite(read)
+    shift = np.median(plain.profile()["line_offset_m"] - before)
+    assert 0.3 < shift < 0.52, shift  # 0.6 / (1 + 0.25 + ...) where both were seen
+
+
 def test_the_saved_state_is_a_config_the_runner_and_jax_read(laps, tmp_path):
     wp, drive = laps
     r = AdaptiveRunner(None, wp, settings={"horizon": 20})
@@ -212,6 +333,8 @@ def test_start_config_errors_and_defaults(laps):
         start_config(params_to_config(presets["default"]), wp, settings={"horizon": 20})
     with pytest.raises(InputError, match="lap_decay"):
         AdaptiveRunner(None, wp, lap_decay=0.0)
+    with pytest.raises(InputError, match="change_decay"):
+        AdaptiveRunner(None, wp, lap_decay=0.25, change_decay=0.5)
 
 
 def test_the_runner_interface_is_the_runners(laps):

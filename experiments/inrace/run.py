@@ -32,7 +32,7 @@ from fpe_jax.fit._cases import LATENCY_S
 from fpe_jax.geometry._path import waypoints_sha256
 from fpe_jax.io.config import params_to_config
 from fpe_jax.progress import Progress
-from fpe_jax.runner._adapt import AdaptiveRunner
+from fpe_jax.runner._adapt import CHANGE_DECAY, LAP_DECAY, AdaptiveRunner
 from fpe_jax.runner._runner import Runner, RunnerPath
 from fpe_jax.sim._sim import Driver, simulate
 
@@ -102,8 +102,9 @@ def per_lap(err: np.ndarray, lap: np.ndarray, laps) -> list[float]:
     ]
 
 
-def part_a(name: str, wp, cfg_old: dict, seed: int) -> dict:
-    """(a) FDE per lap on one race (seed) of the opponent's normal behaviour."""
+def part_a(name: str, wp, cfg_old: dict, seed: int) -> tuple[dict, dict]:
+    """(a) FDE per lap on one race (seed) of the opponent's normal behaviour, and how often
+    each adapting runner's change detector fired on it (an unchanged driver: ideally never)."""
     path = RunnerPath(wp)
     lap_s = path.length_m / 5.0  # a generous lap time at the default pace
     race = simulate(name, duration_s=(RACE_LAPS + 0.5) * lap_s, seed=seed).drive
@@ -113,8 +114,12 @@ def part_a(name: str, wp, cfg_old: dict, seed: int) -> dict:
         "offline fit (separate drive)": Runner(cfg_old, wp),
         "adapting, from the waypoints alone": AdaptiveRunner(None, wp, delay_s=LATENCY_S),
         "adapting, from the offline fit": AdaptiveRunner(cfg_old, wp),
+        "adapting, from the offline fit, no change detector": AdaptiveRunner(
+            cfg_old, wp, detect_changes=False
+        ),
     }
-    return {label: per_lap(errors_at(r, race), lap, laps) for label, r in runners.items()}
+    table = {label: per_lap(errors_at(r, race), lap, laps) for label, r in runners.items()}
+    return table, {label: r.changes for label, r in runners.items() if hasattr(r, "changes")}
 
 
 def part_b(name: str, wp, cfg_old: dict, cfg_new: dict, kw: dict, seeds) -> dict:
@@ -129,6 +134,7 @@ def part_b(name: str, wp, cfg_old: dict, cfg_new: dict, kw: dict, seeds) -> dict
     runners = {
         "static (fitted on the old behaviour)": Runner(cfg_old, wp),
         "adapting (from the same config)": AdaptiveRunner(cfg_old, wp),
+        "adapting, no change detector": AdaptiveRunner(cfg_old, wp, detect_changes=False),
         "offline fit on the new behaviour": Runner(cfg_new, wp),
     }
     b = {}
@@ -154,9 +160,9 @@ def run_track(name: str, say) -> dict:
         cfg_new = fitted_config(fit_new, wp, say)
         say(f"{name}: the races")
         b = [part_b(name, wp, cfg_old, cfg_new, kw, seeds) for seeds in CHANGE_SEEDS]
-    a = [part_a(name, wp, cfg_old, seed) for seed in RACE_SEEDS]
+    a, changes = zip(*[part_a(name, wp, cfg_old, seed) for seed in RACE_SEEDS])
     return dict(
-        a=a, b=b, laps=(1, 2, 3, 5), new_laps=tuple(range(1, NEW_LAPS + 1)),
+        a=a, a_changes=changes, b=b, laps=(1, 2, 3, 5), new_laps=tuple(range(1, NEW_LAPS + 1)),
         length_m=RunnerPath(wp).length_m,
     )  # fmt: skip
 
@@ -205,8 +211,9 @@ def markdown(out: dict, wall_s: float) -> str:
         "Median distance [m] between the prediction 1 s ahead and the true position then, per "
         "lap of the opponent. Simulated drives on the built-in tracks, detection latency "
         f"{LATENCY_S} s, every prediction from the NumPy runners (`fpe_jax.runner.Runner`, "
-        "`fpe_jax.runner.AdaptiveRunner`, lap decay 0.25). Offline fits: `fpe fit`'s default "
-        f"(line model) on a separate {FIT_S:g} s drive.",
+        f"`fpe_jax.runner.AdaptiveRunner`: previous passes weigh {LAP_DECAY} per pass, "
+        f"{CHANGE_DECAY} where its change detector finds the car driving unlike them). "
+        f"Offline fits: `fpe fit`'s default (line model) on a separate {FIT_S:g} s drive.",
         "",
         "## (a) No fit drive: learning from the first lap",
         "",
@@ -228,7 +235,26 @@ def markdown(out: dict, wall_s: float) -> str:
             "",
             "Lap 2, adapting from the waypoints alone / offline fit, on races with seeds "
             + ", ".join(f"{sd}: {x:.2f}x" for sd, x in zip(RACE_SEEDS, ratios))
-            + ".",
+            + ". The change detector fired (an unchanged driver) on these races: "
+            + ", ".join(
+                f"{sd}: {c['adapting, from the waypoints alone']} / "
+                f"{c['adapting, from the offline fit']}"
+                for sd, c in zip(RACE_SEEDS, r["a_changes"])
+            )
+            + " times (from the waypoints alone / from the offline fit). Laps 2, 3 and 5, adapting "
+            "from the offline fit with / without the change detector, on races with seeds "
+            + "; ".join(
+                f"{sd}: "
+                + ", ".join(
+                    f"{x:.3f} / {y:.3f}"
+                    for x, y in zip(
+                        a["adapting, from the offline fit"][1:],
+                        a["adapting, from the offline fit, no change detector"][1:],
+                    )
+                )
+                for sd, a in zip(RACE_SEEDS, r["a"])
+            )
+            + " m.",
             "",
         ]
     lines += [
@@ -248,9 +274,16 @@ def markdown(out: dict, wall_s: float) -> str:
             adapt = b["adapting (from the same config)"][1]
             new_fit = b["offline fit on the new behaviour"][1]
             static = b["static (fitted on the old behaviour)"][1]
+            plain = b["adapting, no change detector"][1]
+            first, static_first = (
+                b[k][0]
+                for k in ("adapting (from the same config)", "static (fitted on the old behaviour)")
+            )
             lines.append(
                 f"- {seeds[0]} / {seeds[1]}: {adapt:.3f} m = {adapt / new_fit:.2f}x the "
-                f"new-behaviour fit, {1.0 - adapt / static:.0%} better than static"
+                f"new-behaviour fit, {1.0 - adapt / static:.0%} better than static (without the "
+                f"change detector {plain:.3f} m = {plain / new_fit:.2f}x; on the first lap after "
+                f"the change {first:.3f} m against static's {static_first:.3f} m)"
             )
         lines.append("")
     return "\n".join(lines)

@@ -7,22 +7,36 @@ from its own filtered observations as the car drives: every new detection's trac
 prediction itself uses) is spread onto the profile's two nearest points with linear weights, as
 `fpe_jax.model.line_from_samples` spreads a drive's samples.
 
-- Recent laps weigh more: a point's sums are multiplied by LAP_DECAY for every lap since the point
-  last received a sample (lazily, when it next receives one), so the line the car drives now
-  replaces the one it drove a lap or two ago (weights 1, 0.25, 0.06, ... for this lap, the last
-  and the one before).
+- Recent passes weigh more: each point keeps the sums of the car's current pass over it apart
+  from those of the passes before; a sample arriving more than PASS_GAP_S after the point's
+  previous one (or the first after a reset) starts a new pass there, and the passes before then
+  weigh LAP_DECAY (weights 1, 0.25, 0.06, ... for this pass, the last and the one before). A
+  pass is the car's own return to the point, so no lap counter or clock has to run on across a
+  car out of sight, a jump in the stream or a restarted clock.
+- A change detector keeps an unchanged driver's averaging and drops it when the driver changes:
+  every sample's offset and log speed are compared with what the previous passes learned where
+  it is (the smoothed profile of those passes alone), and the residuals averaged over the last
+  CHANGE_WINDOW_M of track. While either window mean is beyond its threshold (CHANGE_OFFSET_M,
+  CHANGE_LOG_SPEED: above what a driver keeping its line and pace shows lap to lap), the
+  previous passes weigh CHANGE_DECAY instead at every point the car passes, and, as the change
+  is found, at the points of the window behind it: one pass on the new line and pace replaces
+  the old profile there, where a fixed decay would still mix in a quarter of it. Offset and
+  speed share the rule and the detector (a change of line, cornering or pace changes both).
 - Where the car has not been seen the prior holds: the starting config's profile, or with none
   the line model's uncovered fallback (the car's own offset kept, its speed held).
 - Bounded work: an update touches only the points within the smoothing kernel's reach of the
   new offset and speed samples (at most 4 x (2 x 4 sigma + 1) = 68 points with the 0.5 m
-  spacing and 1 m kernel), so an update costs the same on any track and any lap.
+  spacing and 1 m kernel), reads the previous passes there for the detector and, when a change
+  is found, the window behind (CHANGE_WINDOW_M / 0.5 m + 3 points), so an update costs the same
+  on any track and any lap.
 - Delay, time constants and filter noise stay as the starting config has them (or
   `DEFAULT_PARAMS` without one): they are properties of the ego car's sensor and of the
   opponent's driving that a lap of detections does not identify.
 
 `state_config()` is the learned state as an ordinary line-model config (`fpe predict --config`,
-`fpe evaluate`, `fpe export` read it). tests/test_adapt.py computes the same profile from all
-samples at once in JAX (a scatter-add, a circular convolution) and compares the two to 1e-6.
+`fpe evaluate`, `fpe export` read it). tests/test_adapt.py computes the same profile in JAX (the
+rule written over whole arrays, scanned over the samples, then a circular convolution) and
+compares the two to 1e-6.
 
 Imports no JAX (the car's computer may have none).
 """
@@ -48,7 +62,23 @@ PROFILE_SMOOTH_M = 1.0  # fpe_jax.model's kernel standard deviation [m]
 # kernel-weighted samples for full coverage: fpe_jax.model needs 1 over whole drives; in the race
 # half of that, so that one lap at 10 Hz covers the loop (the newest lap weighs most)
 MIN_SAMPLES = 0.5
-LAP_DECAY = 0.25  # weight of the samples of one lap before the newest, per lap
+LAP_DECAY = 0.25  # weight of a point's samples from one pass before the newest, per pass
+# a point's next sample more than this after its previous one (or after a reset) starts a new
+# pass there: longer than any stay at a point of a car that is moving or seen standing, shorter
+# than any lap
+PASS_GAP_S = 2.0
+# the change detector: the car's offset and log speed against what the previous passes learned
+# where it is, averaged over the last CHANGE_WINDOW_M of track (about a second of driving, the
+# span the rollout reads the profile over); beyond CHANGE_OFFSET_M or CHANGE_LOG_SPEED there,
+# the previous passes' weight at the points the car passes drops to CHANGE_DECAY. The
+# thresholds sit above what an unchanged driver shows: on the simulated races (a line wandering
+# +-0.3 m, sensor noise, 0.3 s latency) the window means stay within 0.36 m and 0.09 (95 % within
+# 0.28 m and 0.07), so a driver who keeps its line and pace keeps its averaging over laps
+CHANGE_WINDOW_M = 5.0
+CHANGE_OFFSET_M = 0.45
+CHANGE_LOG_SPEED = 0.15
+CHANGE_DECAY = 0.0
+MIN_RESIDUAL_SPEED_MPS = 0.5  # speeds are compared above this (a standing car: no ratio)
 MAX_SAMPLE_SPEED_MPS = 100.0  # a track-frame speed above this is a filter transient: no sample
 
 # Without a config: the line model with the Kalman estimator, no detection delay (give the ego
@@ -151,7 +181,8 @@ class AdaptiveRunner(Runner):
     go by; `update` has the same interface and returns (H, 3) x [m], y [m], yaw [rad].
 
     Attributes (besides Runner's): samples: the number of samples learned from; laps: the laps
-    the car has driven since the start (on a loop).
+    the car has driven since the start (on a loop); changes: how often the change detector has
+    found the car driving unlike its previous passes; changed: whether it does now.
     """
 
     def __init__(
@@ -162,6 +193,8 @@ class AdaptiveRunner(Runner):
         settings: Mapping[str, Any] | None = None,
         delay_s: float | None = None,
         lap_decay: float = LAP_DECAY,
+        change_decay: float = CHANGE_DECAY,
+        detect_changes: bool = True,
         min_samples: float = MIN_SAMPLES,
         source: str = "config",
     ):
@@ -171,11 +204,17 @@ class AdaptiveRunner(Runner):
         waypoints_xy_m: (K, 2) waypoints [m].
         settings, delay_s: without a config, settings to change (e.g. {"horizon": 50}) and
             the ego sensor's detection delay [s] (`start_config`).
-        lap_decay: weight of a lap's samples per newer lap, in (0, 1].
+        lap_decay: weight of a point's previous passes, per newer pass, in (0, 1].
+        change_decay: their weight where the change detector finds the car driving unlike
+            them, in [0, lap_decay].
+        detect_changes: False: no change detector (the previous passes always weigh
+            lap_decay, the road ahead is read as learned).
         min_samples: kernel-weighted samples at a point for full coverage (> 0).
         """
         if not 0.0 < lap_decay <= 1.0:
             raise InputError("lap_decay", f"{lap_decay!r}", "a number in (0, 1]")
+        if not 0.0 <= change_decay <= lap_decay:
+            raise InputError("change_decay", f"{change_decay!r}", "a number in [0, lap_decay]")
         if not min_samples > 0.0:
             raise InputError("min_samples", f"{min_samples!r}", "a positive number")
         self.min_samples = float(min_samples)
@@ -184,20 +223,32 @@ class AdaptiveRunner(Runner):
         self._cfg = cfg
         self._waypoints_sha256 = waypoints_sha256(waypoints_xy_m)
         self.lap_decay = float(lap_decay)
+        self.change_decay = float(change_decay)
+        self.detect_changes = bool(detect_changes)
         prior = [np.asarray(v, dtype=np.float64) for v in (cfg["params"][k] for k in LINE_KEYS)]
         self._prior_offset, self._prior_speed, self._prior_coverage = prior
         n = len(self._prior_offset)
         self._n = n
         self._spacing = self.path.length_m / (n if self.path.closed else n - 1)
         self._kernel = kernel(self._spacing, self.path.closed, n)
-        # raw sums per point: weight, weight x offset, speed weight, speed weight x speed
+        # raw sums per point (weight, weight x offset, speed weight, speed weight x speed) of
+        # the current pass there and of the passes before it; the profile's are
+        # current + keep x before
+        self._current = np.zeros((4, n))
+        self._before = np.zeros((4, n))
+        self._keep = np.zeros(n)
+        self._last_s = np.full(n, -math.inf)  # stamp of each point's newest sample [s]
         self._sums = np.zeros((4, n))
         self._smoothed = np.zeros((4, n))
-        self._lap_of_point = np.zeros(n, dtype=np.int64)
         self._profile = [list(a) for a in prior]
         self._line = self._profile  # the rollout reads the live profile
         self.samples = 0
         self.laps = 0
+        self.changes = 0
+        self.changed = False
+        self._residual = [0.0, 0.0]  # the detector's window means: offset [m], log speed
+        self._residual_at: float | None = None  # arc length [m] of its newest sample
+        self._changed_s = -math.inf  # stamp [s] at which the change now found was found
         self._s_unwrapped: float | None = None
         self._frame = None
 
@@ -212,9 +263,12 @@ class AdaptiveRunner(Runner):
         return cls(cfg, xy, source=str(config_path or "defaults"), **kw)
 
     def reset(self) -> None:
-        """Forget the history and the track position; what was learned stays."""
+        """Forget the history, the track position and the change detector's window (and the
+        clock: the next sample at any point starts a new pass there); what was learned stays."""
         super().reset()
-        self._s_unwrapped = None
+        if hasattr(self, "_last_s"):  # Runner.__init__ resets before the state exists
+            self._last_s[:] = -math.inf
+            self._residual, self._residual_at, self.changed = [0.0, 0.0], None, False
 
     def _track_frame(self, s_hint_m: float):
         self._frame = super()._track_frame(s_hint_m)
@@ -229,16 +283,25 @@ class AdaptiveRunner(Runner):
         fresh = self._history and self._history[-1] is not n_before
         if fresh and self._frame is not None:
             s_m, sdot_mps, d_m, age_s = self._frame
-            self.learn(s_m, d_m, sdot_mps, age_s)
+            self.learn(float(stamp_s), s_m, d_m, sdot_mps, age_s)
         return poses
 
     # ---- learning -----------------------------------------------------------------------------
 
-    def learn(self, s_m: float, d_m: float, v_mps: float, v_age_s: float = 0.0) -> None:
-        """Add one sample: the car at arc length s_m [m] (any lap) with offset d_m [m], and its
-        along-track speed v_mps [m/s] (not finite or implausible: no speed sample) as it was
-        v_age_s [s] before (a window's speed estimate describes its middle: the speed sample
-        goes where the car was then, s_m - v_mps v_age_s, as the rollout reads it)."""
+    def learn(
+        self, stamp_s: float, s_m: float, d_m: float, v_mps: float, v_age_s: float = 0.0
+    ) -> None:
+        """Add one sample, taken at stamp_s [s]: the car at arc length s_m [m] (any lap) with
+        offset d_m [m], and its along-track speed v_mps [m/s] (not finite or implausible: no
+        speed sample) as it was v_age_s [s] before (a window's speed estimate describes its
+        middle: the speed sample goes where the car was then, s_m - v_mps v_age_s, as the
+        rollout reads it).
+
+        A point's sample more than PASS_GAP_S after its previous one starts a new pass there:
+        the passes before weigh lap_decay less. The change detector compares the sample with
+        what the previous passes learned where it was; while the window mean of that residual
+        is beyond CHANGE_OFFSET_M or CHANGE_LOG_SPEED, the previous passes weigh change_decay
+        at the points the car passes, from CHANGE_WINDOW_M behind the sample on."""
         has_v = math.isfinite(v_mps) and abs(v_mps) <= MAX_SAMPLE_SPEED_MPS
         length = self.path.length_m
         if self.path.closed:
@@ -246,57 +309,151 @@ class AdaptiveRunner(Runner):
             if self._s_unwrapped is None:
                 self._s_unwrapped = s_mod
             else:
-                step = (s_mod - self._s_unwrapped % length + 0.5 * length) % length - 0.5 * length
-                self._s_unwrapped += step
-            # never backwards (a car backing up, or jitter at the line): a point's laps only grow
+                self._s_unwrapped += self._arc_step(s_mod, self._s_unwrapped)
+            # never backwards (a car backing up, or jitter at the line): laps only grow
             self.laps = max(self.laps, math.floor(self._s_unwrapped / length))
-        touched = set()
-        for kind, at_m in ((0, s_m), (1, s_m - v_mps * v_age_s if has_v else None)):
-            if at_m is None:
-                continue
-            if self.path.closed:
-                u = (at_m % length) / self._spacing
-            else:
-                u = min(max(at_m, 0.0), length) / self._spacing
-            i = math.floor(u)
-            f = u - i
-            for idx, w in ((i, 1.0 - f), (i + 1, f)):
-                idx = idx % self._n if self.path.closed else min(max(idx, 0), self._n - 1)
-                self._deposit(idx, w, kind, d_m if kind == 0 else v_mps)
+        places = [(0, s_m, d_m)] + ([(1, s_m - v_mps * v_age_s, v_mps)] if has_v else [])
+        spread = [(kind, value, self._spread(at_m)) for kind, at_m, value in places]
+        touched = set(self._detect(stamp_s, s_m, spread) if self.detect_changes else [])
+        for kind, value, pairs in spread:
+            for idx, w in pairs:
+                self._deposit(stamp_s, idx, w, kind, value)
                 touched.add(idx)
         self.samples += 1
         self._refresh(sorted(touched))
 
-    def _deposit(self, idx: int, w: float, kind: int, value: float) -> None:
+    def _arc_step(self, to_m: float, from_m: float) -> float:
+        """The arc length [m] from from_m to to_m: the shorter way round on a loop."""
+        if not self.path.closed:
+            return to_m - from_m
+        length = self.path.length_m
+        return (to_m - from_m + 0.5 * length) % length - 0.5 * length
+
+    def _spread(self, at_m: float) -> list[tuple[int, float]]:
+        """The two profile points around arc length at_m [m] and their linear weights."""
+        length = self.path.length_m
+        if self.path.closed:
+            u = (at_m % length) / self._spacing
+        else:
+            u = min(max(at_m, 0.0), length) / self._spacing
+        i = math.floor(u)
+        f = u - i
+        out = []
+        for idx, w in ((i, 1.0 - f), (i + 1, f)):
+            out.append((idx % self._n if self.path.closed else min(max(idx, 0), self._n - 1), w))
+        return out
+
+    def _in_pass(self, stamp_s: float, idx: int) -> bool:
+        return bool(0.0 <= stamp_s - self._last_s[idx] <= PASS_GAP_S)
+
+    def _detect(self, stamp_s: float, s_m: float, spread) -> list[int]:
+        """Update the change detector with one sample's residuals against the previous passes
+        (spread: as `learn` places it); returns the points whose previous passes it drops."""
+        if self._residual_at is None:
+            a = 1.0
+        else:  # an exponential window in distance driven
+            a = -math.expm1(-abs(self._arc_step(s_m, self._residual_at)) / CHANGE_WINDOW_M)
+        self._residual_at = s_m
+        residual = [0.0, 0.0]  # no previous passes there: no evidence of a change
+        for kind, value, pairs in spread:
+            before = self._previous(stamp_s, kind, pairs)
+            if before is None:
+                continue
+            if kind == 0:
+                residual[0] = value - before
+            else:
+                low = MIN_RESIDUAL_SPEED_MPS
+                residual[1] = math.log(max(value, low) / max(before, low))
+        self._residual = [m + a * (r - m) for m, r in zip(self._residual, residual)]
+        was = self.changed
+        self.changed = (
+            abs(self._residual[0]) > CHANGE_OFFSET_M or abs(self._residual[1]) > CHANGE_LOG_SPEED
+        )
+        if not self.changed or was:
+            return []
+        self.changes += 1
+        self._changed_s = stamp_s
+        # the window that showed the change: the points of this pass up to CHANGE_WINDOW_M back
+        out = []
+        back = math.ceil(CHANGE_WINDOW_M / self._spacing) + 1
+        first = math.floor(s_m / self._spacing)
+        for i in range(first - back, first + 2):
+            idx = i % self._n if self.path.closed else i
+            if not 0 <= idx < self._n or not self._in_pass(stamp_s, idx):
+                continue
+            if 0.0 <= self._arc_step(s_m, idx * self._spacing) <= CHANGE_WINDOW_M:
+                self._keep[idx] = self.change_decay
+                self._sums[:, idx] = self._current[:, idx] + self._keep[idx] * self._before[:, idx]
+                out.append(idx)
+        return out
+
+    def _previous(self, stamp_s: float, kind: int, pairs) -> float | None:
+        """The offset (kind 0) [m] or speed (kind 1) [m/s] the previous passes learned at a
+        sample's two points (pairs: point, linear weight), or None where they saw too little
+        (less than min_samples kernel-weighted samples)."""
+        w_sum, x_sum = 0.0, 0.0
+        for j, w in pairs:
+            cols = self._columns(j)
+            k = self._kernel if self.path.closed else self._open_kernel(j)
+            for c, kk in zip(cols, k):
+                # a point already in its new pass holds its previous passes apart
+                prev = self._before[:, c] if self._in_pass(stamp_s, c) else self._sums[:, c]
+                w_sum += w * kk * prev[2 * kind]
+                x_sum += w * kk * prev[2 * kind + 1]
+        return x_sum / w_sum if w_sum >= self.min_samples else None
+
+    def _columns(self, j: int) -> list[int]:
+        """The points the kernel centred on point j reads (wrapped on a loop, cut at the ends of
+        an open path)."""
+        half = (len(self._kernel) - 1) // 2
+        if self.path.closed:
+            return [(j + k) % self._n for k in range(-half, half + 1)]
+        return list(range(max(j - half, 0), min(j + half, self._n - 1) + 1))
+
+    def _open_kernel(self, j: int) -> np.ndarray:
+        half = (len(self._kernel) - 1) // 2
+        lo, hi = max(j - half, 0), min(j + half, self._n - 1)
+        return self._kernel[lo - j + half : hi - j + half + 1]
+
+    def _deposit(self, stamp_s: float, idx: int, w: float, kind: int, value: float) -> None:
         """Add weight w of an offset (kind 0) or speed (kind 1) sample at point idx, first
-        decaying the point's sums by lap_decay per lap since it was last given one."""
-        sums = self._sums
-        behind = self.laps - self._lap_of_point[idx]
-        if behind > 0:
-            sums[:, idx] *= self.lap_decay**behind
-            self._lap_of_point[idx] = self.laps
-        sums[2 * kind, idx] += w
-        sums[2 * kind + 1, idx] += w * value
+        starting a new pass there if its previous sample is more than PASS_GAP_S old."""
+        cur, before = self._current[:, idx], self._before[:, idx]
+        if not self._in_pass(stamp_s, idx):
+            before[:] = cur + self._keep[idx] * before
+            cur[:] = 0.0
+            self._keep[idx] = self.lap_decay
+        if self.changed:
+            self._keep[idx] = self.change_decay
+        self._last_s[idx] = stamp_s
+        cur[2 * kind] += w
+        cur[2 * kind + 1] += w * value
+        self._sums[:, idx] = cur + self._keep[idx] * before
 
     def _refresh(self, touched: list[int]) -> None:
         """Re-smooth and re-blend the points within the kernel's reach of the touched ones."""
-        half = (len(self._kernel) - 1) // 2
-        n, closed = self._n, self.path.closed
-        if closed:
-            near = sorted({(j + k) % n for j in touched for k in range(-half, half + 1)})
-        else:
-            near = sorted(
-                {j + k for j in touched for k in range(-half, half + 1) if 0 <= j + k < n}
-            )
+        near = sorted({c for j in touched for c in self._columns(j)})
         for j in near:
-            if closed:
-                cols = [(j + k) % n for k in range(-half, half + 1)]
-                self._smoothed[:, j] = self._sums[:, cols] @ self._kernel
-            else:  # zero beyond the ends, as np.convolve(mode="same")
-                lo, hi = max(j - half, 0), min(j + half, n - 1)
-                kk = self._kernel[lo - j + half : hi - j + half + 1]
-                self._smoothed[:, j] = self._sums[:, lo : hi + 1] @ kk
+            cols = self._columns(j)
+            k = self._kernel if self.path.closed else self._open_kernel(j)
+            self._smoothed[:, j] = self._sums[:, cols] @ k  # zero beyond an open path's ends
             self._blend(j)
+
+    def _line_at(self, s_m: float) -> tuple[float, float, float]:
+        """The profile the rollout reads at arc length s_m [m]: offset [m], coverage, speed
+        [m/s]. While the detector finds the car driving unlike its previous passes, the points
+        it has not passed since hold the old behaviour: there the change seen so far carries
+        on (its window mean offset added, its speed ratio applied), so that the road ahead
+        agrees with the line and pace the car now shows behind."""
+        offset, coverage, speed = super()._line_at(s_m)
+        if not self.changed:
+            return offset, coverage, speed
+        old = sum(w for idx, w in self._spread(s_m) if self._last_s[idx] < self._changed_s)
+        return (
+            offset + old * self._residual[0],
+            coverage,
+            speed * math.exp(old * self._residual[1]),
+        )
 
     def _blend(self, j: int) -> None:
         sw, sd, svw, sv = self._smoothed[:, j]
@@ -336,6 +493,8 @@ class AdaptiveRunner(Runner):
                 "samples": self.samples,
                 "laps": self.laps,
                 "lap_decay": self.lap_decay,
+                "change_decay": self.change_decay,
+                "changes": self.changes,
                 "at": datetime.now(UTC).isoformat(timespec="seconds"),
             },
         }
