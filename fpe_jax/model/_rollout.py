@@ -85,8 +85,8 @@ def _sincos(x):
     """(sin x, cos x) from one shared range reduction and two short polynomials.
 
     XLA's CPU sin and cos each reduce the argument on their own; sharing it made a rollout step
-    about 20 % faster. Measured error (tests/test_rollout.py): < 1e-7 in float32 and < 3e-14 in
-    float64 for |x| < 1e4 rad, far more than any step turns.
+    about 20 % faster. Measured error (tests/model/test_rollout.py): < 1e-7 in float32 and
+    < 3e-14 in float64 for |x| < 1e4 rad, far more than any step turns.
     """
     n = jnp.round(x * (2.0 / math.pi))
     # x - n pi/2 with pi/2 split in two parts (Cody-Waite), so the reduction loses little

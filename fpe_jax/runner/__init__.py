@@ -1,6 +1,7 @@
 """The JAX-free on-car runner: a NumPy mirror of the model (`Runner`, `_runner`) and
 in-race learning (`AdaptiveRunner`, `_adapt`). Importing this package, and using it, imports no
-JAX (tests/test_adapt.py and tests/test_runner.py check it in a process where JAX is blocked).
+JAX (tests/runner/test_adapt.py and tests/runner/test_runner.py check it in a process where
+JAX is blocked).
 `python -m fpe_jax.runner WAYPOINTS` prints the runner's step-time benchmark.
 """
 

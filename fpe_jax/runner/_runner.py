@@ -51,7 +51,7 @@ from fpe_jax.spec import FILTER_DEFAULTS, FILTER_KEYS, check_config
 from fpe_jax.spec import MODELS as MODELS
 
 # The same constants as fpe_jax.model, fpe_jax.model and fpe_jax.geometry (which import JAX, so
-# they cannot be imported here); tests/test_runner.py checks that they agree.
+# they cannot be imported here); tests/runner/test_runner.py checks that they agree.
 WINDOW_BEHIND_M = 2.0
 WINDOW_AHEAD_M = 4.0
 LOCAL_PROJECTION_ITERS = 2

@@ -23,7 +23,7 @@ from fpe_jax.runner import _runner as runner
 from fpe_jax.runner._runner import GoalScan, Runner, RunnerPath, run_stream
 from fpe_jax.spec import SCHEMA_VERSION
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 CHECK_NO_JAX = """
 leaked = [m for m in ("jax", "jaxlib", "equinox", "optimistix") if m in sys.modules]
