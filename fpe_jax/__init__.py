@@ -73,9 +73,9 @@ def __dir__() -> list[str]:
 
 
 class _Package(types.ModuleType):
-    # Fix (tests/test_predict.py): the submodule `fpe_jax.predict` shares its name with the public
-    # function `predict`; importing the submodule makes the import system bind the package
-    # attribute to the module, so `from fpe_jax import predict_batch, predict` returned a module.
+    # The submodule `fpe_jax.predict` shares its name with the public function `predict`;
+    # importing the submodule makes the import system bind the package attribute to the module,
+    # so `from fpe_jax import predict` would give a module (tests/predict/test_predict.py).
     # Keep the public name: skip that binding (the submodule stays in sys.modules).
     def __setattr__(self, name, value):
         if isinstance(value, types.ModuleType) and name in _LAZY:

@@ -483,7 +483,8 @@ def cmd_export(args) -> int:
 
 
 def cmd_run(args) -> int:
-    # NumPy only: this command must work on a car without JAX (tests/test_speed.py checks it)
+    # NumPy only: this command must work on a car without JAX
+    # (tests/compile/test_executables.py checks it)
     from fpe_jax.runner._runner import Runner, run_stream
 
     rate_hz = None if args.rate is None else spec.check_rate(args.rate, "--rate", "value")

@@ -1,5 +1,6 @@
 """Strict JAX settings for every test: float64, no implicit rank or dtype promotion."""
 
+import gc
 import os
 import signal
 import tempfile
@@ -46,3 +47,13 @@ def shared_data() -> Path:
 def fpe_cache_dir() -> Path:
     """The session's compilation cache (`FPE_CACHE_DIR`), shared by every test and command."""
     return Path(os.environ["FPE_CACHE_DIR"])
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Drop JAX's in-memory compiled programs after each test file: one process runs the whole
+    suite, and the programs of 50-odd files would otherwise stay resident (several GB). What a
+    later file compiles again comes from the session's disk cache."""
+    yield
+    jax.clear_caches()
+    gc.collect()

@@ -10,18 +10,9 @@ import importlib
 
 # public name -> the private module that defines it (imported on first use)
 _LAZY = {
-    "BLOCK_ROWS": "_rows",
-    "CPU_COMPILER_OPTIONS": "_aot",
     "Executable": "_aot",
-    "FUSION_EMITTERS": "_aot",
-    "MAGIC": "_cache",
     "MARKER": "_cache",
-    "MAX_ENTRY_BYTES": "_cache",
-    "MIN_BUCKET": "_rows",
-    "O_SAFE_READ": "_cache",
-    "PREDICT_CHUNK": "_rows",
     "Refused": "_cache",
-    "STALE_TEMP_S": "_cache",
     "active_dir": "_cache",
     "bucket": "_rows",
     "clear": "_cache",

@@ -7,13 +7,8 @@ import importlib
 
 # public name -> the private module that defines it (imported on first use)
 _LAZY = {
-    "CROSS_FOLDS": "_evaluate",
     "Dataset": "_evaluate",
     "Heldout": "_evaluate",
-    "MIN_FOLD_S": "_evaluate",
-    "MIN_HISTORY": "_evaluate",
-    "MIN_MODEL_VAR_M2": "_metrics",
-    "MISS_THRESHOLD_M": "_metrics",
     "Targets": "_evaluate",
     "covariance_map": "_evaluate",
     "coverage": "_metrics",

@@ -12,17 +12,9 @@ import importlib
 
 # public name -> the private module that defines it (imported on first use)
 _LAZY = {
-    "ALLOW_HINT": "_path",
     "BRANCH_COS": "_path",
-    "BRANCH_M": "_path",
-    "BRANCH_MAX_ANGLE_RAD": "_path",
-    "BUILTIN_TRACKS": "_tracks",
-    "MIN_ALONG_SHARE": "_path",
-    "MIN_HEADING_SPEED_MPS": "_path",
     "MIN_ON_TRACK_SHARE": "_path",
-    "ON_TRACK_EXTENT": "_path",
     "ON_TRACK_M": "_path",
-    "SPACING_M": "_tracks",
     "Track": "_track",
     "arclength_along": "_track",
     "arclength_along_heading": "_track",

@@ -291,6 +291,13 @@ def on_track_m(path_xy_m) -> float:
 BRANCH_MAX_ANGLE_RAD = math.pi / 4
 BRANCH_COS = math.cos(BRANCH_MAX_ANGLE_RAD)
 BRANCH_M = 2.0
+
+# Local projection onto the track (`Track.project_window`, `Track.project_local`, and the
+# runner's mirror of them): the window searched around a hint [m] and the Newton-like
+# refinement steps.
+WINDOW_BEHIND_M = 2.0
+WINDOW_AHEAD_M = 4.0
+LOCAL_PROJECTION_ITERS = 2
 MIN_HEADING_SPEED_MPS = 0.5
 
 ALLOW_HINT = "pass --allow-off-track to use them anyway"

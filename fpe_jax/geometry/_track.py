@@ -13,7 +13,14 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from fpe_jax.compile._arrays import device_array
-from fpe_jax.geometry._path import BRANCH_COS, BRANCH_M, build_path
+from fpe_jax.geometry._path import (
+    BRANCH_COS,
+    BRANCH_M,
+    LOCAL_PROJECTION_ITERS,
+    WINDOW_AHEAD_M,
+    WINDOW_BEHIND_M,
+    build_path,
+)
 
 
 class Track(eqx.Module):
@@ -128,7 +135,11 @@ class Track(eqx.Module):
         return s_ref_m + wrap_to(s_m - s_ref_m, self.length_m) if self.closed else s_m
 
     def project_window(
-        self, p_m: Float[Array, "2"], s_hint_m: Float[Array, ""], behind_m=2.0, ahead_m=4.0
+        self,
+        p_m: Float[Array, "2"],
+        s_hint_m: Float[Array, ""],
+        behind_m=WINDOW_BEHIND_M,
+        ahead_m=WINDOW_AHEAD_M,
     ) -> Float[Array, ""]:
         """Arc length [m] of the closest point within [s_hint - behind, s_hint + ahead].
 
@@ -147,7 +158,10 @@ class Track(eqx.Module):
         return self._project_segments(p_m, jnp.clip(idx, 0, self.n_points - 2))
 
     def project_local(
-        self, p_m: Float[Array, "2"], s_hint_m: Float[Array, ""], iters: int = 2
+        self,
+        p_m: Float[Array, "2"],
+        s_hint_m: Float[Array, ""],
+        iters: int = LOCAL_PROJECTION_ITERS,
     ) -> Float[Array, ""]:
         """Arc length [m] near s_hint by Newton steps along the path tangent: O(1).
 

@@ -18,6 +18,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from fpe_jax.geometry._track import wrap_angle
+from fpe_jax.model._constants import TRACK_FRAME_ITERS
 from fpe_jax.model._history import MIN_PAIR_DT_S, OUTLIER_M
 from fpe_jax.model._state import State
 
@@ -133,7 +134,7 @@ def track_frame_window(
     w = xy_m.shape[0]
 
     def back(s_next, k):
-        s = track.project_local(xy_m[k], s_next, iters=3)
+        s = track.project_local(xy_m[k], s_next, iters=TRACK_FRAME_ITERS)
         s = jnp.where(valid[k], s, s_next)
         return s, s
 

@@ -28,18 +28,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from fpe_jax.geometry._track import wrap_to
-
-# The prior at the oldest observation: the window's robust (Theil-Sen) lines there, with these
-# sigmas (on top of the observation noise for the positions). Started instead at the oldest
-# observation with zero rates and a wide prior, the filter trusted the first two observations'
-# speed, gated every later one out when either was an outlier, and on the oval preset drive
-# ended 4 m/s slow (ADE 3.39 m against Theil-Sen's 1.87 m).
-INIT_POS_SIGMA_M = 0.3
-INIT_SPEED_SIGMA_MPS = 2.0
-INIT_LAT_RATE_SIGMA_MPS = 0.5
-# Slope of the gate weight per sigma of Mahalanobis distance: weight 0.98 one sigma inside the
-# gate, 0.5 at it, 6e-6 three sigma beyond.
-GATE_SHARPNESS = 4.0
+from fpe_jax.model._constants import (
+    GATE_SHARPNESS,
+    INIT_LAT_RATE_SIGMA_MPS,
+    INIT_POS_SIGMA_M,
+    INIT_SPEED_SIGMA_MPS,
+)
 
 
 def _predict(p, r, a, b, c, dt, q):

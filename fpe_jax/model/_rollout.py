@@ -15,6 +15,12 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from fpe_jax.geometry._track import Track, wrap_angle
+from fpe_jax.model._constants import (
+    FALLBACK_TAU_S,
+    MAX_SPEED_RATIO,
+    MIN_PROFILE_SPEED_MPS,
+    SLOPE_DS_M,
+)
 from fpe_jax.model._params import Params
 from fpe_jax.model._state import Poses, State  # State re-exported: rollouts take a State
 
@@ -85,8 +91,8 @@ def _sincos(x):
     """(sin x, cos x) from one shared range reduction and two short polynomials.
 
     XLA's CPU sin and cos each reduce the argument on their own; sharing it made a rollout step
-    about 20 % faster. Measured error (tests/test_rollout.py): < 1e-7 in float32 and < 3e-14 in
-    float64 for |x| < 1e4 rad, far more than any step turns.
+    about 20 % faster. Measured error (tests/model/test_rollout.py): < 1e-7 in float32 and
+    < 3e-14 in float64 for |x| < 1e4 rad, far more than any step turns.
     """
     n = jnp.round(x * (2.0 / math.pi))
     # x - n pi/2 with pi/2 split in two parts (Cody-Waite), so the reduction loses little
@@ -230,15 +236,6 @@ def profile_at(values: Float[Array, " P"], s_m, track: Track):
         i = jnp.clip(jnp.floor(u).astype(jnp.int32), 0, p - 2)
         j, f = i + 1, u - i.astype(u.dtype)
     return values[i] + f * (values[j] - values[i])
-
-
-MIN_PROFILE_SPEED_MPS = 0.2  # a profile slower than this is no speed reference (ratio held at 1)
-MAX_SPEED_RATIO = 3.0  # the profile may at most triple or cut to 0 the current speed
-# Where the fit drives never went the car is taken to hold its current offset from the prior
-# profile, decaying to it only slowly, with this time constant [s]: a racing car's line changes
-# little within a second, and the prior is a guess from the track's shape.
-FALLBACK_TAU_S = 3.0
-SLOPE_DS_M = 0.5  # half the arc-length step of the target offset's slope [m]
 
 
 def rollout_frenet(params: Params, state: State, track: Track) -> Poses:

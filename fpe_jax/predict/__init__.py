@@ -11,15 +11,9 @@ import importlib
 
 # public name -> the private module that defines it (imported on first use)
 _LAZY = {
-    "AXIS": "_shard",
     "BatchPredictor": "_batch",
     "ChunkPlan": "_batch",
-    "DEFAULT_CHUNK": "_batch",
-    "DTYPES": "_batch",
-    "LATTICE_SIDE": "_batch",
-    "ORIGIN_MAX_FLOAT32_M": "_batch",
     "ProjectionGrid": "_batch",
-    "WINDOW_FIELDS": "_predict",
     "car_mesh": "_shard",
     "cast_floats": "_batch",
     "chunk_size": "_batch",

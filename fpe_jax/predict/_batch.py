@@ -154,8 +154,8 @@ class ProjectionGrid(eqx.Module):
             max_candidates: K at most; cells needing more are incomplete (their cars use the
                 fallback). K is the longest list of a complete cell. With the default 0.2 m
                 cells, 16 answers every point within 0.5 m of Levine's centre line
-                (tests/test_batch.py); cells needing more lie farther out or at the centre of a
-                tight bend.
+                (tests/predict/test_batch.py); cells needing more lie farther out or at the
+                centre of a tight bend.
         """
         xy = np.asarray(track.xy_m, dtype=np.float64)
         ds = float(track.ds_m)
@@ -296,7 +296,7 @@ def _lattice_test(cell, seg, a, b, origin, ny, cell_m, slack, pairs_per_pass=1 <
     candidates, which hold every point's nearest segment where the cell is complete (elsewhere
     it overestimates the nearest distance and keeps more). Far from the track, where the coarse
     test's bound is loosest, it shortens the lists most (a cell 1.2 m beside a straight path:
-    from 17 segments to 9, tests/test_batch.py).
+    from 17 segments to 9, tests/predict/test_batch.py).
 
     Args:
         cell, seg: (P,) int pairs sorted by cell (each cell's pairs contiguous).

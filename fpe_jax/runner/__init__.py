@@ -1,6 +1,7 @@
 """The JAX-free on-car runner: a NumPy mirror of the model (`Runner`, `_runner`) and
 in-race learning (`AdaptiveRunner`, `_adapt`). Importing this package, and using it, imports no
-JAX (tests/test_adapt.py and tests/test_runner.py check it in a process where JAX is blocked).
+JAX (tests/runner/test_adapt.py and tests/runner/test_runner.py check it in a process where
+JAX is blocked).
 `python -m fpe_jax.runner WAYPOINTS` prints the runner's step-time benchmark.
 """
 
@@ -9,35 +10,12 @@ import importlib
 # public name -> the private module that defines it (imported on first use)
 _LAZY = {
     "AdaptiveRunner": "_adapt",
-    "BENCH_CONFIG": "_runner",
     "BLEND_MODES": "_runner",
-    "DEFAULT_PARAMS": "_adapt",
-    "DEFAULT_SETTINGS": "_adapt",
-    "FALLBACK_TAU_S": "_runner",
     "FloatN": "_runner",
-    "GATE_SHARPNESS": "_runner",
     "GoalScan": "_runner",
-    "INIT_LAT_RATE_SIGMA_MPS": "_runner",
-    "INIT_POS_SIGMA_M": "_runner",
-    "INIT_SPEED_SIGMA_MPS": "_runner",
-    "LAP_DECAY": "_adapt",
-    "LOCAL_PROJECTION_ITERS": "_runner",
-    "MAX_SAMPLE_SPEED_MPS": "_adapt",
-    "MAX_SPEED_RATIO": "_runner",
-    "MIN_PROFILE_SPEED_MPS": "_runner",
-    "MIN_SAMPLES": "_adapt",
     "MODELS": "_runner",
-    "OFF_TRACK_HINT": "_runner",
-    "OFF_TRACK_REPORT_S": "_runner",
-    "OFF_TRACK_START_OBS": "_runner",
-    "PROFILE_DS_M": "_adapt",
-    "PROFILE_SMOOTH_M": "_adapt",
     "Runner": "_runner",
     "RunnerPath": "_runner",
-    "SLOPE_DS_M": "_runner",
-    "TRACK_FRAME_ITERS": "_runner",
-    "WINDOW_AHEAD_M": "_runner",
-    "WINDOW_BEHIND_M": "_runner",
     "benchmark_update": "_runner",
     "kernel": "_adapt",
     "load_waypoints_xy": "_runner",

@@ -34,9 +34,9 @@ prediction itself uses) is spread onto the profile's two nearest points with lin
   opponent's driving that a lap of detections does not identify.
 
 `state_config()` is the learned state as an ordinary line-model config (`fpe predict --config`,
-`fpe evaluate`, `fpe export` read it). tests/test_adapt.py computes the same profile in JAX (the
-rule written over whole arrays, scanned over the samples, then a circular convolution) and
-compares the two to 1e-6.
+`fpe evaluate`, `fpe export` read it). tests/runner/test_adapt.py computes the same profile in
+JAX (the rule written over whole arrays, scanned over the samples, then a circular convolution)
+and compares the two to 1e-6.
 
 Imports no JAX (the car's computer may have none).
 """

@@ -38,32 +38,32 @@ from fpe_jax.errors import InputError
 from fpe_jax.geometry._path import (
     BRANCH_COS,
     BRANCH_M,
+    LOCAL_PROJECTION_ITERS,
     MIN_HEADING_SPEED_MPS,
     MIN_ON_TRACK_SHARE,
+    WINDOW_AHEAD_M,
+    WINDOW_BEHIND_M,
     build_path,
     check_share_near,
     on_track_m,
 )
 from fpe_jax.io.config import LINE_KEYS, check_waypoints, read_config
+from fpe_jax.model._constants import (
+    FALLBACK_TAU_S,
+    GATE_SHARPNESS,
+    INIT_LAT_RATE_SIGMA_MPS,
+    INIT_POS_SIGMA_M,
+    INIT_SPEED_SIGMA_MPS,
+    MAX_SPEED_RATIO,
+    MIN_PROFILE_SPEED_MPS,
+    SLOPE_DS_M,
+    TRACK_FRAME_ITERS,
+)
 from fpe_jax.model._history import MAX_SPAN_S, MIN_PAIR_DT_S, OUTLIER_M, history_valid
 from fpe_jax.spec import BLEND_MODES as BLEND_MODES  # re-exported: the runner's modes
 from fpe_jax.spec import FILTER_DEFAULTS, FILTER_KEYS, check_config
 from fpe_jax.spec import MODELS as MODELS
 
-# The same constants as fpe_jax.model, fpe_jax.model and fpe_jax.geometry (which import JAX, so
-# they cannot be imported here); tests/test_runner.py checks that they agree.
-WINDOW_BEHIND_M = 2.0
-WINDOW_AHEAD_M = 4.0
-LOCAL_PROJECTION_ITERS = 2
-TRACK_FRAME_ITERS = 3  # fpe_jax.model.track_frame_window's project_local iterations
-MIN_PROFILE_SPEED_MPS = 0.2  # fpe_jax.model's
-MAX_SPEED_RATIO = 3.0
-FALLBACK_TAU_S = 3.0
-SLOPE_DS_M = 0.5
-INIT_POS_SIGMA_M = 0.3  # fpe_jax.model's
-INIT_SPEED_SIGMA_MPS = 2.0
-INIT_LAT_RATE_SIGMA_MPS = 0.5
-GATE_SHARPNESS = 4.0
 # The off-track check (`Runner.check_track`): the first this many observations must pass the
 # offline rule (`fpe_jax.geometry.check_share_near`), and a stream reports an off-track car on
 # stderr at most once per OFF_TRACK_REPORT_S of stamps.

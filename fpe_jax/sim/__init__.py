@@ -7,16 +7,9 @@ import importlib
 # public name -> the private module that defines it (imported on first use)
 _LAZY = {
     "Camera": "_sim",
-    "DT_S": "_sim",
     "Driver": "_sim",
-    "G_MPS2": "_sim",
-    "MAX_DURATION_S": "_sim",
-    "REF_SPACING_M": "_sim",
-    "SIMULATION_FILES": "_sim",
-    "SIM_VERSION": "_sim",
     "Sensor": "_sim",
     "SimResult": "_sim",
-    "TRUTH_EVERY": "_sim",
     "Vehicle": "_sim",
     "apriltag_layout": "_sim",
     "check_drivable": "_sim",

@@ -14,8 +14,8 @@ from fpe_jax.cli import main
 from fpe_jax.errors import InputError
 from fpe_jax.sim._sim import Vehicle, check_drivable, simulate
 
-DATA = Path(__file__).resolve().parents[1] / "data"
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[2] / "data"
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 def _circle(radius_m: float, n: int = 60) -> np.ndarray:

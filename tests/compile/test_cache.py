@@ -16,7 +16,7 @@ import pytest
 from fpe_jax.compile import _aot as aot
 from fpe_jax.compile import _cache as cache
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "samples"
 
 # a child process: the cache on in FPE_CACHE_DIR, one stored executable, its numbers as JSON

@@ -16,7 +16,7 @@ from fpe_jax.io.config import PRESET_DOCS
 from fpe_jax.model._params import presets, with_settings
 from fpe_jax.progress import Progress
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def fpe(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:

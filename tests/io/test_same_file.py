@@ -13,7 +13,7 @@ from fpe_jax import io
 from fpe_jax.cli import main
 from fpe_jax.errors import InputError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "data"
 
 
@@ -23,7 +23,7 @@ def _inputs(tmp_path: Path) -> dict[str, Path]:
         drive=DATA / "samples" / "drive.csv",
         waypoints=DATA / "tracks" / "oval.csv",
         cars=DATA / "samples" / "cars.csv",
-        config=Path(__file__).resolve().parents[1] / "fit" / "sim-oval.json",
+        config=Path(__file__).resolve().parents[2] / "fit" / "sim-oval.json",
     )
     out = {}
     for name, src in files.items():

@@ -23,7 +23,7 @@ from fpe_jax.runner import _runner as runner
 from fpe_jax.runner._runner import GoalScan, Runner, RunnerPath, run_stream
 from fpe_jax.spec import SCHEMA_VERSION
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 CHECK_NO_JAX = """
 leaked = [m for m in ("jax", "jaxlib", "equinox", "optimistix") if m in sys.modules]
@@ -49,26 +49,32 @@ def write_waypoints(path: Path, xy: np.ndarray) -> Path:
 # ---- the constants the runner mirrors --------------------------------------------------------
 
 
-def test_mirrored_constants_match_the_jax_modules():
-    assert (runner.BLEND_MODES, runner.MODELS) == (params.BLEND_MODES, params.MODELS)
-    window = inspect.signature(Track.project_window).parameters
-    assert runner.WINDOW_BEHIND_M == window["behind_m"].default
-    assert runner.WINDOW_AHEAD_M == window["ahead_m"].default
-    local = inspect.signature(Track.project_local).parameters
-    assert runner.LOCAL_PROJECTION_ITERS == local["iters"].default
+def test_the_runner_shares_the_models_constants():
+    """The runner defines none of the model's numbers itself: it takes the JAX-free modules'
+    (`fpe_jax.model._constants`, `fpe_jax.geometry._path`, `fpe_jax.spec`), which the JAX model
+    uses too."""
+    from fpe_jax.geometry import _path
+    from fpe_jax.model import _constants, _estimate, _kalman
     from fpe_jax.model import _rollout as rollout
 
-    assert runner.MIN_PROFILE_SPEED_MPS == rollout.MIN_PROFILE_SPEED_MPS
-    assert runner.MAX_SPEED_RATIO == rollout.MAX_SPEED_RATIO
-    assert runner.FALLBACK_TAU_S == rollout.FALLBACK_TAU_S
-    assert runner.SLOPE_DS_M == rollout.SLOPE_DS_M
-    src = inspect.getsource(importlib.import_module("fpe_jax.model._estimate").track_frame_window)
-    assert f"iters={runner.TRACK_FRAME_ITERS}" in src
-    from fpe_jax.model import _kalman as kalman
-
-    for name in ("INIT_POS_SIGMA_M", "INIT_SPEED_SIGMA_MPS", "INIT_LAT_RATE_SIGMA_MPS"):
-        assert getattr(runner, name) == getattr(kalman, name)
-    assert runner.GATE_SHARPNESS == kalman.GATE_SHARPNESS
+    assert (runner.BLEND_MODES, runner.MODELS) == (params.BLEND_MODES, params.MODELS)
+    shared = {n: getattr(_constants, n) for n in dir(_constants) if n.isupper()}
+    assert len(shared) == 9
+    for name in shared:
+        assert getattr(runner, name) is getattr(_constants, name), name
+        users = [m for m in (rollout, _kalman, _estimate) if hasattr(m, name)]
+        assert users and all(getattr(m, name) is shared[name] for m in users), name
+    window = inspect.signature(Track.project_window).parameters
+    assert window["behind_m"].default is _path.WINDOW_BEHIND_M is runner.WINDOW_BEHIND_M
+    assert window["ahead_m"].default is _path.WINDOW_AHEAD_M is runner.WINDOW_AHEAD_M
+    local = inspect.signature(Track.project_local).parameters
+    assert local["iters"].default is _path.LOCAL_PROJECTION_ITERS is runner.LOCAL_PROJECTION_ITERS
+    src = inspect.getsource(_estimate.track_frame_window)
+    assert "iters=TRACK_FRAME_ITERS" in src
+    # no assignment of a shared name in the runner's own source
+    runner_src = inspect.getsource(importlib.import_module("fpe_jax.runner._runner"))
+    for name in [*shared, "WINDOW_BEHIND_M", "WINDOW_AHEAD_M", "LOCAL_PROJECTION_ITERS"]:
+        assert f"\n{name} = " not in runner_src, name
 
 
 # ---- parity with the JAX predictor -----------------------------------------------------------

@@ -29,7 +29,7 @@ from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io.tables import read_table
 from fpe_jax.sim import _sim as sim
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "data"
 SAMPLES = DATA / "samples"
 LOGS = ["drive.mcap", "drive_rosbag2", "drive_rosbag2/metadata.yaml", "drive.bag"]

@@ -16,7 +16,7 @@ from helpers import csv_lines, expected, fpe_run, oval_stream, stream_files
 from fpe_jax import cli
 from fpe_jax.io.stream import read_observations
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

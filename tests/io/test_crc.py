@@ -20,7 +20,7 @@ from fpe_jax import io
 from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
 
-ROSBAG2 = Path(__file__).resolve().parents[1] / "data" / "samples" / "drive_rosbag2"
+ROSBAG2 = Path(__file__).resolve().parents[2] / "data" / "samples" / "drive_rosbag2"
 
 
 def write_chunked_mcap(path: Path, compression: str, chunk_size: int = 2048) -> Path:

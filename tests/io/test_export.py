@@ -26,7 +26,7 @@ from fpe_jax.runner._runner import Runner, load_waypoints_xy
 from fpe_jax.sim._sim import simulate
 from fpe_jax.spec import SCHEMA_VERSION
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TOL_M = 1e-6
 BATCHES = (1, 7, 1000)
 

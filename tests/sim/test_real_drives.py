@@ -16,7 +16,7 @@ import scipy.io
 
 from fpe_jax.sim._sim import Sensor, observe
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -333,7 +333,7 @@ def test_write_predictions_mcap_reads_with_both_libraries(tmp_path):
         )
         old = [c for c in r.connections if c.topic in ("/future_pose", "/opp/pose")]
         assert sum(1 for _ in r.messages(connections=old)) == 10
-        # plus the scene's path and ellipses per prediction (tests/test_foxglove.py)
+        # plus the scene's path and ellipses per prediction (tests/node/test_foxglove.py)
         assert sum(1 for _ in r.messages()) == 20
 
 

@@ -27,7 +27,7 @@ from fpe_jax.predict._shard import (
     shard_along_axis0,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _loop_xy(n=300):

@@ -30,7 +30,7 @@ from fpe_jax.cli import main
 from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io import scene
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DRIVE = REPO / "data" / "samples" / "drive.mcap"
 WAYPOINTS = REPO / "data" / "tracks" / "oval.csv"
 CONFIG = REPO / "fit" / "sim-oval.json"  # fitted on the oval, with an uncertainty section
