@@ -28,6 +28,9 @@ class FakeTransport:
         self.out[topic] = []
         return self.out[topic].append
 
+    def subscriber_count(self, topic):
+        return 1 if topic in self.out else 0
+
     def spin(self, stop):
         pass
 

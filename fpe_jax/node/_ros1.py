@@ -134,7 +134,7 @@ class Ros1Transport:
         rospy.init_node(name, anonymous=False, disable_signals=True)
         self.queue_size = queue_size
         self._subs: list = []
-        self._pubs: list = []
+        self._pubs: dict = {}  # topic -> rospy.Publisher
 
     @staticmethod
     def param(name: str, default=None):
@@ -170,8 +170,14 @@ class Ros1Transport:
     def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]:
         cls = message_class(type_name)
         pub = rospy.Publisher(topic, cls, queue_size=10, tcp_nodelay=True)
-        self._pubs.append(pub)
+        self._pubs[topic] = pub
         return lambda d: pub.publish(from_dict(cls, d))
+
+    def subscriber_count(self, topic: str) -> int:
+        """How many subscribers are connected to this node's publisher on `topic` (0 if not
+        advertised)."""
+        pub = self._pubs.get(topic)
+        return 0 if pub is None else pub.get_num_connections()
 
     def spin(self, stop: threading.Event) -> None:
         while not stop.is_set() and not rospy.is_shutdown():
@@ -180,7 +186,7 @@ class Ros1Transport:
     def close(self) -> None:
         for s in self._subs:
             s.unregister()
-        for p in self._pubs:
+        for p in self._pubs.values():
             p.unregister()
         with warnings.catch_warnings():  # rospy's shutdown calls deprecated threading APIs
             warnings.simplefilter("ignore", DeprecationWarning)
