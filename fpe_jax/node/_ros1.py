@@ -9,6 +9,7 @@ genpy from the type store's full definitions (`fpe_jax.node.typestore("ros1")`),
 
 from __future__ import annotations
 
+import copy
 import functools
 import importlib
 import sys
@@ -83,29 +84,38 @@ def _value_to_py(v):
 
 
 def from_dict(cls: type, d: dict):
-    """A genpy message of class `cls` from nested dicts; missing fields keep their defaults, an
+    """A genpy message of class `cls` from nested dicts; missing fields take their defaults, an
     unknown field is a ValueError naming the type and the field."""
-    slots, convert, flat = _plan(cls)
-    if flat and len(d) == len(slots) and all(k in d for k in slots):
-        msg = cls.__new__(cls)  # every field given, all primitive: no defaults to build first
-        for k in slots:
-            setattr(msg, k, d[k])
-        return msg
-    msg = cls()
-    for k, v in d.items():
-        if k not in convert:
-            raise ValueError(f"{cls._type} has no field {k!r} (fields: {', '.join(slots)})")
-        c = convert[k]
-        setattr(msg, k, v if c is None else c(v))
+    slots, convert, zero = _plan(cls)
+    if not d.keys() <= convert.keys():
+        k = next(k for k in d if k not in convert)
+        raise ValueError(f"{cls._type} has no field {k!r} (fields: {', '.join(slots)})")
+    msg = cls.__new__(cls)  # every slot is set below: no default objects built to be replaced
+    for k in slots:
+        v = d.get(k, _MISSING)
+        if v is _MISSING:
+            setattr(msg, k, zero[k]())
+        else:
+            c = convert[k]
+            setattr(msg, k, v if c is None else c(v))
     return msg
 
 
+_MISSING = object()
+
+
 @functools.cache
-def _plan(cls: type) -> tuple[tuple[str, ...], dict, bool]:
-    """(slots, {slot: converter or None for a value taken as is}, all slots primitive)."""
-    convert = {}
+def _plan(cls: type) -> tuple[tuple[str, ...], dict, dict]:
+    """(slots, {slot: converter or None for a value taken as is}, {slot: () -> its default})."""
+    convert, zero = {}, {}
+    proto = cls()
     for slot, slot_type in zip(cls.__slots__, cls._slot_types):
         base, array = slot_type.split("[", 1)[0], "[" in slot_type
+        value = getattr(proto, slot)
+        if isinstance(value, int | float | str | bytes | tuple):  # immutable: shared
+            zero[slot] = lambda value=value: value
+        else:
+            zero[slot] = lambda value=value: copy.deepcopy(value)
         if base in ("time", "duration"):
             make = genpy.Time if base == "time" else genpy.Duration
             one = lambda x, make=make: make(x["secs"], x["nsecs"]) if isinstance(x, dict) else x  # noqa: E731
@@ -116,8 +126,7 @@ def _plan(cls: type) -> tuple[tuple[str, ...], dict, bool]:
             convert[slot] = list if array and base not in ("uint8", "char") else None
             continue
         convert[slot] = (lambda v, one=one: [one(x) for x in v]) if array else one
-    flat = all(c is None for c in convert.values())
-    return tuple(cls.__slots__), convert, flat
+    return tuple(cls.__slots__), convert, zero
 
 
 class Ros1Transport:
