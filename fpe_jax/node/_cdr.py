@@ -139,9 +139,9 @@ def converter(base: str, bound: int = 0) -> Callable[[Any], Any]:
     raise ValueError(f"field type {base} is not supported here")
 
 
-def fielddefs(typestore, type_name: str) -> list:
-    """The (name, node) fields of a type in a rosbags store; an empty message gets rosidl's
-    one-byte placeholder member, as ROS 2 sends it."""
+def fielddefs(typestore, type_name: str, placeholder: bool = True) -> list:
+    """The (name, node) fields of a type in a rosbags store; with `placeholder` an empty
+    message has rosidl's one-byte member, as ROS 2 sends it, else none (ROS 1 sends nothing)."""
     try:
         _, fields = typestore.fielddefs[type_name]
     except KeyError:
@@ -149,7 +149,10 @@ def fielddefs(typestore, type_name: str) -> list:
             f"message type {type_name!r} is not in the type store "
             "(register its definition, or check the spelling pkg/msg/Type)"
         ) from None
-    return list(fields) or [(PLACEHOLDER, (Nodetype.BASE, ("uint8", 0)))]
+    fields = [f for f in fields if f[0] != PLACEHOLDER]  # rosbags' stores hold it for some
+    if fields or not placeholder:
+        return fields
+    return [(PLACEHOLDER, (Nodetype.BASE, ("uint8", 0)))]
 
 
 # ---- the generated code ----------------------------------------------------------------------
@@ -222,14 +225,30 @@ class _Source:
         return scope[name]
 
 
+# ROS 1 spells times {secs, nsecs} (time: unsigned, duration: signed), where the type stores
+# hold builtin_interfaces' {sec, nanosec}; its `byte` is a signed byte (genpy's int8)
+_ROS1_TIMES = {
+    "builtin_interfaces/msg/Time": [
+        ("secs", (Nodetype.BASE, ("uint32", 0))),
+        ("nsecs", (Nodetype.BASE, ("uint32", 0))),
+    ],
+    "builtin_interfaces/msg/Duration": [
+        ("secs", (Nodetype.BASE, ("int32", 0))),
+        ("nsecs", (Nodetype.BASE, ("int32", 0))),
+    ],
+}
+
+
 class _WriterGen:
     """Emits the writer of one type: appends to the bytearray `b` from the dict `d0`.
 
     `known`, `off`: what the generator knows of the write position statically (position
-    = off mod known); `fmt`, `vals`: the run of primitives not yet packed."""
+    = off mod known); `fmt`, `vals`: the run of primitives not yet packed. `ros1`: ROS 1's
+    serialization instead of CDR (no padding, strings without their NUL, times as above)."""
 
-    def __init__(self, typestore, type_name: str):
+    def __init__(self, typestore, type_name: str, ros1: bool = False):
         self.store = typestore
+        self.ros1 = ros1
         self.src = _Source(type_name)
         self.known, self.off = 8, 0
         self.fmt, self.vals = "", []
@@ -249,7 +268,9 @@ class _WriterGen:
 
     def align(self, size: int) -> str:
         """Padding before a primitive of `size` bytes: static ('x' codes) when the position is
-        known well enough, else a dynamic pad emitted now."""
+        known well enough, else a dynamic pad emitted now (ROS 1: none)."""
+        if self.ros1:
+            return ""
         if size > self.known:
             self.flush()
             self.line(f"b += _Z[-len(b) & {size - 1}]")
@@ -263,8 +284,13 @@ class _WriterGen:
         self.fmt += pad + code
         self.vals.append(expr)
 
+    def base(self, base: str) -> str:
+        """The primitive type `base` is on this wire."""
+        return "int8" if self.ros1 and base == "byte" else base
+
     def checked(self, expr: str, base: str, bound: int = 0) -> str:
         """A variable holding `expr`, checked and converted as a value of `base`."""
+        base = self.base(base)
         v = self.src.var()
         self.line(f"{v} = {expr}")
         kind = {"?": "bool", "f": "float", "d": "float"}.get(CODES.get(base), "int")
@@ -279,15 +305,18 @@ class _WriterGen:
         self.line(f"{e} = {v}.encode()")
         if bound:
             self.line(f"if len({e}) > {bound}: raise _U")
-        self.prim("I", f"len({e}) + 1")
+        self.prim("I", f"len({e})" if self.ros1 else f"len({e}) + 1")
         self.flush()
         self.line(f"b += {e}")
-        self.line("b.append(0)")
+        if not self.ros1:
+            self.line("b.append(0)")
         self.known, self.off = 1, 0
 
     def message(self, d: str, type_name: str) -> None:
-        """The fields of `type_name` read from the mapping variable `d` (checked already)."""
-        fields = fielddefs(self.store, type_name)
+        """The fields of `type_name` read from the mapping variable `d`."""
+        fields = (self.ros1 and _ROS1_TIMES.get(type_name)) or fielddefs(
+            self.store, type_name, placeholder=not self.ros1
+        )
         names = self.src.const(frozenset(name for name, _ in fields), "n")
         self.line(f"if {d}.__class__ is not dict: {d} = _m({d})")
         self.src.consts["_m"] = _mapping
@@ -303,7 +332,8 @@ class _WriterGen:
                 self.string(self.checked(f"{d}.get({name!r}, '')", base, bound), bound)
             else:
                 zero = {"bool": "False", "float32": "0.0", "float64": "0.0"}.get(base, "0")
-                self.prim(CODES[base], self.checked(f"{d}.get({name!r}, {zero})", base))
+                v = self.checked(f"{d}.get({name!r}, {zero})", base)
+                self.prim(CODES[self.base(base)], v)
         elif kind == Nodetype.NAME:
             sub = self.src.var("d")
             self.line(f"{sub} = {d}.get({name!r}, _E)")
@@ -322,8 +352,8 @@ class _WriterGen:
             self.line(f"if {seq} is _M: {seq} = ()")
         ekind, espec = elem
         if ekind == Nodetype.BASE and espec[0] != "string":
-            code = CODES[espec[0]]
-            values = _values(_KINDS.get(code, int), converter(espec[0]))
+            code = CODES[self.base(espec[0])]
+            values = _values(_KINDS.get(code, int), converter(self.base(espec[0])))
             self.line(f"{seq} = {self.src.const(values, 'a')}({seq})")
         else:
             self.line(f"if {seq}.__class__ is not list: {seq} = _q({seq})")
@@ -337,10 +367,12 @@ class _WriterGen:
         if not fixed:
             self.prim("I", n)
         if ekind == Nodetype.BASE and espec[0] != "string":
-            code = CODES[espec[0]]
+            code = CODES[self.base(espec[0])]
             width = struct.calcsize(code)
             self.flush()
-            if width > self.known:  # the first element's padding (none without elements)
+            if self.ros1:  # no padding
+                pass
+            elif width > self.known:  # the first element's padding (none without elements)
                 self.line(f"if {n}: b += _Z[-len(b) & {width - 1}]")
             elif -self.off % width:
                 self.line(f"if {n}: b += _Z[{-self.off % width}]")
@@ -484,6 +516,26 @@ class _ReaderGen:
         self.ind -= 1
         self.known, self.off = 1, 0
         return out
+
+
+class Ros1Writer:
+    """Generated ROS 1 serializers of the message types of a rosbags ROS 1 `Typestore`:
+    `encode(type_name, msg)` is the ROS 1 bytes of a nested dict (times {secs, nsecs}, missing
+    fields zero) as genpy serializes the same message; raises (any exception) for a message the
+    checks above do not take."""
+
+    def __init__(self, typestore):
+        self._store = typestore
+        self._writers: dict[str, Callable] = {}
+
+    def writer(self, type_name: str) -> Callable:
+        w = self._writers.get(type_name)
+        if w is None:
+            w = self._writers[type_name] = _WriterGen(self._store, type_name, ros1=True).fn
+        return w
+
+    def encode(self, type_name: str, msg: Mapping) -> bytes:
+        return bytes(self.writer(type_name)(msg, bytearray()))
 
 
 class CdrCodec:

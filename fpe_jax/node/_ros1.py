@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import functools
 import importlib
+import struct
 import sys
 import threading
 import time
@@ -19,6 +20,7 @@ import warnings
 from collections.abc import Callable
 
 from fpe_jax.errors import InputError
+from fpe_jax.node._cdr import Ros1Writer
 from fpe_jax.node._types import full_definition, typestore
 
 DEBIAN_DIST = "/usr/lib/python3/dist-packages"
@@ -129,6 +131,52 @@ def _plan(cls: type) -> tuple[tuple[str, ...], dict, dict]:
     return tuple(cls.__slots__), convert, zero
 
 
+@functools.cache
+def _writer() -> Ros1Writer:
+    return Ros1Writer(typestore("ros1"))
+
+
+class _Seq:
+    """The header rospy stamps its sequence number into before serializing a message."""
+
+    __slots__ = ("seq", "frame_id")
+
+    def __init__(self):
+        self.seq, self.frame_id = 0, ""
+
+
+@functools.cache
+def _raw_class(cls: type) -> type:
+    """A subclass of the genpy class `cls` whose instances carry their serialized bytes: rospy
+    publishes it as a `cls` (same type and md5) and writes the bytes, with its sequence number
+    in the header's first 4 bytes as it would have set `header.seq`."""
+    has_header = cls._has_header
+
+    class Raw(cls):
+        __slots__ = ("_raw",)
+
+        @classmethod
+        def of(klass, data: bytes):
+            msg = klass.__new__(klass)
+            msg._raw = data
+            if has_header:
+                msg.header = _Seq()
+            return msg
+
+        def serialize(self, buff) -> None:
+            if has_header:
+                buff.write(_SEQ.pack(self.header.seq & 0xFFFFFFFF))
+                buff.write(memoryview(self._raw)[4:])
+            else:
+                buff.write(self._raw)
+
+    Raw.__name__ = Raw.__qualname__ = f"Raw{cls.__name__}"
+    return Raw
+
+
+_SEQ = struct.Struct("<I")
+
+
 class Ros1Transport:
     """The `Transport` of the node over rospy (one ROS 1 node per process).
 
@@ -177,10 +225,27 @@ class Ros1Transport:
         self._subs.append(sub)
 
     def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]:
+        """publish(msg_dict) for `topic`: the message serialized by the type's generated writer
+        (`fpe_jax.node._cdr.Ros1Writer`) when the type store's definition is the class's (same
+        md5), else, and for a message that writer does not take, by genpy from `from_dict`."""
         cls = message_class(type_name)
         pub = rospy.Publisher(topic, cls, queue_size=10, tcp_nodelay=True)
         self._pubs[topic] = pub
-        return lambda d: pub.publish(from_dict(cls, d))
+        full = ros1_name(type_name).replace("/", "/msg/", 1)
+        store = typestore("ros1")
+        if full not in store.fielddefs or store.generate_msgdef(full, 1)[1] != cls._md5sum:
+            return lambda d: pub.publish(from_dict(cls, d))
+        encode, raw = _writer().encode, _raw_class(cls)
+
+        def publish(d: dict) -> None:
+            try:
+                data = encode(full, d)
+            except Exception:  # genpy's conversion takes it or says what is wrong
+                pub.publish(from_dict(cls, d))
+                return
+            pub.publish(raw.of(data))
+
+        return publish
 
     def subscriber_count(self, topic: str) -> int:
         """How many subscribers are connected to this node's publisher on `topic` (0 if not
