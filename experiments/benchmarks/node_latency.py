@@ -98,6 +98,12 @@ def _setup(n_opp: int, seconds: float, tmp: Path):
     return args, frames, topics, others
 
 
+def _cpu_s(pid: int) -> float:
+    """CPU time [s] (user + system, all threads) a running process has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def _play(frames, flavour: str, publish, sent: dict, lock) -> None:
     """Publish the frames at RATE_HZ, noting each one's send time [ns] by its stamp."""
     next_t = time.perf_counter()
@@ -183,7 +189,9 @@ def _start(flavour: str, args: list, stats: Path, env: dict) -> subprocess.Popen
     )
 
 
-def _summary(n_opp: int, n: int, stats: Path, e2e: list, others_received: int) -> dict:
+def _summary(
+    n_opp: int, n: int, stats: Path, e2e: list, others_received: int, cpu_s: float
+) -> dict:
     upd = np.array(json.loads(stats.read_text())["update_ns"], dtype=np.float64) * 1e-6
     e = np.array(e2e, dtype=np.float64) * 1e-6
     return {
@@ -191,6 +199,7 @@ def _summary(n_opp: int, n: int, stats: Path, e2e: list, others_received: int) -
         "observations": n * n_opp,
         "predictions_received": len(e),
         "others_received": others_received,
+        "node_cpu_ms": cpu_s / n * 1e3,
         "update_p50_ms": float(np.percentile(upd, 50)),
         "update_p99_ms": float(np.percentile(upd, 99)),
         "e2e_p50_ms": float(np.percentile(e, 50)),
@@ -229,15 +238,17 @@ def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
     while pub.get_num_connections() == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
     _wait_for_sink(sink)
+    cpu_s = _cpu_s(proc.pid)
     _play(frames, "ros1", lambda msg: pub.publish(r1.from_dict(cls, msg)), sent, lock)
     time.sleep(1.0)
+    cpu_s = _cpu_s(proc.pid) - cpu_s
     proc.send_signal(2)
     proc.communicate(timeout=30)
     others_received = _stop(sink)
     for s in subs:
         s.unregister()
     pub.unregister()
-    return _summary(n_opp, len(frames), stats, e2e, others_received)
+    return _summary(n_opp, len(frames), stats, e2e, others_received, cpu_s)
 
 
 def run_ros2(n_opp: int, seconds: float, tmp: Path, env: dict) -> dict:
@@ -277,15 +288,17 @@ def run_ros2(n_opp: int, seconds: float, tmp: Path, env: dict) -> dict:
             while player.subscriber_count(in_topic) == 0 and time.monotonic() < deadline:
                 time.sleep(0.05)
             _wait_for_sink(sink)
+            cpu_s = _cpu_s(proc.pid)
             _play(frames, "ros2", publish, sent, lock)
             time.sleep(1.0)
+            cpu_s = _cpu_s(proc.pid) - cpu_s
         finally:
             proc.send_signal(2)
             proc.communicate(timeout=30)
             others_received = _stop(sink)
             stop.set()
             spinner.join(5.0)
-    return _summary(n_opp, len(frames), stats, e2e, others_received)
+    return _summary(n_opp, len(frames), stats, e2e, others_received, cpu_s)
 
 
 def main() -> None:
@@ -357,12 +370,15 @@ def main() -> None:
         "subscribes (to the paths), and the node builds no output nobody subscribes to; `all`: "
         "a second process subscribes to every other output too (markers, per-step "
         "covariances, predicted obstacles, trajectory), so the node builds and sends them all. "
+        "Node CPU: the node process's CPU time (user + system, all threads) while the drive "
+        "plays, per input message (one observation of each opponent); it depends little on "
+        "what else the machine runs, where the latencies' tails do. "
         f"Each value: the median over {args.runs} runs.",
         "",
         "| middleware | listening | opponents | observations | paths received (fewest) "
-        "| other outputs received (fewest) | own update p50 / p99 [ms] "
-        "| end to end p50 / p99 [ms] |",
-        "|---|---|---|---|---|---|---|---|",
+        "| other outputs received (fewest) | node CPU per input message [ms] "
+        "| own update p50 / p99 [ms] | end to end p50 / p99 [ms] |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     cases = sorted({(mw, listen, r["opponents"]) for mw, listen, r in rows})
     for mw, listen, n_opp in cases:
@@ -371,7 +387,7 @@ def main() -> None:
         lines.append(
             f"| {mw} | {listen} | {n_opp} | {runs[0]['observations']} | "
             f"{min(x['predictions_received'] for x in runs)} | "
-            f"{min(x['others_received'] for x in runs)} | "
+            f"{min(x['others_received'] for x in runs)} | {r['node_cpu_ms']:.2f} | "
             f"{r['update_p50_ms']:.3f} / {r['update_p99_ms']:.3f} | "
             f"{r['e2e_p50_ms']:.2f} / {r['e2e_p99_ms']:.2f} |"
         )
