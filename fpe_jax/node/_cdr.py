@@ -1,19 +1,23 @@
-"""Plain CDR of ROS 2 messages as nested dicts, by code generated per type from its definition.
+"""Message bytes of nested dicts, by code generated per type from the message definitions.
 
 ROS 2 samples are plain CDR (XCDR1, little endian, final structs): the fields in definition order,
 each primitive aligned to its size (up to 8) from the start of the payload, strings as uint32
 length (with the NUL) + UTF-8 + NUL, sequences as uint32 count + elements, fixed arrays as their
-elements. `CdrCodec` turns a rosbags `Typestore`'s field definitions into one writer (dict -> bytes)
-and one reader (bytes -> dict) per type: Python source with every nested type inlined and runs of
-primitives packed by one `struct.Struct`, compiled once. They are the node's hot path: a 10-pose
-nav_msgs/Path encodes in tens of microseconds where a generic field-by-field walk takes ten times
-as long.
+elements. ROS 1 serializes the same way without any padding, strings without their NUL, and
+times as {secs, nsecs}.
+
+`CdrCodec` turns a rosbags `Typestore`'s field definitions into one writer (dict -> bytes) and
+one reader (bytes -> dict) per ROS 2 type, `Ros1Writer` into one writer per ROS 1 type: Python
+source with every nested type inlined and each run of primitives packed by one `struct.Struct`,
+compiled once. They are the node's hot path: a 10-pose nav_msgs/Path encodes in a few tens of
+microseconds, where cyclonedds' field-by-field serializer takes about ten times as long and
+genpy's message objects about three times.
 
 Values are checked as `IdlCodec` (fpe_jax.node._dds) checks them: the checks below are the
-converters of both. The generated writer accepts exactly what they accept; on any failure
-the caller falls back to the field-by-field conversion, whose error names the field path.
+converters of both. A generated writer takes exactly what they take; for anything else it
+raises, and the caller falls back to the field-by-field conversion, whose error names the field.
 
-JAX-free and free of cyclonedds: the CDR rules here are the wire format, not a DDS library's.
+JAX-free and free of cyclonedds and genpy: the rules here are the wire formats.
 """
 
 import numbers

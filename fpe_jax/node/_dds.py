@@ -16,7 +16,9 @@ ROS 2 is DDS with naming and QoS conventions, which this module follows:
 
 The DDS types are generated at run time from the message definitions in a rosbags `Typestore`
 (the same definitions that give the type hashes), never from hand-written layouts. Messages cross
-the Transport boundary as nested dicts (see `IdlCodec`).
+the Transport boundary as nested dicts (see `IdlCodec`); their CDR bytes are written and read by
+code generated from those definitions (`fpe_jax.node._cdr`) and go straight to and from Cyclone
+DDS' C writers and readers.
 
 No `from __future__ import annotations` here: cyclonedds reads the generated classes' field
 annotations as objects.
