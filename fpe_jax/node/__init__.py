@@ -14,6 +14,7 @@ import importlib
 _LAZY = {
     "BadMessage": "_core",
     "CAR_ID": "_view",
+    "CdrCodec": "_cdr",
     "DEBIAN_DIST": "_ros1",
     "DEFAULT_PORT": "_view",
     "DISCOVERY_TOPIC": "_dds",
@@ -38,6 +39,7 @@ _LAZY = {
     "POSE_TYPES": "_core",
     "Predicted": "_view",
     "Ros1Transport": "_ros1",
+    "Ros1Writer": "_cdr",
     "SPIN_PERIOD_S": "_dds",
     "STOP_TIMEOUT_S": "_foxglove",
     "SceneSink": "_foxglove",
