@@ -203,6 +203,7 @@ class Predictions:
         dt_s: the prediction step [s].
         predictor: what predicted; drive: the drive as read (map frame).
         track_closed: whether the waypoints form a loop.
+        valid: (N,) bool, whether each prediction had enough history (the CSV's `valid`).
     """
 
     stamps_s: np.ndarray
@@ -212,6 +213,7 @@ class Predictions:
     predictor: Predictor
     drive: Any
     track_closed: bool = False
+    valid: np.ndarray | None = None
 
 
 def predict_log(
@@ -260,6 +262,7 @@ def predict_log(
     poses[..., :2] += loc.origin_xy_m
     dt_s = params.settings.dt_s
     closed = bool(loc.track.closed)
+    valid = np.asarray(drive_valid(loc.drive, params.settings.history), dtype=bool)
     if out is not None:
         from fpe_jax import io
 
@@ -271,12 +274,12 @@ def predict_log(
             dt_s,
             drive=drive,
             cov_m2=cov,
-            valid=drive_valid(loc.drive, params.settings.history),
+            valid=valid,
             track_xy_m=pred.waypoints_xy_m,
             track_closed=closed,
             force=force,
         )
-    return Predictions(stamps_s, poses, cov, dt_s, pred, drive, closed)
+    return Predictions(stamps_s, poses, cov, dt_s, pred, drive, closed, valid)
 
 
 @dataclasses.dataclass(frozen=True)

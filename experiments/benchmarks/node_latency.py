@@ -8,9 +8,12 @@ p50 and p99 of each over `--seconds` of a simulated drive. Writes node_latency.m
 (node_latency_no_markers.md with --no-markers).
 
     .venv/bin/python experiments/benchmarks/node_latency.py [--seconds 30] [--runs 3]
-        [--middleware both] [--no-markers]
+        [--middleware both] [--listen both] [--no-markers]
 
-`--middleware` ros1, ros2 or both (default).
+`--middleware` ros1, ros2 or both (default). `--listen path`: only this process subscribes (to the
+paths), so the node builds no other output (it skips topics nobody subscribes to); `all`: a
+second process also subscribes to every other output (markers, covariances, predicted
+obstacles, trajectory), so the node builds and sends all of them; `both` (default) runs each.
 """
 
 from __future__ import annotations
@@ -45,11 +48,13 @@ from fpe_jax.sim._sim import simulate  # noqa: E402
 RATE_HZ = 40.0
 H = 10
 NODE_ARGS: list[str] = []  # more `fpe node` flags (main's --no-markers)
+LISTEN_ALL = False  # whether a sink process subscribes to every output but the paths
 COV = [[[0.01 * (k + 1), 0.002], [0.002, 0.004 * (k + 1)]] for k in range(H)]
 
 
 def _setup(n_opp: int, seconds: float, tmp: Path):
-    """(node arguments, [(stamp [ns], message dict without its header)], output path topics)."""
+    """(node arguments, [(stamp [ns], message dict without its header)], output path topics,
+    {every other output topic: its type})."""
     res = simulate("oval", duration_s=seconds + 10.0, seed=0)
     truth_xy = np.column_stack([res.drive.truth_xy_m[:, 0], res.drive.truth_xy_m[:, 1]])
     write_xy_csv(tmp / "wp.csv", res.centerline_xy_m, force=True)
@@ -57,12 +62,20 @@ def _setup(n_opp: int, seconds: float, tmp: Path):
     write_config(tmp / "cfg.json", cfg, force=True)
     path = RunnerPath(res.centerline_xy_m)
     args = ["--config", str(tmp / "cfg.json"), "--waypoints", str(tmp / "wp.csv"), *NODE_ARGS]
+    others = {
+        "/future_pose": "visualization_msgs/msg/MarkerArray",
+        "/future_pose/obstacles": "f110_msgs/msg/ObstacleArray",
+        "/opponent_trajectory": "f110_msgs/msg/OpponentTrajectory",
+    }
+    cov_type = "geometry_msgs/msg/PoseWithCovarianceStamped"
     if n_opp == 1:
         args += ["--pose-topic", "/opp/pose"]
         topics = ["/future_pose/path"]
+        others["/future_pose/covariance"] = cov_type
     else:
         args += ["--obstacles-topic", "/perception/obstacles"]
         topics = [f"/future_pose/path/opp_{i}" for i in range(n_opp)]
+        others |= {f"/future_pose/covariance/opp_{i}": cov_type for i in range(n_opp)}
     t0_ns = 10**18
     step = 50.0 / RATE_HZ  # truth rows are at 50 Hz
     frames = []
@@ -82,7 +95,13 @@ def _setup(n_opp: int, seconds: float, tmp: Path):
                 obst.append({"id": k, "s_center": s, "d_center": float(d)})
             msg = {"obstacles": obst}
         frames.append((ns, msg))
-    return args, frames, topics
+    return args, frames, topics, others
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU time [s] (user + system, all threads) a running process has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _play(frames, flavour: str, publish, sent: dict, lock) -> None:
@@ -97,6 +116,69 @@ def _play(frames, flavour: str, publish, sent: dict, lock) -> None:
         time.sleep(max(0.0, next_t - time.perf_counter()))
 
 
+def _sink(flavour: str, others: dict, env: dict) -> subprocess.Popen | None:
+    """With --listen all: a process subscribed to every output but the paths (it decodes them
+    on ROS 2, takes them undecoded on ROS 1), until SIGINT; None with --listen path."""
+    if not LISTEN_ALL:
+        return None
+    spec = json.dumps({"flavour": flavour, "topics": others})
+    return subprocess.Popen(
+        [sys.executable, __file__, "--sink", spec], env=env, cwd=ROOT, stdout=subprocess.PIPE
+    )
+
+
+def _wait_for_sink(sink: subprocess.Popen | None) -> None:
+    """Give the sink time to connect to the node's outputs (the per-opponent ones appear with
+    each opponent's first observation, before its first valid prediction)."""
+    if sink is not None:
+        time.sleep(2.0)
+
+
+def _stop(sink: subprocess.Popen | None) -> int:
+    """Stop the sink; the number of messages it received (0 without one)."""
+    if sink is None:
+        return 0
+    sink.send_signal(2)
+    out, _ = sink.communicate(timeout=30)
+    return sum(json.loads(out.splitlines()[-1]).values())
+
+
+def run_sink(spec: str) -> None:
+    """The --listen all subscriber process: counts what it receives, prints it at SIGINT."""
+    import signal
+
+    spec = json.loads(spec)
+    counts = dict.fromkeys(spec["topics"], 0)
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+
+    def counter(topic):
+        def got(*_):
+            counts[topic] += 1
+
+        return got
+
+    if spec["flavour"] == "ros1":
+        from fpe_jax.node import _ros1 as r1
+
+        r1.rospy.init_node("fpe_bench_sink", anonymous=True, disable_signals=True)
+        subs = [r1.rospy.Subscriber(t, r1.rospy.AnyMsg, counter(t), tcp_nodelay=True)
+                for t in spec["topics"]]  # fmt: skip
+        stop.wait()
+        for sub in subs:
+            sub.unregister()
+        r1.rospy.signal_shutdown("done")
+    else:
+        from fpe_jax.node._dds import DdsTransport
+        from fpe_jax.node._types import typestore
+
+        with DdsTransport(typestore("ros2"), node_name="fpe_bench_sink") as sink:
+            for t, type_name in spec["topics"].items():
+                sink.subscribe(t, type_name, counter(t))
+            sink.spin(stop)
+    print(json.dumps(counts), flush=True)
+
+
 def _start(flavour: str, args: list, stats: Path, env: dict) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "fpe_jax.cli", "node", f"--{flavour}", *args, "--stats", str(stats)],
@@ -107,13 +189,17 @@ def _start(flavour: str, args: list, stats: Path, env: dict) -> subprocess.Popen
     )
 
 
-def _summary(n_opp: int, n: int, stats: Path, e2e: list) -> dict:
+def _summary(
+    n_opp: int, n: int, stats: Path, e2e: list, others_received: int, cpu_s: float
+) -> dict:
     upd = np.array(json.loads(stats.read_text())["update_ns"], dtype=np.float64) * 1e-6
     e = np.array(e2e, dtype=np.float64) * 1e-6
     return {
         "opponents": n_opp,
         "observations": n * n_opp,
         "predictions_received": len(e),
+        "others_received": others_received,
+        "node_cpu_ms": cpu_s / n * 1e3,
         "update_p50_ms": float(np.percentile(upd, 50)),
         "update_p99_ms": float(np.percentile(upd, 99)),
         "e2e_p50_ms": float(np.percentile(e, 50)),
@@ -122,7 +208,7 @@ def _summary(n_opp: int, n: int, stats: Path, e2e: list) -> dict:
 
 
 def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
-    args, frames, topics = _setup(n_opp, seconds, tmp)
+    args, frames, topics, others = _setup(n_opp, seconds, tmp)
     stats = tmp / f"stats_ros1_{n_opp}.json"
     in_topic, in_type = (
         ("/opp/pose", "geometry_msgs/PoseStamped")
@@ -142,6 +228,7 @@ def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
             if ns in sent:
                 e2e.append(now - sent[ns])
 
+    sink = _sink("ros1", others, env)
     proc = _start("ros1", args, stats, env)
     path_cls = r1.message_class("nav_msgs/Path")
     subs = [
@@ -150,14 +237,18 @@ def run_ros1(n_opp: int, seconds: float, tmp: Path, env: dict, r1) -> dict:
     deadline = time.monotonic() + 60
     while pub.get_num_connections() == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
+    _wait_for_sink(sink)
+    cpu_s = _cpu_s(proc.pid)
     _play(frames, "ros1", lambda msg: pub.publish(r1.from_dict(cls, msg)), sent, lock)
     time.sleep(1.0)
+    cpu_s = _cpu_s(proc.pid) - cpu_s
     proc.send_signal(2)
     proc.communicate(timeout=30)
+    others_received = _stop(sink)
     for s in subs:
         s.unregister()
     pub.unregister()
-    return _summary(n_opp, len(frames), stats, e2e)
+    return _summary(n_opp, len(frames), stats, e2e, others_received, cpu_s)
 
 
 def run_ros2(n_opp: int, seconds: float, tmp: Path, env: dict) -> dict:
@@ -165,7 +256,7 @@ def run_ros2(n_opp: int, seconds: float, tmp: Path, env: dict) -> dict:
     from fpe_jax.node._dds import DdsTransport
     from fpe_jax.node._types import typestore
 
-    args, frames, topics = _setup(n_opp, seconds, tmp)
+    args, frames, topics, others = _setup(n_opp, seconds, tmp)
     stats = tmp / f"stats_ros2_{n_opp}.json"
     in_topic, in_type = (
         ("/opp/pose", "geometry_msgs/msg/PoseStamped")
@@ -190,19 +281,24 @@ def run_ros2(n_opp: int, seconds: float, tmp: Path, env: dict) -> dict:
         stop = threading.Event()
         spinner = threading.Thread(target=player.spin, args=(stop,))
         spinner.start()
+        sink = _sink("ros2", others, env)
         proc = _start("ros2", args, stats, env)
         try:
             deadline = time.monotonic() + 60
             while player.subscriber_count(in_topic) == 0 and time.monotonic() < deadline:
                 time.sleep(0.05)
+            _wait_for_sink(sink)
+            cpu_s = _cpu_s(proc.pid)
             _play(frames, "ros2", publish, sent, lock)
             time.sleep(1.0)
+            cpu_s = _cpu_s(proc.pid) - cpu_s
         finally:
             proc.send_signal(2)
             proc.communicate(timeout=30)
+            others_received = _stop(sink)
             stop.set()
             spinner.join(5.0)
-    return _summary(n_opp, len(frames), stats, e2e)
+    return _summary(n_opp, len(frames), stats, e2e, others_received, cpu_s)
 
 
 def main() -> None:
@@ -211,11 +307,23 @@ def main() -> None:
     ap.add_argument("--middleware", choices=["ros1", "ros2", "both"], default="both")
     ap.add_argument("--runs", type=int, default=3, help="runs of each case; medians reported")
     ap.add_argument(
+        "--listen",
+        choices=["path", "all", "both"],
+        default="both",
+        help="who subscribes: to the paths only, to every output, or each in turn",
+    )
+    ap.add_argument(
         "--no-markers", action="store_true", help="run the node with --no-markers (what they cost)"
     )
+    ap.add_argument("--sink", help=argparse.SUPPRESS)  # the --listen all subscriber process
     args = ap.parse_args()
+    if args.sink:
+        run_sink(args.sink)
+        return
     NODE_ARGS.extend(["--no-markers"] if args.no_markers else [])
     warnings.simplefilter("ignore", DeprecationWarning)
+    listens = ["path", "all"] if args.listen == "both" else [args.listen]
+    load_start = os.getloadavg()
     rows = []
     with tempfile.TemporaryDirectory() as d:
         if args.middleware in ("ros1", "both"):
@@ -225,10 +333,13 @@ def main() -> None:
                 from fpe_jax.node import _ros1 as r1
 
                 r1.rospy.init_node("fpe_bench_player", anonymous=True, disable_signals=True)
-                for n_opp in (1, 4):
-                    for _ in range(args.runs):
-                        rows.append(("ros1", run_ros1(n_opp, args.seconds, Path(d), env, r1)))
-                        print(json.dumps(rows[-1]), flush=True)
+                for listen in listens:
+                    _listen(listen)
+                    for n_opp in (1, 4):
+                        for _ in range(args.runs):
+                            row = run_ros1(n_opp, args.seconds, Path(d), env, r1)
+                            rows.append(("ros1", listen, row))
+                            print(json.dumps(rows[-1]), flush=True)
                 r1.rospy.signal_shutdown("done")
                 os.environ.clear()
                 os.environ.update(saved)
@@ -236,41 +347,65 @@ def main() -> None:
             # Cyclone DDS on loopback, in a domain of this run alone
             os.environ["CYCLONEDDS_URI"] = LOOPBACK_URI
             os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 200)
-            for n_opp in (1, 4):
-                for _ in range(args.runs):
-                    rows.append(("ros2", run_ros2(n_opp, args.seconds, Path(d), dict(os.environ))))
-                    print(json.dumps(rows[-1]), flush=True)
+            for listen in listens:
+                _listen(listen)
+                for n_opp in (1, 4):
+                    for _ in range(args.runs):
+                        row = run_ros2(n_opp, args.seconds, Path(d), dict(os.environ))
+                        rows.append(("ros2", listen, row))
+                        print(json.dumps(rows[-1]), flush=True)
+    load_end = os.getloadavg()
     lines = [
         "# `fpe node` latency (loopback)",
         "",
         f"Command: `.venv/bin/python experiments/benchmarks/node_latency.py --seconds "
-        f"{args.seconds:g} --runs {args.runs} --middleware {args.middleware}"
-        f"{' --no-markers' * args.no_markers}`; {RATE_HZ:g} Hz observations of a simulated drive, "
-        "default preset with a per-step covariance (all outputs on, the "
-        f"markers of each opponent at most every 0.1 s{', here off' * args.no_markers}). "
-        "Own update: runner update + covariance per opponent, "
-        "inside the node. End to end: publishing an observation to receiving its nav_msgs/Path "
-        "in the publishing process (ROS 1: roscore on 127.0.0.1; ROS 2: Cyclone DDS on the "
-        f"loopback interface). Each value: the median over {args.runs} runs.",
+        f"{args.seconds:g} --runs {args.runs} --middleware {args.middleware} "
+        f"--listen {args.listen}{' --no-markers' * args.no_markers}`; {RATE_HZ:g} Hz "
+        "observations of a simulated drive, default preset with a per-step covariance (all "
+        f"outputs on, the markers of each opponent at most every 0.1 s"
+        f"{', here off' * args.no_markers}). Own update: runner update + covariance per "
+        "opponent, inside the node. End to end: publishing an observation to receiving its "
+        "nav_msgs/Path in the publishing process (ROS 1: roscore on 127.0.0.1; ROS 2: Cyclone "
+        "DDS on the loopback interface). Listening `path`: only the publishing process "
+        "subscribes (to the paths), and the node builds no output nobody subscribes to; `all`: "
+        "a second process subscribes to every other output too (markers, per-step "
+        "covariances, predicted obstacles, trajectory), so the node builds and sends them all. "
+        "Node CPU: the node process's CPU time (user + system, all threads) while the drive "
+        "plays, per input message (one observation of each opponent); it depends little on "
+        "what else the machine runs, where the latencies' tails do. "
+        f"Each value: the median over {args.runs} runs.",
         "",
-        "| middleware | opponents | observations | paths received (fewest) "
-        "| own update p50 / p99 [ms] "
-        "| end to end p50 / p99 [ms] |",
-        "|---|---|---|---|---|---|",
+        "| middleware | listening | opponents | observations | paths received (fewest) "
+        "| other outputs received (fewest) | node CPU per input message [ms] "
+        "| own update p50 / p99 [ms] | end to end p50 / p99 [ms] |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    cases = sorted({(mw, r["opponents"]) for mw, r in rows})
-    for mw, n_opp in cases:
-        runs = [r for m, r in rows if (m, r["opponents"]) == (mw, n_opp)]
+    cases = sorted({(mw, listen, r["opponents"]) for mw, listen, r in rows})
+    for mw, listen, n_opp in cases:
+        runs = [r for m, li, r in rows if (m, li, r["opponents"]) == (mw, listen, n_opp)]
         r = {k: float(np.median([x[k] for x in runs])) for k in runs[0]}
-        r["opponents"], r["observations"] = n_opp, runs[0]["observations"]
-        r["predictions_received"] = min(x["predictions_received"] for x in runs)
         lines.append(
-            f"| {mw} | {r['opponents']} | {r['observations']} | "
-            f"{r['predictions_received']} | {r['update_p50_ms']:.3f} / {r['update_p99_ms']:.3f} | "
+            f"| {mw} | {listen} | {n_opp} | {runs[0]['observations']} | "
+            f"{min(x['predictions_received'] for x in runs)} | "
+            f"{min(x['others_received'] for x in runs)} | {r['node_cpu_ms']:.2f} | "
+            f"{r['update_p50_ms']:.3f} / {r['update_p99_ms']:.3f} | "
             f"{r['e2e_p50_ms']:.2f} / {r['e2e_p99_ms']:.2f} |"
         )
+    lines += [
+        "",
+        "Load average of the machine (1, 5, 15 min) at the start: "
+        + ", ".join(f"{v:.2f}" for v in load_start)
+        + "; at the end: "
+        + ", ".join(f"{v:.2f}" for v in load_end)
+        + " (2 cores).",
+    ]
     out = HERE / ("node_latency_no_markers.md" if args.no_markers else "node_latency.md")
     out.write_text("\n".join(lines) + "\n")
+
+
+def _listen(mode: str) -> None:
+    global LISTEN_ALL
+    LISTEN_ALL = mode == "all"
 
 
 if __name__ == "__main__":

@@ -13,12 +13,14 @@ import importlib
 # public name -> the private module that defines it
 _LAZY = {
     "BadMessage": "_core",
+    "CdrCodec": "_cdr",
     "DdsTransport": "_dds",
     "IdlCodec": "_dds",
     "Node": "_core",
     "NodeOptions": "_core",
     "Predicted": "_view",
     "Ros1Transport": "_ros1",
+    "Ros1Writer": "_cdr",
     "SceneSink": "_foxglove",
     "Transport": "_core",
     "add_arguments": "_view",

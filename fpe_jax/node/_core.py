@@ -70,6 +70,8 @@ class Transport(Protocol):
 
     def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]: ...
 
+    def subscriber_count(self, topic: str) -> int: ...
+
     def spin(self, stop: threading.Event) -> None: ...
 
     def close(self) -> None: ...
@@ -370,6 +372,7 @@ class Node:
                 self.warn(topic, f"obstacle {car}: {getattr(e, 'problem', e)}")
                 continue
             if out is not None:
+                self._publish_paths([out])  # each car's path as soon as it is known
                 updated.append(out)
         stale = [c for c, t in self.last_seen_ns.items()
                  if receive_ns - t > self.opt.drop_after_s * 1e9]  # fmt: skip
@@ -377,7 +380,7 @@ class Node:
             del self.runners[c], self.last_seen_ns[c]
             self._last_markers_ns.pop(c, None)
         if updated:
-            self._publish(updated)
+            self._publish_views(updated)
 
     def _frenet_to_map(self, s_m: float, d_m: float) -> tuple[float, float]:
         return frenet_to_map(self.path, s_m, d_m)
@@ -457,35 +460,50 @@ class Node:
             self._pub[key] = self.transport.advertise(sub, OUTPUTS[name][1])
         return self._pub[key]
 
+    def _live(self, name: str, car: str | None = None) -> Callable[[dict], None] | None:
+        """The publisher of output `name` (of a per-car output: the car's own topic when several
+        opponents are tracked), or None when the output is off or nobody subscribes to its
+        topic: a message nobody receives is neither built nor encoded."""
+        if name not in self._pub:
+            return None
+        topic = None if car is None else self._topic(name, car)
+        pub = self._pub[name] if topic is None else self._publisher(name, car)
+        return pub if self.transport.subscriber_count(topic or self.opt.outputs[name]) else None
+
     def _publish(self, outs: list) -> None:
         """Publish the predictions of one input message: the paths first (what a planner waits
-        for), then the predicted ObstacleArray, the markers and the covariances."""
+        for), then the rest (`_publish_views`)."""
+        self._publish_paths(outs)
+        self._publish_views(outs)
+
+    def _publish_paths(self, outs: list) -> None:
         f, frame = self.flavour, self.opt.map_frame
-        if "path" in self._pub:
-            for car, ns, poses, _, _ in outs:
-                self._publisher("path", car)(
-                    {
-                        "header": header(f, ns, frame),
-                        "poses": [
-                            {"header": header(f, t, frame), "pose": _pose(x, y, yaw)}
-                            for t, (x, y, yaw) in zip(self.step_ns(ns), poses.tolist())
-                        ],
-                    }
-                )
-        if "obstacles" in self._pub:
+        for car, ns, poses, _, _ in outs:
+            pub = self._live("path", car)
+            if pub is None:
+                continue
+            steps = zip(self.step_ns(ns), poses.tolist())
+            pub({"header": header(f, ns, frame),
+                 "poses": [{"header": header(f, t, frame), "pose": _pose(x, y, yaw)}
+                           for t, (x, y, yaw) in steps]})  # fmt: skip
+
+    def _publish_views(self, outs: list) -> None:
+        """The outputs after the paths: the predicted ObstacleArray, the markers, the
+        covariances and (every trajectory_every_s) the trajectory."""
+        f, frame = self.flavour, self.opt.map_frame
+        if self._live("obstacles") is not None:
             self._pub["obstacles"](self._obstacle_array(outs[0][1], outs))
-        if "markers" in self._pub:
+        if self._live("markers") is not None:
             self._publish_markers(outs)
-        if "covariance" in self._pub:
-            for car, ns, poses, cov, _ in outs:
-                if cov is None:
-                    continue
-                pub = self._publisher("covariance", car)
-                for t, (x, y, yaw), c in zip(self.step_ns(ns), poses.tolist(), cov.tolist()):
-                    full = [0.0] * 36
-                    full[0], full[1], full[6], full[7] = c[0][0], c[0][1], c[1][0], c[1][1]
-                    pub({"header": header(f, t, frame),
-                         "pose": {"pose": _pose(x, y, yaw), "covariance": full}})  # fmt: skip
+        for car, ns, poses, cov, _ in outs:
+            pub = None if cov is None else self._live("covariance", car)
+            if pub is None:
+                continue
+            for t, (x, y, yaw), c in zip(self.step_ns(ns), poses.tolist(), cov.tolist()):
+                full = [0.0] * 36
+                full[0], full[1], full[6], full[7] = c[0][0], c[0][1], c[1][0], c[1][1]
+                pub({"header": header(f, t, frame),
+                     "pose": {"pose": _pose(x, y, yaw), "covariance": full}})  # fmt: skip
         self.n_published += len(outs)
         self._publish_trajectory(time.monotonic_ns())
 
@@ -560,9 +578,9 @@ class Node:
 
     def _publish_trajectory(self, now_ns: int) -> None:
         """The line model's learned line and speed profile, every trajectory_every_s."""
-        if "trajectory" not in self._pub:
-            return
         if now_ns - self._last_trajectory_ns < self.opt.trajectory_every_s * 1e9:
+            return
+        if self._live("trajectory") is None:
             return
         self._last_trajectory_ns = now_ns
         self._pub["trajectory"](self.trajectory_message())

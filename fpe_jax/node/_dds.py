@@ -16,15 +16,15 @@ ROS 2 is DDS with naming and QoS conventions, which this module follows:
 
 The DDS types are generated at run time from the message definitions in a rosbags `Typestore`
 (the same definitions that give the type hashes), never from hand-written layouts. Messages cross
-the Transport boundary as nested dicts (see `IdlCodec`).
+the Transport boundary as nested dicts (see `IdlCodec`); their CDR bytes are written and read by
+code generated from those definitions (`fpe_jax.node._cdr`) and go straight to and from Cyclone
+DDS' C writers and readers.
 
 No `from __future__ import annotations` here: cyclonedds reads the generated classes' field
 annotations as objects.
 """
 
 import logging
-import numbers
-import operator
 import os
 import re
 import threading
@@ -32,9 +32,8 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-import numpy as np
-
 try:
+    from cyclonedds._clayer import ddspy_take, ddspy_write
     from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
     from cyclonedds.core import (
         DDSException,
@@ -60,6 +59,18 @@ except ImportError as err:  # pragma: no cover - depends on the installation
     ) from err
 from rosbags.interfaces import Nodetype
 from rosbags.typesys.store import Typestore
+
+from fpe_jax.node._cdr import (
+    INT_RANGES,
+    CdrCodec,
+    FieldError,
+    array_converter,
+    fielddefs,
+    float_converter,
+    int_converter,
+    string_converter,
+    to_bool,
+)
 
 log = logging.getLogger(__name__)
 
@@ -152,28 +163,6 @@ def type_hash_user_data(typestore: Typestore, type_name: str) -> bytes:
 # message types: rosbags definitions -> cyclonedds IdlStruct classes, dict <-> sample
 
 
-class _FieldError(ValueError):
-    """A bad value deep in a message; `path` grows as the error passes each enclosing field."""
-
-    def __init__(self, problem: str):
-        super().__init__(problem)
-        self.problem = problem
-        self.path: list[str] = []
-
-
-_INT_RANGES = {
-    "int8": (-(2**7), 2**7 - 1),
-    "uint8": (0, 2**8 - 1),
-    "byte": (0, 2**8 - 1),
-    "char": (0, 2**8 - 1),
-    "int16": (-(2**15), 2**15 - 1),
-    "uint16": (0, 2**16 - 1),
-    "int32": (-(2**31), 2**31 - 1),
-    "uint32": (0, 2**32 - 1),
-    "int64": (-(2**63), 2**63 - 1),
-    "uint64": (0, 2**64 - 1),
-}
-# ROS 2 maps `char` to uint8 and `byte` to octet (rosidl); both are one unsigned byte in CDR
 _IDL_INTS = {
     "int8": idl.int8,
     "uint8": idl.uint8,
@@ -188,55 +177,19 @@ _IDL_INTS = {
 }
 
 
-def _int_converter(kind: str) -> Callable[[Any], int]:
-    lo, hi = _INT_RANGES[kind]
-
-    def convert(value: Any) -> int:
-        if type(value) is int and lo <= value <= hi:  # the common case, without ABC checks
-            return value
-        if isinstance(value, bool | float | str) or not isinstance(value, numbers.Integral):
-            raise _FieldError(f"expected an integer ({kind}), got {value!r}")
-        value = operator.index(value)
-        if not lo <= value <= hi:
-            raise _FieldError(f"{value} is out of the range of {kind} [{lo}, {hi}]")
-        return value
-
-    return convert
-
-
-def _float_converter(kind: str) -> Callable[[Any], float]:
-    def convert(value: Any) -> float:
-        if type(value) is float:  # the common case, without ABC checks
-            return value
-        if isinstance(value, bool | str) or not isinstance(value, numbers.Real):
-            raise _FieldError(f"expected a number ({kind}), got {value!r}")
-        return float(value)
-
-    return convert
-
-
-def _bool(value: Any) -> bool:
-    if isinstance(value, bool | np.bool_):
-        return bool(value)
-    raise _FieldError(f"expected a bool, got {value!r}")
-
-
-def _string_converter(bound: int) -> Callable[[Any], str]:
-    def convert(value: Any) -> str:
-        if not isinstance(value, str):
-            raise _FieldError(f"expected a string, got {value!r}")
-        if bound and len(value.encode()) > bound:
-            raise _FieldError(f"string of {len(value.encode())} bytes exceeds its bound {bound}")
-        return value
-
-    return convert
-
-
 _MISSING = object()
 
 
 def _identity(value: Any) -> Any:
     return value
+
+
+def _as_list(values: Any) -> list:
+    return values if isinstance(values, list) else list(values)
+
+
+def _list_of(convert: Callable[[Any], Any]) -> Callable[[Any], list]:
+    return lambda values: [convert(v) for v in values]
 
 
 class _Field:
@@ -248,7 +201,7 @@ class _Field:
         self.name = name
         self.annotation = annotation
         self.default = default  # () -> the field's zero value as an IDL value
-        self.to_idl = to_idl  # dict value -> IDL value (raises _FieldError)
+        self.to_idl = to_idl  # dict value -> IDL value (raises FieldError)
         self.to_py = to_py  # IDL value -> dict value
 
 
@@ -265,6 +218,7 @@ class IdlCodec:
 
     def __init__(self, typestore: Typestore):
         self._store = typestore
+        self._cdr = CdrCodec(typestore)
         self._classes: dict[str, type] = {}
         self._fields: dict[str, tuple[_Field, ...]] = {}
         self._names: dict[str, frozenset[str]] = {}
@@ -280,18 +234,8 @@ class IdlCodec:
         if cls is not None:
             return cls
         dds_name = dds_type_name(type_name)
-        try:
-            _, fielddefs = self._store.fielddefs[type_name]
-        except KeyError:
-            raise ValueError(
-                f"message type {type_name!r} is not in the type store "
-                "(register its definition, or check the spelling pkg/msg/Type)"
-            ) from None
-        # ROS 2 gives an empty message one byte on the wire (rosidl's placeholder member)
-        fielddefs = fielddefs or [
-            ("structure_needs_at_least_one_member", (Nodetype.BASE, ("uint8", 0)))
-        ]
-        fields = tuple(self._field(type_name, name, node) for name, node in fielddefs)
+        defs = fielddefs(self._store, type_name)
+        fields = tuple(self._field(type_name, name, node) for name, node in defs)
         cls = make_idl_struct(
             dds_name.rsplit("::", 1)[1], dds_name, {f.name: f.annotation for f in fields}
         )
@@ -304,16 +248,16 @@ class IdlCodec:
         kind, spec = node
         if kind == Nodetype.BASE:
             base, bound = spec
-            if base in _INT_RANGES:
-                return _Field(name, _IDL_INTS[base], int, _int_converter(base), _identity)
+            if base in INT_RANGES:
+                return _Field(name, _IDL_INTS[base], int, int_converter(base), _identity)
             if base in ("float32", "float64"):
                 annotation = idl.float32 if base == "float32" else idl.float64
-                return _Field(name, annotation, float, _float_converter(base), _identity)
+                return _Field(name, annotation, float, float_converter(base), _identity)
             if base == "bool":
-                return _Field(name, bool, bool, _bool, _identity)
+                return _Field(name, bool, bool, to_bool, _identity)
             if base == "string":
                 annotation = idl.bounded_str[bound] if bound else str
-                return _Field(name, annotation, str, _string_converter(bound), _identity)
+                return _Field(name, annotation, str, string_converter(bound), _identity)
             raise ValueError(f"{owner}.{name}: field type {base} is not supported on DDS here")
         if kind == Nodetype.NAME:
             sub = spec
@@ -335,14 +279,14 @@ class IdlCodec:
                     name,
                     idl.array[elem.annotation, size],
                     lambda: [elem.default() for _ in range(size)],
-                    _array_converter(elem.to_idl, size, exact=True),
+                    array_converter(elem.to_idl, size, exact=True),
                     to_py,
                 )
             annotation = (
                 idl.sequence[elem.annotation, size] if size else idl.sequence[elem.annotation]
             )
             return _Field(
-                name, annotation, list, _array_converter(elem.to_idl, size, exact=False), to_py
+                name, annotation, list, array_converter(elem.to_idl, size, exact=False), to_py
             )
         raise ValueError(f"{owner}.{name}: unsupported field kind {kind!r}")
 
@@ -352,12 +296,12 @@ class IdlCodec:
 
     def _from_dict(self, type_name: str, msg: Any) -> Any:
         if not isinstance(msg, Mapping):
-            raise _FieldError(f"expected a dict for {type_name}, got {type(msg).__name__}")
+            raise FieldError(f"expected a dict for {type_name}, got {type(msg).__name__}")
         fields = self._fields[type_name]
         known = self._names[type_name]
         if not known.issuperset(msg):
             key = next(k for k in msg if k not in known)
-            raise _FieldError(
+            raise FieldError(
                 f"unknown field {key!r} of {type_name} (fields: {', '.join(sorted(known))})"
             )
         values = {}
@@ -368,7 +312,7 @@ class IdlCodec:
                 continue
             try:
                 values[f.name] = f.to_idl(value)
-            except _FieldError as err:
+            except FieldError as err:
                 err.path.insert(0, f.name)
                 raise
         return self._classes[type_name](**values)
@@ -382,7 +326,7 @@ class IdlCodec:
         self.idl_class(type_name)
         try:
             return self._from_dict(type_name, msg)
-        except _FieldError as err:
+        except FieldError as err:
             where = "".join(p if p.startswith("[") else "." + p for p in err.path)
             raise ValueError(f"{type_name}{where}: {err.problem}") from None
 
@@ -393,12 +337,24 @@ class IdlCodec:
 
     def encode(self, type_name: str, msg: Mapping) -> bytes:
         """The CDR bytes of a message, with the 4-byte encapsulation header (CDR_LE), as a writer
-        sends them (the writer appends zero bytes up to a multiple of 4)."""
-        return self.from_dict(type_name, msg).serialize(use_version_2=False)
+        sends them (the writer appends zero bytes up to a multiple of 4): by the type's
+        generated writer (`fpe_jax.node._cdr`); a message it does not take goes through the
+        IDL sample, which either encodes it or raises the ValueError naming the field."""
+        self.idl_class(type_name)
+        try:
+            return self._cdr.encode(type_name, msg)
+        except Exception:  # the checks below say what is wrong, or encode what is unusual
+            return self.from_dict(type_name, msg).serialize(use_version_2=False)
 
     def decode(self, type_name: str, data: bytes | bytearray | memoryview) -> dict:
-        """The nested dict of CDR bytes (with their encapsulation header) of `type_name`."""
-        return self.to_dict(type_name, self.idl_class(type_name).deserialize(bytes(data)))
+        """The nested dict of CDR bytes (with their encapsulation header) of `type_name`: by the
+        type's generated reader; bytes it does not take (big endian, malformed) through
+        cyclonedds' deserializer, which decodes them or raises."""
+        self.idl_class(type_name)
+        try:
+            return self._cdr.decode(type_name, data)
+        except Exception:
+            return self.to_dict(type_name, self.idl_class(type_name).deserialize(bytes(data)))
 
 
 def _as_list(values: Any) -> list:
@@ -407,27 +363,6 @@ def _as_list(values: Any) -> list:
 
 def _list_of(convert: Callable[[Any], Any]) -> Callable[[Any], list]:
     return lambda values: [convert(v) for v in values]
-
-
-def _array_converter(convert: Callable[[Any], Any], size: int, *, exact: bool):
-    def to_idl(values: Any) -> list:
-        if isinstance(values, str | Mapping) or not hasattr(values, "__len__"):
-            raise _FieldError(f"expected a list, got {type(values).__name__}")
-        n = len(values)
-        if exact and n != size:
-            raise _FieldError(f"expected {size} elements, got {n}")
-        if not exact and size and n > size:
-            raise _FieldError(f"{n} elements exceed the sequence bound {size}")
-        out = []
-        for i, value in enumerate(values):
-            try:
-                out.append(convert(value))
-            except _FieldError as err:
-                err.path.insert(0, f"[{i}]")
-                raise
-        return out
-
-    return to_idl
 
 
 # ---------------------------------------------------------------------------------------------
@@ -558,10 +493,16 @@ class DdsTransport:
                 self._entities.append(writer)
                 self._writers[topic] = (writer, type_name)
                 self._announce()
-        from_dict = self.codec.from_dict
+        encode = self.codec.encode
+        ref = writer._ref
 
         def publish(msg: dict) -> None:
-            writer.write(from_dict(type_name, msg))
+            # the CDR bytes straight to the C writer (DataWriter.write would build an IDL
+            # sample and serialize it in Python first); padded as DataWriter.write pads them
+            data = encode(type_name, msg)
+            ret = ddspy_write(ref, data + bytes(-len(data) & 3))
+            if ret < 0:
+                raise DDSException(ret, f"writing a sample on ROS 2 topic {topic}")
 
         return publish
 
@@ -748,11 +689,19 @@ class DdsTransport:
     def _drain(self, entry: _Reader) -> None:
         """Take every waiting sample of one reader and deliver it; a sample that does not
         decode is dropped with a rate-limited warning."""
+        mask = SampleState.Any | ViewState.Any | InstanceState.Any
         while not self._closed:
+            taken = ddspy_take(entry.reader._ref, mask, 1)  # (CDR bytes, SampleInfo) pairs
+            if isinstance(taken, int):
+                raise DDSException(taken, f"taking a sample of ROS 2 topic {entry.topic}")
+            if not taken:
+                return
+            receive_ns = time.time_ns()
+            data, info = taken[0]
+            if not info.valid_data:
+                continue  # a writer went away (dispose / unregister), not a message
             try:
-                samples = entry.reader.take(N=1)
-            except DDSException:
-                raise
+                msg = self.codec.decode(entry.type_name, data)
             except Exception as err:  # a sample that does not decode is taken all the same
                 self._warn(
                     entry.topic,
@@ -761,14 +710,6 @@ class DdsTransport:
                     f"{entry.type_name} ({type(err).__name__}: {err})",
                 )
                 continue
-            if not samples:
-                return
-            receive_ns = time.time_ns()
-            sample = samples[0]
-            info = getattr(sample, "sample_info", None)
-            if info is None or not info.valid_data:
-                continue  # a writer went away (dispose / unregister), not a message
-            msg = self.codec.to_dict(entry.type_name, sample)
             for callback in entry.callbacks:
                 callback(msg, entry.type_name, receive_ns)
 

@@ -9,8 +9,10 @@ genpy from the type store's full definitions (`fpe_jax.node.typestore("ros1")`),
 
 from __future__ import annotations
 
+import copy
 import functools
 import importlib
+import struct
 import sys
 import threading
 import time
@@ -18,6 +20,7 @@ import warnings
 from collections.abc import Callable
 
 from fpe_jax.errors import InputError
+from fpe_jax.node._cdr import Ros1Writer
 from fpe_jax.node._types import full_definition, typestore
 
 DEBIAN_DIST = "/usr/lib/python3/dist-packages"
@@ -83,29 +86,38 @@ def _value_to_py(v):
 
 
 def from_dict(cls: type, d: dict):
-    """A genpy message of class `cls` from nested dicts; missing fields keep their defaults, an
+    """A genpy message of class `cls` from nested dicts; missing fields take their defaults, an
     unknown field is a ValueError naming the type and the field."""
-    slots, convert, flat = _plan(cls)
-    if flat and len(d) == len(slots) and all(k in d for k in slots):
-        msg = cls.__new__(cls)  # every field given, all primitive: no defaults to build first
-        for k in slots:
-            setattr(msg, k, d[k])
-        return msg
-    msg = cls()
-    for k, v in d.items():
-        if k not in convert:
-            raise ValueError(f"{cls._type} has no field {k!r} (fields: {', '.join(slots)})")
-        c = convert[k]
-        setattr(msg, k, v if c is None else c(v))
+    slots, convert, zero = _plan(cls)
+    if not d.keys() <= convert.keys():
+        k = next(k for k in d if k not in convert)
+        raise ValueError(f"{cls._type} has no field {k!r} (fields: {', '.join(slots)})")
+    msg = cls.__new__(cls)  # every slot is set below: no default objects built to be replaced
+    for k in slots:
+        v = d.get(k, _MISSING)
+        if v is _MISSING:
+            setattr(msg, k, zero[k]())
+        else:
+            c = convert[k]
+            setattr(msg, k, v if c is None else c(v))
     return msg
 
 
+_MISSING = object()
+
+
 @functools.cache
-def _plan(cls: type) -> tuple[tuple[str, ...], dict, bool]:
-    """(slots, {slot: converter or None for a value taken as is}, all slots primitive)."""
-    convert = {}
+def _plan(cls: type) -> tuple[tuple[str, ...], dict, dict]:
+    """(slots, {slot: converter or None for a value taken as is}, {slot: () -> its default})."""
+    convert, zero = {}, {}
+    proto = cls()
     for slot, slot_type in zip(cls.__slots__, cls._slot_types):
         base, array = slot_type.split("[", 1)[0], "[" in slot_type
+        value = getattr(proto, slot)
+        if isinstance(value, int | float | str | bytes | tuple):  # immutable: shared
+            zero[slot] = lambda value=value: value
+        else:
+            zero[slot] = lambda value=value: copy.deepcopy(value)
         if base in ("time", "duration"):
             make = genpy.Time if base == "time" else genpy.Duration
             one = lambda x, make=make: make(x["secs"], x["nsecs"]) if isinstance(x, dict) else x  # noqa: E731
@@ -116,8 +128,53 @@ def _plan(cls: type) -> tuple[tuple[str, ...], dict, bool]:
             convert[slot] = list if array and base not in ("uint8", "char") else None
             continue
         convert[slot] = (lambda v, one=one: [one(x) for x in v]) if array else one
-    flat = all(c is None for c in convert.values())
-    return tuple(cls.__slots__), convert, flat
+    return tuple(cls.__slots__), convert, zero
+
+
+@functools.cache
+def _writer() -> Ros1Writer:
+    return Ros1Writer(typestore("ros1"))
+
+
+class _Seq:
+    """The header rospy stamps its sequence number into before serializing a message."""
+
+    __slots__ = ("seq", "frame_id")
+
+    def __init__(self):
+        self.seq, self.frame_id = 0, ""
+
+
+@functools.cache
+def _raw_class(cls: type) -> type:
+    """A subclass of the genpy class `cls` whose instances carry their serialized bytes: rospy
+    publishes it as a `cls` (same type and md5) and writes the bytes, with its sequence number
+    in the header's first 4 bytes as it would have set `header.seq`."""
+    has_header = cls._has_header
+
+    class Raw(cls):
+        __slots__ = ("_raw",)
+
+        @classmethod
+        def of(klass, data: bytes):
+            msg = klass.__new__(klass)
+            msg._raw = data
+            if has_header:
+                msg.header = _Seq()
+            return msg
+
+        def serialize(self, buff) -> None:
+            if has_header:
+                buff.write(_SEQ.pack(self.header.seq & 0xFFFFFFFF))
+                buff.write(memoryview(self._raw)[4:])
+            else:
+                buff.write(self._raw)
+
+    Raw.__name__ = Raw.__qualname__ = f"Raw{cls.__name__}"
+    return Raw
+
+
+_SEQ = struct.Struct("<I")
 
 
 class Ros1Transport:
@@ -134,7 +191,7 @@ class Ros1Transport:
         rospy.init_node(name, anonymous=False, disable_signals=True)
         self.queue_size = queue_size
         self._subs: list = []
-        self._pubs: list = []
+        self._pubs: dict = {}  # topic -> rospy.Publisher
 
     @staticmethod
     def param(name: str, default=None):
@@ -168,10 +225,33 @@ class Ros1Transport:
         self._subs.append(sub)
 
     def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]:
+        """publish(msg_dict) for `topic`: the message serialized by the type's generated writer
+        (`fpe_jax.node._cdr.Ros1Writer`) when the type store's definition is the class's (same
+        md5), else, and for a message that writer does not take, by genpy from `from_dict`."""
         cls = message_class(type_name)
         pub = rospy.Publisher(topic, cls, queue_size=10, tcp_nodelay=True)
-        self._pubs.append(pub)
-        return lambda d: pub.publish(from_dict(cls, d))
+        self._pubs[topic] = pub
+        full = ros1_name(type_name).replace("/", "/msg/", 1)
+        store = typestore("ros1")
+        if full not in store.fielddefs or store.generate_msgdef(full, 1)[1] != cls._md5sum:
+            return lambda d: pub.publish(from_dict(cls, d))
+        encode, raw = _writer().encode, _raw_class(cls)
+
+        def publish(d: dict) -> None:
+            try:
+                data = encode(full, d)
+            except Exception:  # genpy's conversion takes it or says what is wrong
+                pub.publish(from_dict(cls, d))
+                return
+            pub.publish(raw.of(data))
+
+        return publish
+
+    def subscriber_count(self, topic: str) -> int:
+        """How many subscribers are connected to this node's publisher on `topic` (0 if not
+        advertised)."""
+        pub = self._pubs.get(topic)
+        return 0 if pub is None else pub.get_num_connections()
 
     def spin(self, stop: threading.Event) -> None:
         while not stop.is_set() and not rospy.is_shutdown():
@@ -180,7 +260,7 @@ class Ros1Transport:
     def close(self) -> None:
         for s in self._subs:
             s.unregister()
-        for p in self._pubs:
+        for p in self._pubs.values():
             p.unregister()
         with warnings.catch_warnings():  # rospy's shutdown calls deprecated threading APIs
             warnings.simplefilter("ignore", DeprecationWarning)

@@ -80,6 +80,8 @@ class Predicted:
         step_stamps_ns: (N, H) int64 time each step predicts [ns].
         cov_xy_m2: (N, H, 2, 2) map-frame covariance [m^2]; NaN without the config's uncertainty.
         track_xy_m: (K, 2) the waypoints [m]; track_closed: whether they form a loop.
+        valid: (N,) bool, whether each prediction had enough history (an invalid one is drawn
+            grey, without path or ellipses, as in `fpe predict --out X.mcap`).
     """
 
     stamps_ns: np.ndarray
@@ -90,6 +92,7 @@ class Predicted:
     cov_xy_m2: np.ndarray
     track_xy_m: np.ndarray
     track_closed: bool
+    valid: np.ndarray
 
 
 def predicted(res) -> Predicted:
@@ -100,6 +103,8 @@ def predicted(res) -> Predicted:
     poses = np.asarray(res.poses_m, dtype=np.float64)
     n, h, _ = poses.shape
     cov = np.full((n, h, 2, 2), np.nan) if res.cov_m2 is None else np.asarray(res.cov_m2)
+    if res.valid is None:
+        raise ValueError("fpe view: the predictions carry no validity (predict_log sets it)")
     stamps_ns = rm.seconds_to_ns(np.asarray(res.stamps_s, dtype=np.float64))
     return Predicted(
         stamps_ns=stamps_ns,
@@ -110,6 +115,7 @@ def predicted(res) -> Predicted:
         cov_xy_m2=cov,
         track_xy_m=np.asarray(res.predictor.waypoints_xy_m, dtype=np.float64),
         track_closed=bool(res.track_closed),
+        valid=np.asarray(res.valid, dtype=bool),
     )
 
 
@@ -130,7 +136,10 @@ def feed(sinks, pred: Predicted, *, speed: float | None = None, offset_ns: int =
         steps = pred.step_stamps_ns[k] + offset_ns
         for sink in sinks:
             sink.observation(CAR_ID, stamp + offset_ns, float(x), float(y), float(pred.yaw_rad[k]))
-            sink.prediction(CAR_ID, stamp + offset_ns, pred.poses[k], pred.cov_xy_m2[k], steps)
+            sink.prediction(
+                CAR_ID, stamp + offset_ns, pred.poses[k], pred.cov_xy_m2[k], steps,
+                bool(pred.valid[k]),
+            )  # fmt: skip
 
 
 def show(args, pred: Predicted) -> int:

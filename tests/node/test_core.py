@@ -28,6 +28,9 @@ class FakeTransport:
         self.out[topic] = []
         return self.out[topic].append
 
+    def subscriber_count(self, topic):
+        return 1 if topic in self.out else 0
+
     def spin(self, stop):
         pass
 
@@ -87,6 +90,49 @@ def test_bad_input_between_good_messages_changes_nothing():
     # no prediction from too little history: the first published is the first valid row
     valid = drive_valid(d, cfg["settings"]["history"])
     assert len(want) == int(valid.sum())
+
+
+def test_outputs_nobody_subscribes_to_are_not_built():
+    """Per topic: nothing is built or sent while it has no subscriber; what is sent once one
+    subscribes is what a node with every output subscribed sends. Several opponents: the
+    per-opponent path and covariance topics count one by one."""
+    res = simulate("oval", duration_s=3.0, seed=4)
+    d = res.drive
+    cov = [[[0.01 * (k + 1), 0.0], [0.0, 0.004]] for k in range(10)]
+    cfg = params_to_config(presets["default"], uncertainty={"frame": "track", "cov_m2": cov})
+
+    class Selective(FakeTransport):
+        listened: set = set()
+
+        def subscriber_count(self, topic):
+            return int(topic in self.listened)
+
+    every, some = FakeTransport(), Selective()
+    opts = NodeOptions(input="obstacles", topic="/obst", markers_every_s=0.0)
+    nodes = [Node(t, cfg, res.centerline_xy_m, opts) for t in (every, some)]
+    for node in nodes:
+        node.start()
+    built, markers = [], nodes[1]._markers
+    nodes[1]._markers = lambda *a: built.append(1) or markers(*a)
+    assert nodes[0]._markers != nodes[1]._markers
+    half = len(d.t_s) // 2
+    for k, ts in enumerate(d.t_s):
+        if k == half:
+            some.listened = {"/future_pose/path/opp_2", "/future_pose/covariance/opp_7"}
+        obst = [{"id": i, "s_center": 2.0 * float(ts) + 3.0 * i, "d_center": 0.1 * i,
+                 "is_static": False} for i in (2, 7)]  # fmt: skip
+        hdr = {"stamp": {"sec": 1 + int(ts), "nanosec": int(ts % 1 * 1e9)}, "frame_id": "map"}
+        for t in (every, some):
+            t.subs["/obst"]({"header": hdr, "obstacles": obst}, "f110_msgs/msg/ObstacleArray", k)
+    assert not built  # no markers for /future_pose, which nobody subscribes to
+    assert every.out["/future_pose"]
+    assert {k: len(v) for k, v in some.out.items() if v} == {
+        "/future_pose/path/opp_2": len(d.t_s) - half,
+        "/future_pose/covariance/opp_7": 10 * (len(d.t_s) - half),
+    }
+    for topic, msgs in some.out.items():
+        if msgs:
+            assert msgs == every.out[topic][-len(msgs) :], topic
 
 
 def test_runner_validity_equals_the_drive_rule():

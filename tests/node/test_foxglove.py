@@ -395,24 +395,39 @@ def _decoded_foxglove(path: Path) -> dict[str, list]:
 
 
 def test_fpe_view_records_the_drive_and_its_predictions(runs):
+    """`fpe view` draws what `fpe predict --out X.mcap` draws: a path for each valid prediction
+    only; an invalid one (too little history) grey, without ellipses, marked valid=false."""
     got = _decoded_foxglove(runs["view"])
-    n = len(runs["stamps_ns"])
+    n, valid = len(runs["stamps_ns"]), runs["valid"]
+    assert 0 < valid.sum() < n  # the first predictions lack history
     assert {k: len(v) for k, v in got.items()} == {
         "/track": 1,
         "/observations": n,
-        "/predictions/opp/path": n,
+        "/predictions/opp/path": valid.sum(),
         "/predictions/opp/ellipses": n,
     }
     poses = np.array(
         [[[p.position.x, p.position.y] for p in m.poses] for _, m in got["/predictions/opp/path"]]
     )
-    np.testing.assert_allclose(poses, runs["poses"][..., :2], rtol=0, atol=5e-9)  # CSV: 9 dp
-    assert [ns for ns, _ in got["/predictions/opp/path"]] == runs["stamps_ns"].tolist()
-    # the config's uncertainty: an ellipse per step, its area that of the CSV's covariance
+    np.testing.assert_allclose(poses, runs["poses"][valid][..., :2], rtol=0, atol=5e-9)  # 9 dp
+    stamps = runs["stamps_ns"][valid].tolist()
+    assert [ns for ns, _ in got["/predictions/opp/path"]] == stamps
+    # the config's uncertainty: an ellipse per step of a valid prediction, its area that of the
+    # CSV's covariance; an invalid one: its line alone, grey
     ell = [m.entities[0] for _, m in got["/predictions/opp/ellipses"]]
-    assert all(len(e.spheres) == H for e in ell)
+    marks = [{kv.key: kv.value for kv in e.metadata}["valid"] for e in ell]
+    assert marks == ["true" if v else "false" for v in valid]
+    assert [len(e.spheres) for e in ell] == [H if v else 0 for v in valid]
+    assert len({(e.lines[0].color.r, e.lines[0].color.g) for e, v in zip(ell, valid) if v}) == 1
+    grey = {
+        (e.lines[0].color.r, e.lines[0].color.g, e.lines[0].color.b)
+        for e, v in zip(ell, valid)
+        if not v
+    }
+    assert len(grey) == 1 and len(set(next(iter(grey)))) == 1
+    ell = [e for e, v in zip(ell, valid, strict=True) if v]
     sizes = np.array([[[s.size.x, s.size.y] for s in e.spheres] for e in ell])
-    cxx, cxy, cyy = np.moveaxis(runs["cov"], -1, 0)
+    cxx, cxy, cyy = np.moveaxis(runs["cov"][valid], -1, 0)
     np.testing.assert_allclose(
         (sizes[..., 0] * sizes[..., 1] / 4) ** 2, cxx * cyy - cxy**2, rtol=1e-6
     )
