@@ -38,6 +38,10 @@ LATENCY_S = 0.3
 HORIZON = 30  # 3 s of 0.1 s steps; the 1 s figures are step 10 of the same predictions
 STEPS = {"1 s": 10, "3 s": 30}
 CIRCLE_SPACING_M = 0.05
+# --steady: the part of a recording from the first to the last time the car's speed (over
+# STEADY_WINDOW_S) is at least STEADY_FRACTION of its median speed
+STEADY_WINDOW_S = 0.5
+STEADY_FRACTION = 0.8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,6 +135,21 @@ def load_mocap_mat(data: bytes, rate_hz: float, source: str) -> dict:
         )
     st = np.asarray(st, dtype=float)
     return dict(t_s=np.arange(len(st)) / rate_hz, xy_m=st[:, :2], yaw_rad=st[:, 2])
+
+
+def steady_part(poses: dict) -> dict:
+    """The poses from the first to the last time the car's speed (the distance covered over
+    STEADY_WINDOW_S, centred) is at least STEADY_FRACTION of its median: a recording's run-up
+    and final stop left out. Same keys as `load_mocap_mat`."""
+    t, xy = poses["t_s"], poses["xy_m"]
+    h = max(int(round(STEADY_WINDOW_S / 2 / np.median(np.diff(t)))), 1)
+    if len(t) <= 2 * h:
+        return poses
+    v = np.full(len(t), np.nan)
+    v[h:-h] = np.linalg.norm(xy[2 * h :] - xy[: -2 * h], axis=1) / (t[2 * h :] - t[: -2 * h])
+    fast = np.flatnonzero(v >= STEADY_FRACTION * np.nanmedian(v))
+    rows = slice(fast[0], fast[-1] + 1)
+    return {k: a[rows] for k, a in poses.items()}
 
 
 def fit_circle(xy_m: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
@@ -241,12 +260,14 @@ def run_case(case, estimator: str | None = None) -> dict:
     )
 
 
-def markdown(rows, skipped, wall_s: float, peak_mib: float, png: str | None) -> str:
+def markdown(
+    rows, skipped, wall_s: float, peak_mib: float, png: str | None, flags: str = ""
+) -> str:
     names = list(rows[0][1]["fde"]["1 s"])
     lines = [
         "# Real recorded motion through the simulator's detector",
         "",
-        "Regenerate: `.venv/bin/python experiments/real_drives/run.py` "
+        f"Regenerate: `.venv/bin/python experiments/real_drives/run.py{flags}` "
         f"(this run: {wall_s / 60:.1f} min wall on the shared 2-core machine).",
         "",
         "Each recorded trajectory is observed through `fpe_jax.sim.observe` (the simulator's "
@@ -340,12 +361,18 @@ def main(argv=None) -> int:
         help="the line model's state estimator (default: the fit's); the results then go to "
         "real_drives_ESTIMATOR.md / .png",
     )
+    ap.add_argument(
+        "--steady",
+        action="store_true",
+        help="only each recording's steady part (`steady_part`: its run-up and final stop "
+        "left out); the results then go to real_drives_steady.md / .png",
+    )
     args = ap.parse_args(argv)
     import jax
 
     jax.config.update("jax_enable_x64", True)
     t0 = time.perf_counter()
-    rows, skipped = [], []
+    rows, skipped, kept = [], [], []
     for src in SOURCES:
         try:
             poses = load_mocap_mat(read_source(args.mirror, src), src.rate_hz, src.name)
@@ -353,6 +380,9 @@ def main(argv=None) -> int:
             print(f"left out {src.name}: {e}")
             skipped.append((src, "mirror absent"))
             continue
+        if args.steady:
+            poses = steady_part(poses)
+        kept.append((src, poses["t_s"][0], poses["t_s"][-1]))
         case = make_case(src, poses, args.seed)
         print(f"{src.name}: fitting ({len(case.fit_drive.t_s)} detections)", flush=True)
         rows.append((src, run_case(case, args.estimator)))
@@ -363,11 +393,22 @@ def main(argv=None) -> int:
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = "real_drives" + (f"_{args.estimator}" if args.estimator else "")
+    stem += "_steady" if args.steady else ""
     png = _plot(rows, RESULTS / f"{stem}.png")
     md = RESULTS / f"{stem}.md"
-    text = markdown(rows, skipped, time.perf_counter() - t0, peak_mib, png)
+    flags = (f" --estimator {args.estimator}" if args.estimator else "") + (
+        " --steady" if args.steady else ""
+    )
+    text = markdown(rows, skipped, time.perf_counter() - t0, peak_mib, png, flags)
     if args.estimator:
         text = text.replace("\n\n", f"\n\nFit with `--estimator {args.estimator}`.\n\n", 1)
+    if args.steady:
+        note = (
+            "With `--steady`: each recording cut to its steady part, from the first to the last "
+            f"time its speed over {STEADY_WINDOW_S} s is at least {STEADY_FRACTION:.0%} of its "
+            "median (" + ", ".join(f"{s.name} {a:.2f}-{b:.2f} s" for s, a, b in kept) + ")."
+        )
+        text = text.replace("\n\n", f"\n\n{note}\n\n", 1)
     md.write_text(text)
     print(f"wrote {md}")
     return 0

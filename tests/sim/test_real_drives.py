@@ -164,3 +164,50 @@ def test_the_real_sources_load_from_the_mirror(study):
     for src in present:
         poses = study.load_mocap_mat(study.read_source(root, src), src.rate_hz, src.name)
         assert len(poses["t_s"]) > 300 and np.all(np.isfinite(poses["xy_m"]))
+
+
+@pytest.fixture(scope="module")
+def diagnosis():
+    spec = importlib.util.spec_from_file_location(
+        "real_drives_diagnose", ROOT / "experiments" / "real_drives" / "diagnose.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("ccw", [True, False])
+def test_the_diagnosis_finds_the_circle_and_a_slide(diagnosis, ccw):
+    """The circle through a drive's positions (centre, radius) and the angle from the yaw to
+    the direction of motion: 0 for a car heading where it goes, the added angle for a car
+    whose yaw is turned from it."""
+    st = circle_poses(ccw=ccw)
+    t = np.arange(len(st)) / 60.0
+    centre, radius = diagnosis.circle(st[:, :2])
+    np.testing.assert_allclose(centre, (0.5, -2.0), atol=1e-9)
+    assert radius == pytest.approx(1.2, abs=1e-9)
+    assert diagnosis.slip_deg(t, st[:, :2], st[:, 2]) == pytest.approx(0.0, abs=0.01)
+    turned = st[:, 2] - np.radians(4.0)  # the yaw 4 deg to the right of the motion
+    assert diagnosis.slip_deg(t, st[:, :2], turned) == pytest.approx(4.0, abs=0.01)
+
+
+def test_the_steady_part_leaves_out_the_run_up_and_the_stop(study):
+    """A car that starts at rest, circles at 1.5 m/s and stops: the steady part is where it
+    covers at least 80 % of its median speed over half a second, and nothing else changes."""
+    st = circle_poses(duration_s=12.0)
+    t = np.arange(len(st)) / 60.0
+    # along the same circle: still for 1 s, up to speed by 2 s, steady, stopped from 11 s on
+    v = np.interp(t, [0.0, 1.0, 2.0, 10.0, 11.0, 12.0], [0.0, 0.0, 1.5, 1.5, 0.0, 0.0])
+    ang = np.concatenate([[0.0], np.cumsum(v[1:] * np.diff(t))]) / 1.2
+    xy = np.stack([0.5 + 1.2 * np.cos(ang), -2.0 + 1.2 * np.sin(ang)], axis=1)
+    poses = dict(t_s=t, xy_m=xy, yaw_rad=ang + np.pi / 2)
+    part = study.steady_part(poses)
+    # 80 % of 1.5 m/s is reached 1.8 s in (the window's mean speed lags by nothing on a ramp:
+    # it is centred) and left 10.2 s in, to within a frame and the chord's shortfall
+    assert part["t_s"][0] == pytest.approx(1.8, abs=0.05)
+    assert part["t_s"][-1] == pytest.approx(10.2, abs=0.05)
+    rows = slice(int(np.argmin(np.abs(t - part["t_s"][0]))), None)
+    np.testing.assert_array_equal(part["xy_m"], xy[rows][: len(part["t_s"])])
+    # a steady recording is kept whole but for its first and last quarter second
+    whole = dict(t_s=t, xy_m=st[:, :2], yaw_rad=st[:, 2])
+    assert len(study.steady_part(whole)["t_s"]) == len(t) - 30
