@@ -337,3 +337,24 @@ def test_tag_detections_across_a_tf_dropout_are_dropped_with_a_warning(tmp_path)
         np.testing.assert_allclose(xy, poses[:, :2], atol=1e-6, rtol=0)
     assert warnings and all("TF" in w for w in warnings), warnings
     assert len(warnings) <= 4, warnings
+
+
+def test_an_obstacle_off_the_track_is_reported_and_not_predicted():
+    """Obstacle input: one opponent 50 m beside the track (d) gets a warning naming it and no
+    prediction; the one on the track beside it is predicted as before."""
+    res = simulate("oval", duration_s=2.0, seed=1)
+    cfg = params_to_config(presets["default"])
+    t, warnings = FakeTransport(), []
+    node = Node(t, cfg, res.centerline_xy_m, NodeOptions(input="obstacles", topic="/obst"),
+                warn=warnings.append)  # fmt: skip
+    node.start()
+    for j in range(30):
+        obst = [{"id": car, "s_center": 1.0 + 0.2 * j, "d_center": d, "is_static": False}
+                for car, d in ((1, 0.0), (7, 50.0))]  # fmt: skip
+        hdr = {"stamp": {"sec": 1, "nanosec": j * 25_000_000}, "frame_id": "map"}
+        t.subs["/obst"]({"header": hdr, "obstacles": obst}, "f110_msgs/msg/ObstacleArray", j)
+    assert t.out["/future_pose/path/opp_1"] and not t.out.get("/future_pose/path/opp_7")
+    predicted = {o["id"] for m in t.out["/future_pose/obstacles"] for o in m["obstacles"]}
+    assert predicted == {1}
+    assert len(warnings) == 1 and "obstacle 7: observation" in warnings[0], warnings
+    assert "m from the track" in warnings[0]
