@@ -7,6 +7,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from fpe_jax import io
@@ -195,3 +196,25 @@ def test_documented_commands_leave_the_committed_files_alone():
                     writes_tracked.append(f"{doc.name}: {cmd.strip()}")
     assert commands > 20
     assert writes_tracked == []
+
+
+def test_a_recipe_simulating_a_track_file_reads_it_beside_the_recipe(tmp_path, capsys, monkeypatch):
+    """A recipe's `simulate.track` file is relative to the recipe's folder, as its other paths
+    are (whatever the working folder), and is one of its inputs: `out` naming it is refused."""
+    from fpe_jax.fit._recipe import load_recipe
+
+    folder = tmp_path / "recipe"
+    folder.mkdir()
+    track = folder / "trk.csv"
+    shutil.copyfile(DATA / "tracks" / "oval.csv", track)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "trk.csv").write_text("x,y\n0,0\n1,0\n1,1\n")  # not the recipe's track
+    monkeypatch.chdir(elsewhere)
+    sim = '[[drives]]\nsimulate = { track = "trk.csv", duration_s = 5 }\n'
+    (folder / "ok.toml").write_text('out = "c.json"\n' + sim)
+    recipe = load_recipe(folder / "ok.toml")
+    assert track in recipe.inputs
+    np.testing.assert_allclose(recipe.drives[0][1], io.load_waypoints(track).xy_m, atol=1e-9)
+    (folder / "r.toml").write_text('out = "trk.csv"\n' + sim)
+    _refused(["fit", folder / "r.toml", "--force", "--quiet"], capsys, track)

@@ -840,8 +840,12 @@ def _offtrack_setup(work: Path) -> None:
     os.link(work / "wp.csv", work / "links" / "wp_hard.csv")
     (work / "links" / "cfg_link.json").symlink_to(work / "default.json")
     rec = work / "recipes"
+    (rec / "trk.csv").write_bytes((work / "wp.csv").read_bytes())
+    (rec / "sim_out_track.toml").write_text(
+        'out = "trk.csv"\n[[drives]]\nsimulate = { track = "trk.csv", duration_s = 5 }\n'
+    )
     (rec / "sim_tight.toml").write_text(
-        'out = "x.json"\n[[drives]]\nsimulate = { track = "track_tight.csv", duration_s = 20 }\n'
+        'out = "x.json"\n[[drives]]\nsimulate = { track = "../track_tight.csv", duration_s = 20 }\n'
     )
 
 
@@ -992,6 +996,8 @@ def run_offtrack_cases(work: Path) -> list[dict]:
          "--waypoints", "wp.csv", "--out", "links/wp_hard.csv", "--force", "--quiet"])  # fmt: skip
     case("34.8", "simulate --force into the folder of its --track", ["simulate", "--track",
          "simdir/waypoints.csv", "--duration", "5", "--out", "simdir", "--force"])  # fmt: skip
+    case("34.8", "fit --force, a recipe whose out is its simulated track", ["fit",
+         "recipes/sim_out_track.toml", "--force", "--quiet"])  # fmt: skip
     case("34.8", "predict --out (its waypoints) --force", ["predict", "drive.csv", *pr, "--out",
          "wp.csv"])  # fmt: skip
     case("34.8", "fit --out (the drive) --force", ["fit", "drive.csv", "--waypoints", "wp.csv",
