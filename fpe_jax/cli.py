@@ -10,8 +10,10 @@ import argparse
 import errno
 import math
 import os
+import queue
 import signal
 import sys
+import time
 from pathlib import Path
 
 from fpe_jax import spec  # JAX-free, so `fpe --help` stays fast
@@ -872,21 +874,33 @@ def _quiet_stdout() -> None:
         pass
 
 
-def _resend_interrupts(unraisable) -> None:
-    """sys.unraisablehook: a Ctrl-C (or SIGTERM) that landed in a callback Python cannot raise
-    from (JAX's garbage-collection callback) is sent again instead of being lost, so the work
-    still stops; anything else is reported as usual."""
-    import _thread
-    import threading
+_UNRAISABLE: queue.SimpleQueue = queue.SimpleQueue()  # `main`'s sys.unraisablehook is its put
+_RESENDER: list = []  # the one thread that takes them (`_resend_interrupts`)
 
-    for kind, signum in ((KeyboardInterrupt, signal.SIGINT), (SystemExit, signal.SIGTERM)):
-        if issubclass(unraisable.exc_type, kind):
-            # from another thread, a moment later: sent from here it would land in this hook
-            resend = threading.Timer(0.01, _thread.interrupt_main, (signum,))
-            resend.daemon = True
-            resend.start()
-            return
-    sys.__unraisablehook__(unraisable)
+
+def _resend_interrupts() -> None:
+    """The thread behind `main`'s sys.unraisablehook, `_UNRAISABLE.put`: a C method, so no
+    second Ctrl-C can land inside the hook. A Ctrl-C (or SIGTERM) that landed in a callback
+    Python cannot raise from (JAX's garbage-collection callback) is sent to the main thread
+    again, a moment later (at once it could land in the same callback), so the work still stops;
+    several in one burst are sent once; anything else is reported as usual."""
+    import _thread
+
+    kinds = ((SystemExit, signal.SIGTERM), (KeyboardInterrupt, signal.SIGINT))
+    while True:
+        burst = [_UNRAISABLE.get()]
+        time.sleep(0.01)
+        while not _UNRAISABLE.empty():
+            burst.append(_UNRAISABLE.get())
+        signums = []
+        for unraisable in burst:
+            sent = [n for kind, n in kinds if issubclass(unraisable.exc_type, kind)]
+            if sent:
+                signums += sent
+            else:
+                sys.__unraisablehook__(unraisable)
+        if signums:
+            _thread.interrupt_main(max(signums))  # SIGTERM (15) over SIGINT (2)
 
 
 # the library arguments that commands set from flags: the library's errors name the argument
@@ -915,7 +929,10 @@ def main(argv: list[str] | None = None) -> int:
     previous_hook = sys.unraisablehook
     previous_int = signal.getsignal(signal.SIGINT) if main_thread else None
     if main_thread:
-        sys.unraisablehook = _resend_interrupts
+        if not _RESENDER:
+            _RESENDER.append(threading.Thread(target=_resend_interrupts, daemon=True))
+            _RESENDER[0].start()
+        sys.unraisablehook = _UNRAISABLE.put
     try:
         if getattr(args, "out", None) == "":  # Path("") is the current folder
             raise InputError("--out", "is empty", "a file or folder name")
@@ -968,7 +985,12 @@ def entry() -> None:
         rc = main()
     except KeyboardInterrupt:
         rc = 130
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # nothing is left to interrupt
+    while True:  # nothing is left to interrupt; `main` has put back the handler that raises
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            break
+        except KeyboardInterrupt:  # one landed before the line took effect
+            rc = 130
     for stream in (sys.stdout, sys.stderr):
         try:
             if stream is not None:

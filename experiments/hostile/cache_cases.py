@@ -1,7 +1,9 @@
 """The hostile study's cases against the compilation cache: damaged, crafted or foreign entries
 (a flipped bit, a pickle that runs a command, a FIFO, a link to /dev/zero, a key others can read,
-a killed writer's temporary file), the same for `fpe batch`'s entries of JAX's own cache, and
-`fpe cache clear|info` beside a user's own `jax-*` folder and a `jax-*` link to /usr.
+a killed writer's temporary file), the same for `fpe batch`'s entries of JAX's own cache,
+`fpe cache clear|info` beside a user's own `jax-*` folder and a `jax-*` link to /usr, and a cache
+shared with another CPU type (a run that sees another /proc/cpuinfo, bind-mounted in a private
+mount namespace by util-linux `unshare`; where no namespace can be made the row says so).
 
 A predict case passes when `fpe predict` of the sample drive exits 0 within its time limit, with
 at most one warning line, and writes the same predictions as a cold run; a clear/info case when
@@ -19,6 +21,7 @@ import os
 import pickle
 import re
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -80,12 +83,12 @@ def _cases(base: Path, cache_dir: Path, inputs: dict, fpe) -> list[dict]:
             )
         )
 
-    def predict(timeout_s=TIMEOUT_S) -> tuple[dict, bytes | None, bool]:
+    def predict(timeout_s=TIMEOUT_S, prefix=()) -> tuple[dict, bytes | None, bool]:
         """One `fpe predict`: its result, its predictions (None: none written), inputs kept."""
         out = base / "p.csv"
         out.unlink(missing_ok=True)
         argv = ["predict", "drive.mcap", "--waypoints", "oval.csv", "--out", "p.csv", "--quiet"]
-        r = fpe(base, *argv, timeout_s=timeout_s)
+        r = fpe(base, *argv, timeout_s=timeout_s, prefix=prefix)
         kept = all(_sha(base / n) == h for n, h in inputs.items())
         return r, (out.read_bytes() if out.is_file() and r["rc"] == 0 else None), kept
 
@@ -238,6 +241,33 @@ def _cases(base: Path, cache_dir: Path, inputs: dict, fpe) -> list[dict]:
     r, out, kept = predict()
     row("34.2", "predict after clear (cold again)", r, r["rc"] == 0 and out == reference,
         f"same predictions: {out == reference}", kept and untouched())  # fmt: skip
+
+    # another CPU type on the same cache folder: its own subfolder, this CPU's entries unread
+    def folders() -> set[str]:
+        return {p.name for p in cache_dir.iterdir() if (p / MARKER).is_file()}
+
+    fake = base / "other-cpuinfo"
+    fake.write_text("processor\t: 0\nvendor_id\t: OtherVendor\nmodel name\t: Another CPU\n"
+                    "flags\t\t: fpu sse sse2\n\n")  # fmt: skip
+    prefix = ("unshare", "-m" if os.geteuid() == 0 else "-rm", "sh", "-c",
+              'mount --bind "$0" /proc/cpuinfo && exec "$@"', str(fake))  # fmt: skip
+    probe = subprocess.run([*prefix, "grep", "-q", "Another CPU", "/proc/cpuinfo"],
+                           capture_output=True, text=True)  # fmt: skip
+    if probe.returncode != 0:
+        why = (probe.stderr.strip() or f"exit {probe.returncode}").splitlines()[-1]
+        rows.append(dict(item="34.2", case="predict on another CPU type, same cache folder",
+                         rc="", lines="", traceback=False, files_unchanged=True, ok=True,
+                         note=f"not run here (no private mount namespace: {why[:80]})",
+                         wall_s="", rss_mb=""))  # fmt: skip
+        return rows
+    mine, own = folders(), {p: _sha(p) for p in stored()}
+    r, out, kept = predict(prefix=prefix)
+    new = sorted(folders() - mine)
+    same = all(_sha(p) == h for p, h in own.items())
+    ok = r["rc"] == 0 and out == reference and clean(r) and len(new) == 1 and same
+    row("34.2", "predict on another CPU type, same cache folder", r, ok,
+        f"own subfolder {new[0] if new else None}; this CPU's entries unchanged: {same}",
+        kept)  # fmt: skip
     return rows
 
 

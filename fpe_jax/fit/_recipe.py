@@ -20,7 +20,7 @@ max_tf_gap_s = 0.5             # (the longest TF gap a lookup interpolates acros
 tag_to_base = [-0.2, 0.0, 0.2, 3.14159]  # and the tag's mount ("x,y,z,yaw" or 4 numbers)
 
 [[drives]]
-simulate = { track = "oval", duration_s = 120, latency_s = 0.3, seed = 1 }
+simulate = { track = "oval", duration_s = 120, latency_s = 0.3, seed = 1 }  # or a track file
 """
 
 from __future__ import annotations
@@ -155,6 +155,9 @@ def _load_entry(entry: dict, base: Path, default_wp: str | None, source: Path):
 
         spec = dict(entry["simulate"])
         track = spec.pop("track", "oval")
+        files = {k: str(base / v) for k, v in _simulate_files(entry).items()}
+        track = files.pop("track", track)
+        spec.update(files)  # the raceline file
         res = simulate(track, **spec)
         desc = f"simulate:{track}:seed={spec.get('seed', 0)}:latency={spec.get('latency_s', 0.3)}"
         return res.drive, res.centerline_xy_m, desc
@@ -248,10 +251,23 @@ def load_recipe(path) -> Recipe:
 
 
 def _entry_files(spec: dict, base: Path, default_wp: str | None) -> list[Path]:
-    """The drive and waypoint files the [[drives]] and [[test_drives]] entries read."""
+    """The drive, waypoint and track files the [[drives]] and [[test_drives]] entries read."""
     files = []
     for e in [*spec["drives"], *spec.get("test_drives", [])]:
         for name in (e.get("path"), e.get("waypoints", default_wp) if "path" in e else None):
             if name is not None:
                 files.append(base / name)
+        files += [base / f for f in _simulate_files(e).values()]
     return files
+
+
+def _simulate_files(entry: dict) -> dict[str, str]:
+    """The files a `simulate` table names: "track" unless a built-in name, "raceline" (relative
+    to the recipe's folder, as a drive's path and waypoints are)."""
+    from fpe_jax.geometry._tracks import is_builtin
+
+    sim = entry.get("simulate", {})
+    named = {k: sim[k] for k in ("track", "raceline") if k in sim}
+    if "track" in named and is_builtin(named["track"]):
+        del named["track"]
+    return named

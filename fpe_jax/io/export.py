@@ -475,10 +475,12 @@ def export_config(
         node: ROS 2 node name.
         waypoints: waypoint file; fills `waypoint_file` in the YAML and is baked into the
             StableHLO artifact (required for stablehlo and all).
-        force: overwrite existing files.
+        force: overwrite existing files, never the config or the waypoints file (whatever the
+            spelling: `fpe_jax.io.writers.check_not_input`).
 
     Returns:
-        The paths written. Nothing is written when any target exists without force.
+        The paths written. Nothing is written when any target exists without force, or is one
+        of the inputs.
     """
     if fmt not in FORMATS:
         raise InputError("fmt", f"unknown format {fmt!r}", f"one of {', '.join(FORMATS)}")
@@ -513,15 +515,17 @@ def export_config(
             source=Path(config_path).name,
             waypoints_sha256=sha,
         )
+    inputs = (config_path, waypoints)  # never replaced, --force or not
     if fmt != "all":
-        check_output_paths([out], force)
+        sidecar = [out.with_name(out.name + ".json")] if fmt == "stablehlo" else []
+        check_output_paths([out, *sidecar], force, inputs)
         return _write_formats(cfg, xy, text, {fmt: out}, waypoints, force)
     if out.exists() and not out.is_dir():
         raise InputError(out, "is not a folder", "a folder for config.json, params.yaml, ...")
     hlo = ALL_FILES["stablehlo"]
     names = [hlo, hlo + ".json", ALL_FILES["json"], ALL_FILES["ros2"]]  # the order written
     if out.exists():
-        check_output_paths([out / n for n in names], force)
+        check_output_paths([out / n for n in names], force, inputs)
     else:
         check_output_paths([out], force)  # its parent exists and is writable
     # the set is written whole in a hidden folder beside `out` and moved in only when complete:

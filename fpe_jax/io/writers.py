@@ -95,10 +95,10 @@ def _short_name(p: Path, n_bytes: int = 64) -> str:
     return os.fsdecode(name).encode("utf-8", "surrogateescape").decode("utf-8", "ignore") or "out"
 
 
-def check_output_paths(paths, force: bool) -> None:
+def check_output_paths(paths, force: bool, inputs=()) -> None:
     """`check_output_path` for each of several targets (all checked before any is written)."""
     for p in paths:
-        check_output_path(p, force)
+        check_output_path(p, force, inputs)
 
 
 @contextlib.contextmanager

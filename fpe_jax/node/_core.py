@@ -22,7 +22,8 @@ fitted delay moves the state from the observation's stamp to the car's true time
 model, so the step stamps are the times the poses predict.
 
 Bad input never stops the node: each message that cannot be used gets a rate-limited warning
-naming the topic and the problem, and nothing is published for it.
+naming the topic and the problem, and nothing is published for it. An observation further from the
+track than `fpe run` allows (`Runner.track_distance` > `Runner.on_track_m`) is such a message.
 """
 
 from __future__ import annotations
@@ -410,6 +411,15 @@ class Node:
         runner = self._runner(car)
         poses = runner.update((ns - self.t0_ns) * 1e-9, x, y, yaw)  # raises on stamps backwards
         self.last_seen_ns[car] = receive_ns
+        # `fpe run`'s off-track check: far from the track (waypoints of another map frame, a
+        # car in the pits) the predictions follow the nearest part of it, so none is published
+        off_m = runner.track_distance(x, y)
+        if off_m > runner.on_track_m:
+            self.update_ns.append(time.perf_counter_ns() - t0)
+            raise BadMessage(
+                f"observation {off_m:.1f} m from the track (more than {runner.on_track_m:.3g} m; "
+                "expected poses in the map frame of --waypoints)"
+            )
         s_m = runner._s_m if runner._s_m is not None else self.path.project(x, y)
         cov, along = self._covariance(poses, s_m)
         self.update_ns.append(time.perf_counter_ns() - t0)

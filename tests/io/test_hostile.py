@@ -332,6 +332,80 @@ cli.entry()
     assert p.returncode == 130 and "Traceback" not in p.stderr, (p.returncode, p.stderr)
 
 
+@pytest.mark.parametrize("interrupted", [False, True])
+def test_a_ctrl_c_as_the_console_script_stops_listening_exits_130_quietly(tmp_path, interrupted):
+    """A Ctrl-C that lands after `main` restored the SIGINT handler, as `entry` sets it aside
+    (after a finished command, or the second one after an interrupted one): exit 130, quiet."""
+    code = f"""
+import signal, sys
+from fpe_jax import cli
+
+real, calls = signal.signal, []
+def set_handler(sig, handler):  # a Ctrl-C lands as entry's own SIG_IGN call starts
+    if sig == signal.SIGINT and handler is signal.SIG_IGN:
+        calls.append(1)
+        if len(calls) == {2 if interrupted else 1}:
+            raise KeyboardInterrupt
+    return real(sig, handler)
+signal.signal = set_handler
+
+def command(args):
+    if {interrupted}:
+        raise KeyboardInterrupt
+    return 0
+
+args = cli._build_parser().parse_args(["presets"])
+args.func = command
+cli._build_parser = lambda: type("P", (), {{"parse_args": lambda self, argv: args}})()
+cli.entry()
+"""
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert p.returncode == 130 and "Traceback" not in p.stderr, (p.returncode, p.stderr)
+
+
+@pytest.mark.parametrize("at_line", [0, 2, 5, 12])
+def test_a_ctrl_c_in_a_callback_is_resent_even_when_another_lands_in_the_hook(tmp_path, at_line):
+    """A Ctrl-C that lands in a callback Python cannot raise from (an unraisable
+    KeyboardInterrupt, as in JAX's garbage-collection callback) still ends the command with 130,
+    and a second one landing while the interpreter reports the first (at any line the main
+    thread runs in cli.py or threading.py from then on) prints no traceback."""
+    code = f"""
+import sys, time
+from fpe_jax import cli
+
+count = [0]
+def tracer(frame, event, arg):  # a second Ctrl-C lands at the {at_line}th line run in the hook
+    if frame.f_code.co_filename.endswith(("cli.py", "threading.py")):
+        def local(frame, event, arg):
+            if event == "line":
+                count[0] += 1
+                if count[0] == {at_line + 1}:
+                    raise KeyboardInterrupt
+            return local
+        return local
+    return None
+
+class Callback:
+    def __del__(self):
+        raise KeyboardInterrupt  # the first Ctrl-C, where Python cannot raise it
+
+def command(args):
+    sys.settrace(tracer)
+    Callback()
+    sys.settrace(None)
+    time.sleep(5)  # the interrupt sent again ends this
+    return 0
+
+args = cli._build_parser().parse_args(["presets"])
+args.func = command
+cli._build_parser = lambda: type("P", (), {{"parse_args": lambda self, argv: args}})()
+cli.entry()
+"""
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert p.returncode == 130 and "Traceback" not in p.stderr, (p.returncode, p.stderr)
+    assert p.stderr.strip() == "fpe: interrupted", p.stderr
+
+
 # --------------------------------------------------------------------- 14: floods of bad lines
 
 

@@ -7,6 +7,7 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from fpe_jax import io
@@ -98,6 +99,27 @@ def test_fit_refuses_a_recipe_waypoints_file_as_its_out(tmp_path, capsys):
     _refused(["fit", recipe, "--force"], capsys, f["waypoints"], f["drive"])
 
 
+@pytest.mark.parametrize("force", [[], ["--force"]])
+def test_export_refuses_its_config_or_waypoints_as_out(tmp_path, capsys, force):
+    """Every format, every spelling; the StableHLO artifact's sidecar (OUT.json) and a
+    `--format all` folder that holds the config as its config.json count as well."""
+    f = _inputs(tmp_path)
+    cfg, wp = f["config"], f["waypoints"]
+    for out in _spellings(tmp_path, cfg):
+        for fmt in ("json", "ros2"):
+            _refused(["export", cfg, "--format", fmt, "--out", out, *force], capsys, cfg)
+    argv = ["export", cfg, "--format", "ros2", "--waypoints", wp, "--out", wp, *force]
+    _refused(argv, capsys, wp, cfg)
+    stem = cfg.with_suffix("")  # the artifact's sidecar would be the config itself
+    argv = ["export", cfg, "--format", "stablehlo", "--waypoints", wp, "--out", stem, *force]
+    _refused(argv, capsys, cfg)
+    car = tmp_path / "car"
+    car.mkdir()
+    shutil.copyfile(cfg, car / "config.json")  # a re-export of car/config.json into car/
+    argv = ["export", car / "config.json", "--format", "all", "--waypoints", wp, "--out", car]
+    _refused([*argv, *force], capsys, car / "config.json")
+
+
 def test_simulate_refuses_to_replace_its_track_file(tmp_path, capsys):
     folder = tmp_path / "sim"
     folder.mkdir()
@@ -136,3 +158,63 @@ def test_recipes_show_a_refit_that_leaves_the_committed_configs_alone():
         commands = [c for c in comments if "fpe fit" in c]
         assert all("--out out/" in c for c in commands), commands
         assert "regenerates that file" in text and f"fit/{recipe.stem}.json" in text
+
+
+def test_documented_commands_leave_the_committed_files_alone():
+    """The `fpe` commands in the shell blocks of README.md and docs/*.md write under out/ or to
+    files of the user's: none names (by --out, or a recipe's `out` without one) a file that git
+    tracks, unless its own comment says it regenerates a committed file."""
+    import re
+    import shlex
+    import subprocess
+    import tomllib
+
+    git = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True)
+    if git.returncode != 0:
+        pytest.skip(f"not a git checkout: {git.stderr.strip()}")
+    tracked = set(git.stdout.splitlines())
+    commands, writes_tracked = 0, []
+    for doc in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        for block in re.findall(r"```(?:bash|sh|shell|console)?\n(.*?)```", doc.read_text(), re.S):
+            for line in block.replace("\\\n", " ").splitlines():
+                cmd, _, comment = line.partition(" #")
+                if not cmd.strip().startswith("fpe "):
+                    continue
+                commands += 1
+                argv = shlex.split(cmd)
+                target = argv[argv.index("--out") + 1] if "--out" in argv else None
+                if target is None and argv[1] == "fit" and argv[2].endswith(".toml"):
+                    recipe = ROOT / argv[2]
+                    out = tomllib.loads(recipe.read_text()).get("out")
+                    target = None if out is None else str((recipe.parent / out).relative_to(ROOT))
+                if target is None:
+                    continue
+                target = os.path.normpath(target)
+                if (target in tracked or any(f.startswith(target + "/") for f in tracked)) and (
+                    "regenerat" not in comment
+                ):
+                    writes_tracked.append(f"{doc.name}: {cmd.strip()}")
+    assert commands > 20
+    assert writes_tracked == []
+
+
+def test_a_recipe_simulating_a_track_file_reads_it_beside_the_recipe(tmp_path, capsys, monkeypatch):
+    """A recipe's `simulate.track` file is relative to the recipe's folder, as its other paths
+    are (whatever the working folder), and is one of its inputs: `out` naming it is refused."""
+    from fpe_jax.fit._recipe import load_recipe
+
+    folder = tmp_path / "recipe"
+    folder.mkdir()
+    track = folder / "trk.csv"
+    shutil.copyfile(DATA / "tracks" / "oval.csv", track)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "trk.csv").write_text("x,y\n0,0\n1,0\n1,1\n")  # not the recipe's track
+    monkeypatch.chdir(elsewhere)
+    sim = '[[drives]]\nsimulate = { track = "trk.csv", duration_s = 5 }\n'
+    (folder / "ok.toml").write_text('out = "c.json"\n' + sim)
+    recipe = load_recipe(folder / "ok.toml")
+    assert track in recipe.inputs
+    np.testing.assert_allclose(recipe.drives[0][1], io.load_waypoints(track).xy_m, atol=1e-9)
+    (folder / "r.toml").write_text('out = "trk.csv"\n' + sim)
+    _refused(["fit", folder / "r.toml", "--force", "--quiet"], capsys, track)

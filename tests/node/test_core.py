@@ -301,3 +301,106 @@ def test_adapting_node_predicts_as_the_adapting_runner_and_publishes_what_it_lea
     learned = ref.state_config()["params"]["line_offset_m"]
     got = [w["d_m"] for w in node.trajectory_message()["oppwpnts"]]
     np.testing.assert_allclose(got, learned, atol=1e-12, rtol=0)
+
+
+def _pose_paths(cfg, waypoints_xy_m, stamps_ns, xy_m):
+    """Feed PoseStamped messages to a node: (its published paths, its warnings)."""
+    t, warnings = FakeTransport(), []
+    node = Node(t, cfg, waypoints_xy_m, NodeOptions(input="pose", topic="/opp"),
+                warn=warnings.append)  # fmt: skip
+    node.start()
+    for ns, (x, y) in zip(stamps_ns, xy_m.tolist()):
+        t.subs["/opp"](pose_msg(ns, x, y), "geometry_msgs/msg/PoseStamped", 0)
+    return t.out["/future_pose/path"], warnings
+
+
+def test_a_car_off_the_track_is_reported_and_not_predicted():
+    """The runners' off-track check (`fpe run`'s): poses 100 m from the waypoints (waypoints of
+    another map frame) publish nothing and warn, rate-limited; a car that leaves the track is
+    predicted as the runner does until it leaves, then warned about; on the track, no warning."""
+    res = simulate("oval", duration_s=10.0, seed=1)
+    d = res.drive
+    cfg = params_to_config(presets["default"])
+    base = 10**18
+    ns = [base + round(float(ts) * 1e9) for ts in d.t_s]
+    far = d.xy_m + [100.0, 0.0]
+    paths, warnings = _pose_paths(cfg, res.centerline_xy_m, ns, far)
+    assert paths == []
+    assert 1 <= len(warnings) <= 3, warnings  # one per 5 s (the node's warning interval)
+    assert all("from the track" in w and w.startswith("fpe node: /opp: ") for w in warnings)
+
+    leaving = d.xy_m.copy()
+    leaving[60:] += [100.0, 0.0]
+    paths, warnings = _pose_paths(cfg, res.centerline_xy_m, ns, leaving)
+    ref, want = Runner(cfg, res.centerline_xy_m), []
+    for k in range(60):
+        poses = ref.update((ns[k] - base) * 1e-9, *leaving[k].tolist(), None)
+        if ref.valid:
+            want.append(poses)
+    assert len(paths) == len(want) > 0
+    for m, poses in zip(paths, want):
+        xy = [[p["pose"]["position"]["x"], p["pose"]["position"]["y"]] for p in m["poses"]]
+        np.testing.assert_allclose(xy, poses[:, :2], atol=1e-9, rtol=0)
+    assert len(warnings) == 1 and "from the track" in warnings[0], warnings
+
+    paths, warnings = _pose_paths(cfg, res.centerline_xy_m, ns, d.xy_m)
+    assert len(paths) > 0 and warnings == []
+
+
+def test_tag_detections_across_a_tf_dropout_are_dropped_with_a_warning(tmp_path):
+    """A 3 s dropout of the car's own /tf: the detections inside it are not composed across the
+    gap (as `fpe convert --drop-outside-tf`); the others predict as the runner does."""
+    from fpe_jax.io.drives import load_drive
+    from fpe_jax.io.logs import open_log
+    from fpe_jax.sim._sim import Camera, write_simulation
+
+    res = simulate("oval", duration_s=10.0, seed=3, camera=Camera())
+    write_simulation(res, tmp_path / "sim")
+    log = open_log(tmp_path / "sim" / "drive.mcap")
+    cfg = params_to_config(presets["default"])
+    t, warnings = FakeTransport(), []
+    node = Node(t, cfg, res.centerline_xy_m, NodeOptions(input="tags", topic="/tag_detections"),
+                warn=warnings.append)  # fmt: skip
+    node.start()
+    gap_ns = (3 * 10**9, 6 * 10**9)  # /tf transforms strictly inside are lost
+    for topic, msgtype, log_ns, msg in log.messages(["/tf", "/tf_static", "/tag_detections"]):
+        if topic == "/tf" and gap_ns[0] < log_ns < gap_ns[1]:
+            continue
+        t.subs[topic](ros2_dict(msg), msgtype, log_ns)
+    drive = load_drive(tmp_path / "sim" / "drive.mcap", pose_topic="/tag_detections")
+    t0_s = float(drive.t_s[0])
+    keep = ~((drive.t_s > gap_ns[0] * 1e-9) & (drive.t_s < gap_ns[1] * 1e-9))
+    assert 0 < np.sum(~keep) < len(keep)
+    ref, want = Runner(cfg, res.centerline_xy_m), []
+    for ts, (x, y), yaw in zip(drive.t_s[keep], drive.xy_m[keep], drive.yaw_rad[keep]):
+        poses = ref.update(float(ts) - t0_s, float(x), float(y), float(yaw))
+        if ref.valid:
+            want.append(poses)
+    paths = t.out["/future_pose/path"]
+    assert len(paths) == len(want)
+    for m, poses in zip(paths, want):
+        xy = [[p["pose"]["position"]["x"], p["pose"]["position"]["y"]] for p in m["poses"]]
+        np.testing.assert_allclose(xy, poses[:, :2], atol=1e-6, rtol=0)
+    assert warnings and all("TF" in w for w in warnings), warnings
+    assert len(warnings) <= 4, warnings
+
+
+def test_an_obstacle_off_the_track_is_reported_and_not_predicted():
+    """Obstacle input: one opponent 50 m beside the track (d) gets a warning naming it and no
+    prediction; the one on the track beside it is predicted as before."""
+    res = simulate("oval", duration_s=2.0, seed=1)
+    cfg = params_to_config(presets["default"])
+    t, warnings = FakeTransport(), []
+    node = Node(t, cfg, res.centerline_xy_m, NodeOptions(input="obstacles", topic="/obst"),
+                warn=warnings.append)  # fmt: skip
+    node.start()
+    for j in range(30):
+        obst = [{"id": car, "s_center": 1.0 + 0.2 * j, "d_center": d, "is_static": False}
+                for car, d in ((1, 0.0), (7, 50.0))]  # fmt: skip
+        hdr = {"stamp": {"sec": 1, "nanosec": j * 25_000_000}, "frame_id": "map"}
+        t.subs["/obst"]({"header": hdr, "obstacles": obst}, "f110_msgs/msg/ObstacleArray", j)
+    assert t.out["/future_pose/path/opp_1"] and not t.out.get("/future_pose/path/opp_7")
+    predicted = {o["id"] for m in t.out["/future_pose/obstacles"] for o in m["obstacles"]}
+    assert predicted == {1}
+    assert len(warnings) == 1 and "obstacle 7: observation" in warnings[0], warnings
+    assert "m from the track" in warnings[0]
