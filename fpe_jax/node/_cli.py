@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import math
 import signal
 import sys
 import threading
@@ -191,6 +192,17 @@ def _preset_config(name: str) -> dict:
     return params_to_config(presets[name])
 
 
+# flag -> (lowest, highest, lowest excluded): a node setting outside these is a typing slip
+_RANGES = {
+    "--drop-after": (0.0, 3600.0, True),
+    "--tf-wait": (0.0, 60.0, False),
+    "--max-tracks": (1, 256, False),
+    "--tag-id": (0, 2**31 - 1, False),
+    "--markers-every": (0.0, 3600.0, False),
+    "--trajectory-every": (0.0, 3600.0, False),
+}
+
+
 def options_from_args(args, transport):
     """(config dict, waypoints (K, 2), NodeOptions) from the flags and the ROS parameters.
     Raises InputError for a missing or mismatched config / waypoint file."""
@@ -236,12 +248,11 @@ def options_from_args(args, transport):
             value = getattr(args, f"{flag.replace('-', '_')}_topic")
             key = f"{flag.replace('-', '_')}_topic"
             outputs[name] = _param(transport, args, value, key, OUTPUTS[name][0])
-    if not (args.drop_after > 0 and args.max_tracks >= 1 and args.tf_wait >= 0):
-        raise InputError(
-            "fpe node", "--drop-after, --max-tracks or --tf-wait out of range", "positive values"
-        )
-    if not (args.markers_every >= 0 and args.trajectory_every >= 0):
-        raise InputError("fpe node", "--markers-every or --trajectory-every negative", ">= 0")
+    for flag, (lo, hi, open_lo) in _RANGES.items():
+        value = getattr(args, flag[2:].replace("-", "_"))
+        if not (math.isfinite(value) and (lo < value if open_lo else lo <= value) and value <= hi):
+            side = "(" if open_lo else "["
+            raise InputError("fpe node", f"{flag} {value}", f"a number in {side}{lo}, {hi}]")
     opts = NodeOptions(
         input=kind,
         topic=topic,

@@ -404,3 +404,35 @@ def test_an_obstacle_off_the_track_is_reported_and_not_predicted():
     assert predicted == {1}
     assert len(warnings) == 1 and "obstacle 7: observation" in warnings[0], warnings
     assert "m from the track" in warnings[0]
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [
+        ["--drop-after", "inf"],
+        ["--drop-after", "nan"],
+        ["--tf-wait", "inf"],
+        ["--max-tracks", "100000"],
+        ["--max-tracks", "0"],
+        ["--tag-id", "-1"],
+        ["--markers-every", "inf"],
+        ["--trajectory-every", "nan"],
+    ],
+)
+def test_node_settings_out_of_range_are_refused_at_start(tmp_path, flags):
+    import argparse
+
+    from fpe_jax.errors import InputError
+    from fpe_jax.io.config import write_config
+    from fpe_jax.io.writers import write_xy_csv
+    from fpe_jax.node import _cli
+
+    res = simulate("oval", duration_s=2.0, seed=1)
+    write_xy_csv(tmp_path / "wp.csv", res.centerline_xy_m)
+    write_config(tmp_path / "cfg.json", params_to_config(presets["default"]))
+    parser = argparse.ArgumentParser()
+    _cli.add_parser(parser.add_subparsers())
+    base = ["node", "--ros2", "--config", str(tmp_path / "cfg.json")]
+    args = parser.parse_args([*base, "--waypoints", str(tmp_path / "wp.csv"), *flags])
+    with pytest.raises(InputError, match=flags[0]):
+        _cli.options_from_args(args, FakeTransport())
