@@ -13,6 +13,7 @@ import importlib
 _LAZY = {
     "AXIS": "_shard",
     "BatchPredictor": "_batch",
+    "CarBlocks": "_batch",
     "ChunkPlan": "_batch",
     "DEFAULT_CHUNK": "_batch",
     "DTYPES": "_batch",
@@ -27,6 +28,8 @@ _LAZY = {
     "leading_size": "_shard",
     "model_states": "_predict",
     "off_track_cars": "_batch",
+    "off_track_judge": "_batch",
+    "origin_dtype": "_batch",
     "off_track_summary": "_batch",
     "pad_axis0": "_shard",
     "predict": "_predict",
