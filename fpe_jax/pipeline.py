@@ -558,21 +558,27 @@ def predict_cars(
     progress(f"predicting {n} cars")
     t0 = time.perf_counter()
 
-    def moved(part: np.ndarray) -> np.ndarray:
-        return with_origin(part, origin, out=np.empty(part.shape, out_dtype))
-
     if path is None or path.suffix.lower() == ".csv":  # in memory (text is the slow path)
         poses = np.empty((n, h, 3), dtype=out_dtype)
         for rows, part in chunks:
-            poses[rows] = moved(part)
+            if isinstance(rows, slice):
+                with_origin(part, origin, out=poses[rows])
+            else:
+                poses[rows] = with_origin(part, origin, out=np.empty(part.shape, out_dtype))
         if path is not None:
             progress(f"writing {out}")
             io.write_poses(path, poses, dt_s, force=force, off_track=off)
     else:
+        buffer = np.empty((min(chunk, n), h, 3), dtype=out_dtype)  # reused: no fresh pages
+
         with io.PosesFile(path, n, h, out_dtype, dt_s, force=force) as f:
 
-            def write(rows, part: np.ndarray) -> None:  # on the writer thread
-                f.write(moved(part)) if isinstance(rows, slice) else f.patch(rows, moved(part))
+            def write(rows, part: np.ndarray) -> None:  # on the writer thread, one at a time
+                moved = with_origin(part, origin, out=buffer[: part.shape[0]])
+                if isinstance(rows, slice):
+                    f.write(moved)
+                else:
+                    f.patch(rows, moved)
 
             _overlapped(write, chunks)
         poses = np.load(path, mmap_mode="r")

@@ -784,17 +784,24 @@ def origin_dtype(dtype, origin_m) -> np.dtype:
 def with_origin(
     poses: np.ndarray, origin_m, block: int = 1 << 16, *, out: np.ndarray | None = None
 ) -> np.ndarray:
-    """Poses (N, H, 3) in the track's local frame moved back by the map origin (2,) [m]: x, y
-    plus the origin computed in float64, block by block (no full float64 copy), into `out`
-    (N, H, 3) if given, else in place when the poses' dtype can hold map coordinates
-    (`origin_dtype`), else into a new float64 array."""
+    """Poses (..., 3) in the track's local frame moved back by the map origin (2,) [m]: x, y
+    plus the origin, each sum the float64 sum rounded to the result's dtype, block by block
+    along the first axis (no full float64 copy), into `out` if given, else in place when the
+    poses' dtype can hold map coordinates (`origin_dtype`), else into a new float64 array."""
     origin = np.asarray(origin_m, dtype=np.float64)
     if out is None:
         same = origin_dtype(poses.dtype, origin) == poses.dtype
         out = poses if same else np.empty(poses.shape, dtype=np.float64)
+    # -0.0 leaves every yaw as it is (-0.0 included); the whole rows are added at once
+    shift = np.array([origin[0], origin[1], -0.0])
+    if poses.dtype == out.dtype == np.float32 and np.all(shift.astype(np.float32) == shift):
+        # a float32 sum of float32 numbers is their float64 sum rounded to float32 (double
+        # rounding is harmless for a sum when 53 >= 2 * 24 + 2 bits), at a third of the cost
+        shift = shift.astype(np.float32)
+    width = poses[:1].size  # one car's values, added as one row (4x the rate of rows of 3)
+    flat = width % 3 == 0 and poses.flags.c_contiguous and out.flags.c_contiguous
+    rows = (lambda x: x.reshape(-1, width)) if flat else (lambda x: x)  # noqa: E731
+    shift = np.tile(shift, width // 3) if flat else shift
     for a in range(0, len(poses), block):
-        part = poses[a : a + block]
-        out[a : a + block, ..., :2] = part[..., :2] + origin  # float64: the origin is
-        if out is not poses:
-            out[a : a + block, ..., 2] = part[..., 2]
+        np.add(rows(poses[a : a + block]), shift, out=rows(out[a : a + block]))
     return out

@@ -1,0 +1,243 @@
+"""`fpe batch` end to end: `python experiments/benchmarks/batch_io.py`.
+
+The command as a user runs it, each run a fresh process: N = 1e5, 1e6, 2e6, 1e7 cars on the
+Levine track (`run.py`'s `make_cars`: within 0.5 m of the centre line, (N, 5) float64 `.npy`)
+predicted with the default preset into an (N, 10, 3) float32 `.npy`. Per N one unmeasured run
+first (it fills the compilation cache, which every later run shares), then `--runs` measured
+runs: wall time of the whole process, its CPU time and its peak resident memory (`os.wait4`'s
+ru_maxrss of that child alone). Reported: the medians, and the marginal rate
+(N2 - N1) / (t2 - t1) between N1 = 1e5 and N2 = 2e6, which leaves out the fixed start-up
+(importing JAX, loading compiled code). For scale, the library's own rate
+(`BatchPredictor` called on an (N, 5) array in memory, the `batch` section of `run.py`) is
+measured in the same session at N = 2e6. `--compare FPE` measures another `fpe` executable
+(say, an older checkout's) on the same files, run for run alternating with this one.
+
+The machine's load average is recorded at the start and the end: on a shared host the wall
+times move with it; the CPU times less so.
+
+Writes batch_io.json and batch_io.md next to this file (or in --out-dir).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+sys.path.insert(0, str(HERE))
+
+from run import LEVINE, load_levine, make_cars  # noqa: E402
+
+SIZES = (100_000, 1_000_000, 2_000_000, 10_000_000)
+MARGINAL = (100_000, 2_000_000)
+LIBRARY_N = 2_000_000
+
+
+def fpe_here() -> str:
+    return str(Path(sys.executable).with_name("fpe"))
+
+
+def timed(argv: list[str], env: dict) -> dict:
+    """Run argv to completion: wall [s], CPU (user + system) [s], peak RSS [MB] of the child."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    err = proc.stderr.read()
+    _, status, use = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    proc.stderr.close()
+    if proc.returncode != 0:
+        raise SystemExit(f"bench: {' '.join(argv)} failed:\n{err.decode()}")
+    return {"wall_s": wall, "cpu_s": use.ru_utime + use.ru_stime, "peak_mb": use.ru_maxrss / 1024}
+
+
+def batch_argv(fpe: str, cars: Path, out: Path) -> list[str]:
+    return [
+        fpe, "batch", str(cars), "--waypoints", str(LEVINE), "--preset", "default",
+        "--out", str(out), "--force", "--quiet",
+    ]  # fmt: skip
+
+
+def library_child(cars_path: str, runs: int) -> dict:
+    """In a fresh process: `BatchPredictor` on the cars in memory, `runs` timed calls after a
+    first (compiling) one; the median rate [predictions/s]."""
+    import jax
+
+    jax.config.update("jax_enable_x64", False)
+    from fpe_jax.compile import _cache as cache
+    from fpe_jax.drive import map_origin
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.model._params import presets
+    from fpe_jax.predict._batch import BatchPredictor
+
+    cache.enable(False)
+    wp = load_levine()
+    origin = map_origin(wp)
+    cars = np.load(cars_path)
+    cars[:, :2] -= origin
+    predictor = BatchPredictor(presets["default"], Track.from_waypoints(wp - origin))
+    predictor(cars)
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        predictor(cars)
+        times.append(time.perf_counter() - t0)
+    return {"n_cars": len(cars), "wall_s": statistics.median(times), "runs": runs}
+
+
+def measure(sizes, runs: int, compare: str | None, work: Path, env: dict) -> dict:
+    track_wp = load_levine()
+    from fpe_jax.geometry._track import Track
+
+    track = Track.from_waypoints(track_wp)
+    executables = {"this": fpe_here()} | ({"compare": compare} if compare else {})
+    rows = {name: [] for name in executables}
+    for n in sizes:
+        cars = work / f"cars_{n}.npy"
+        np.save(cars, make_cars(track, n))
+        out = work / "poses.npy"
+        per = {name: [] for name in executables}
+        for fpe in executables.values():
+            timed(batch_argv(fpe, cars, out), env)  # unmeasured: fills the compilation cache
+        for _ in range(runs):
+            for name, fpe in executables.items():
+                per[name].append(timed(batch_argv(fpe, cars, out), env))
+        for name, runs_n in per.items():
+            row = {"n_cars": n, "runs": runs_n}
+            for key in ("wall_s", "cpu_s", "peak_mb"):
+                row[key] = statistics.median(r[key] for r in runs_n)
+            rows[name].append(row)
+            print(
+                f"  {name:8s} N={n:>9d}: {row['wall_s']:6.2f} s wall, {row['cpu_s']:6.2f} s CPU, "
+                f"{row['peak_mb']:6.0f} MB peak",
+                flush=True,
+            )
+        out.unlink(missing_ok=True)
+        if n != LIBRARY_N:
+            cars.unlink()
+    library = None
+    lib_cars = work / f"cars_{LIBRARY_N}.npy"
+    if lib_cars.exists():
+        code = (
+            f"import sys, json; sys.path.insert(0, {str(HERE)!r}); import batch_io; "
+            f"print(json.dumps(batch_io.library_child({str(lib_cars)!r}, {runs})))"
+        )
+        res = subprocess.run(
+            [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+        )
+        library = json.loads(res.stdout.strip().splitlines()[-1])
+        library["rate_per_s"] = library["n_cars"] / library["wall_s"]
+        print(f"  library  N={LIBRARY_N}: {library['rate_per_s']:.3g} predictions/s", flush=True)
+    return {"rows": rows, "library": library}
+
+
+def marginal_sizes(sizes) -> tuple[int, int]:
+    """N1, N2 of the marginal rate: 1e5 and 2e6, or the smallest and largest size measured."""
+    return MARGINAL if set(MARGINAL) <= set(sizes) else (min(sizes), max(sizes))
+
+
+def marginal(rows: list[dict], key: str = "wall_s") -> float | None:
+    """(N2 - N1) / (t2 - t1) [predictions/s] of the medians `key` (None if t2 <= t1)."""
+    by_n = {r["n_cars"]: r[key] for r in rows}
+    n1, n2 = marginal_sizes(by_n)
+    return (n2 - n1) / (by_n[n2] - by_n[n1]) if by_n[n2] > by_n[n1] else None
+
+
+def write_report(results: dict, out_dir: Path) -> None:
+    (out_dir / "batch_io.json").write_text(json.dumps(results, indent=1) + "\n")
+    lines = [
+        "# `fpe batch` end to end",
+        "",
+        "Written by `python experiments/benchmarks/batch_io.py` (`make bench`); see its docstring.",
+        f"Machine: {results['machine']}. Load average (1 min) {results['load_start']:.2f} at the "
+        f"start, {results['load_end']:.2f} at the end. Medians of {results['runs']} runs per N, "
+        "each a fresh `fpe batch` process, after one run that fills the compilation cache.",
+        "",
+        "| fpe | N cars | wall [s] | CPU [s] | peak memory [MB] | cars/s (wall) |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for name, rows in results["rows"].items():
+        for r in rows:
+            lines.append(
+                f"| {name} | {r['n_cars']:.0e} | {r['wall_s']:.2f} | {r['cpu_s']:.2f} | "
+                f"{r['peak_mb']:.0f} | {r['n_cars'] / r['wall_s']:.3g} |"
+            )
+    n1, n2 = marginal_sizes(results["sizes"])
+    lines += [
+        "",
+        f"| fpe | marginal rate {n1:.0e} -> {n2:.0e} [predictions/s] | per CPU-s | target |",
+    ]
+    lines += ["| --- | ---: | ---: | --- |"]
+    for name, rows in results["rows"].items():
+        wall, cpu = marginal(rows), marginal(rows, "cpu_s")
+        ok = "met" if wall and wall >= 2e6 else "not met"
+        lines.append(
+            f"| {name} | {wall or float('nan'):.3g} | {cpu or float('nan'):.3g} | >= 2e6 ({ok}) |"
+        )
+    big = [r for r in results["rows"]["this"] if r["n_cars"] == 10_000_000]
+    if big:
+        ok = "met" if big[0]["peak_mb"] < 1000 else "not met"
+        lines += [
+            "",
+            f"Peak memory at N = 1e7: {big[0]['peak_mb']:.0f} MB (target < 1000 MB, {ok}).",
+        ]
+    if results["library"]:
+        lib = results["library"]
+        lines += [
+            "",
+            f"The library alone (`BatchPredictor` on the cars in memory, N = {lib['n_cars']:.0e}, "
+            f"median of {lib['runs']} calls) in the same session: {lib['rate_per_s']:.3g} "
+            "predictions/s.",
+        ]
+    if results.get("compare"):
+        lines += ["", f"`compare` is `{results['compare']}`, run alternating with `this`."]
+    (out_dir / "batch_io.md").write_text("\n".join(lines) + "\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=float, nargs="+", default=SIZES, help="N cars per size")
+    ap.add_argument("--runs", type=int, default=3, help="measured runs per size (median)")
+    ap.add_argument("--compare", metavar="FPE", help="another fpe executable to measure too")
+    ap.add_argument("--out-dir", type=Path, default=HERE)
+    ap.add_argument("--quick", action="store_true", help="N = 1e4, 1e5, 1 run: a smoke test")
+    args = ap.parse_args()
+    if not LEVINE.is_file():
+        raise SystemExit(f"bench: Levine waypoints not found at {LEVINE} (../shared/data)")
+    sizes = (10_000, 100_000) if args.quick else tuple(int(n) for n in args.sizes)
+    runs = 1 if args.quick else args.runs
+    load_start = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="fpe-batch-io-") as tmp:
+        env = dict(os.environ, FPE_CACHE_DIR=str(Path(tmp) / "cache"))
+        res = measure(sizes, runs, args.compare, Path(tmp), env)
+    results = {
+        "machine": f"{platform.node()}, {os.cpu_count()} CPUs, {platform.python_version()}",
+        "load_start": load_start,
+        "load_end": os.getloadavg()[0],
+        "runs": runs,
+        "sizes": list(sizes),
+        "compare": args.compare,
+        "measured_at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        **res,
+    }
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    write_report(results, args.out_dir)
+    for name, rows in res["rows"].items():
+        rate = marginal(rows)
+        print(f"{name}: marginal rate {rate or float('nan'):.3g} predictions/s")
+    print(f"wrote {args.out_dir / 'batch_io.md'}")
+
+
+if __name__ == "__main__":
+    main()
