@@ -346,7 +346,6 @@ class CarFile:
     def read(self, start: int, stop: int) -> np.ndarray:
         """Cars start..stop (k, 4|5) as a new float64 array, checked (InputError naming the
         file, as `read_cars`, if any car of the file is bad)."""
-        stop = min(stop, self.n_cars)
         if self._rows is not None:
             return np.array(self._rows[start:stop], dtype=np.float64)
         arr = self._read_raw(start, stop)
@@ -360,6 +359,7 @@ class CarFile:
             yield self.read(start, start + size) if check else self._read_raw(start, start + size)
 
     def _read_raw(self, start: int, stop: int) -> np.ndarray:
+        stop = min(stop, self.n_cars)
         lay, k, cols = self._layout, stop - start, self.n_columns
         item = lay.dtype.itemsize
         raw = np.empty((cols, k) if lay.fortran_order else (k, cols), dtype=lay.dtype)
