@@ -5,7 +5,8 @@ Levine track (`run.py`'s `make_cars`: within 0.5 m of the centre line, (N, 5) fl
 predicted with the default preset into an (N, 10, 3) float32 `.npy`. Per N one unmeasured run
 first (it fills the compilation cache, which every later run shares), then `--runs` measured
 runs: wall time of the whole process, its CPU time and its peak resident memory (`os.wait4`'s
-ru_maxrss of that child alone). Reported: the medians, and the marginal rate
+ru_maxrss of that child; the cars are made in another process, so this one stays small and
+adds nothing to it). Reported: the medians, and the marginal rate
 (N2 - N1) / (t2 - t1) between N1 = 1e5 and N2 = 2e6, which leaves out the fixed start-up
 (importing JAX, loading compiled code). For scale, the library's own rate
 (`BatchPredictor` called on an (N, 5) array in memory, the `batch` section of `run.py`) is
@@ -24,6 +25,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -93,19 +95,34 @@ def library_child(cars_path: str, runs: int) -> dict:
         t0 = time.perf_counter()
         predictor(cars)
         times.append(time.perf_counter() - t0)
-    return {"n_cars": len(cars), "wall_s": statistics.median(times), "runs": runs}
+    res = {"n_cars": len(cars), "wall_s": statistics.median(times), "runs": runs}
+    print(json.dumps(res))
+
+
+def cars_child(path: str, n: int) -> None:
+    """In a fresh process: write `make_cars`' n cars on the Levine track to path (.npy)."""
+    from fpe_jax.geometry._track import Track
+
+    np.save(path, make_cars(Track.from_waypoints(load_levine()), n))
+
+
+def in_child(call: str, env: dict) -> str:
+    """Run `batch_io.<call>` in a fresh Python; its stdout. This process stays small: Linux
+    counts a parent's peak memory at the time it starts a command into that command's peak
+    (`ru_maxrss` survives the exec), so the cars are made, and JAX imported, elsewhere."""
+    code = f"import sys; sys.path.insert(0, {str(HERE)!r}); import batch_io; batch_io.{call}"
+    res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"bench: batch_io.{call} failed:\n{res.stderr}")
+    return res.stdout
 
 
 def measure(sizes, runs: int, compare: str | None, work: Path, env: dict) -> dict:
-    track_wp = load_levine()
-    from fpe_jax.geometry._track import Track
-
-    track = Track.from_waypoints(track_wp)
     executables = {"this": fpe_here()} | ({"compare": compare} if compare else {})
     rows = {name: [] for name in executables}
     for n in sizes:
         cars = work / f"cars_{n}.npy"
-        np.save(cars, make_cars(track, n))
+        in_child(f"cars_child({str(cars)!r}, {n})", env)
         out = work / "poses.npy"
         per = {name: [] for name in executables}
         for fpe in executables.values():
@@ -129,17 +146,12 @@ def measure(sizes, runs: int, compare: str | None, work: Path, env: dict) -> dic
     library = None
     lib_cars = work / f"cars_{LIBRARY_N}.npy"
     if lib_cars.exists():
-        code = (
-            f"import sys, json; sys.path.insert(0, {str(HERE)!r}); import batch_io; "
-            f"print(json.dumps(batch_io.library_child({str(lib_cars)!r}, {runs})))"
-        )
-        res = subprocess.run(
-            [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
-        )
-        library = json.loads(res.stdout.strip().splitlines()[-1])
+        out = in_child(f"library_child({str(lib_cars)!r}, {runs})", env)
+        library = json.loads(out.strip().splitlines()[-1])
         library["rate_per_s"] = library["n_cars"] / library["wall_s"]
         print(f"  library  N={LIBRARY_N}: {library['rate_per_s']:.3g} predictions/s", flush=True)
-    return {"rows": rows, "library": library}
+    parent_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"rows": rows, "library": library, "parent_peak_mb": parent_mb}
 
 
 def marginal_sizes(sizes) -> tuple[int, int]:
@@ -162,7 +174,9 @@ def write_report(results: dict, out_dir: Path) -> None:
         "Written by `python experiments/benchmarks/batch_io.py` (`make bench`); see its docstring.",
         f"Machine: {results['machine']}. Load average (1 min) {results['load_start']:.2f} at the "
         f"start, {results['load_end']:.2f} at the end. Medians of {results['runs']} runs per N, "
-        "each a fresh `fpe batch` process, after one run that fills the compilation cache.",
+        "each a fresh `fpe batch` process, after one run that fills the compilation cache. "
+        f"Peak memory is each process's own (`ru_maxrss`; the benchmark process that starts "
+        f"them peaked at {results['parent_peak_mb']:.0f} MB, a floor under these).",
         "",
         "| fpe | N cars | wall [s] | CPU [s] | peak memory [MB] | cars/s (wall) |",
         "| --- | ---: | ---: | ---: | ---: | ---: |",
