@@ -27,6 +27,10 @@ How it stays fast and bounded:
   The rare cars the grid cannot answer (farther than its margin from the track) get the
   exhaustive search afterwards, in small batches, and are predicted again. Inside the rollout,
   every step projects locally from the previous step's arc length (`Track.project_local`).
+- **Streamed.** `BatchPredictor.chunks` yields each chunk's poses as it finishes, in car order
+  (the rare off-grid cars' final rows after the last chunk), and reads `CarBlocks` (a file in
+  pieces) on the worker threads: `fpe batch` writes each chunk while later ones run, with
+  neither all cars nor all poses in memory.
 - **float32 by default** (float64 on request): every float array of the parameters, the track
   and the cars is cast, and the computation runs under `jax.enable_x64(dtype == float64)`, so
   constants created inside the predictor take the same precision whatever the global flag says.
