@@ -346,11 +346,10 @@ class CarFile:
     def read(self, start: int, stop: int) -> np.ndarray:
         """Cars start..stop (k, 4|5) as a new float64 array, checked (InputError naming the
         file, as `read_cars`, if any car of the file is bad)."""
-        if self._rows is not None:
-            return np.array(self._rows[start:stop], dtype=np.float64)
         arr = self._read_raw(start, stop)
-        if not _car_values_ok(arr):
+        if self._rows is None and not _car_values_ok(arr):
             _check_car_values(self.path, self.blocks(CAR_BLOCK, check=False))
+            raise InputError(self.path, "changed while it was read", "a file left alone meanwhile")
         return arr
 
     def blocks(self, size: int = CAR_BLOCK, *, check: bool = True):
@@ -359,6 +358,8 @@ class CarFile:
             yield self.read(start, start + size) if check else self._read_raw(start, start + size)
 
     def _read_raw(self, start: int, stop: int) -> np.ndarray:
+        if self._rows is not None:
+            return np.array(self._rows[start:stop], dtype=np.float64)
         stop = min(stop, self.n_cars)
         lay, k, cols = self._layout, stop - start, self.n_columns
         item = lay.dtype.itemsize
