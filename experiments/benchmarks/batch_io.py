@@ -2,16 +2,18 @@
 
 The command as a user runs it, each run a fresh process: N = 1e5, 1e6, 2e6, 1e7 cars on the
 Levine track (`run.py`'s `make_cars`: within 0.5 m of the centre line, (N, 5) float64 `.npy`)
-predicted with the default preset into an (N, 10, 3) float32 `.npy`. Per N one unmeasured run
-first (it fills the compilation cache, which every later run shares), then `--runs` measured
-runs: wall time of the whole process, its CPU time and its peak resident memory (`os.wait4`'s
+predicted with the default preset into an (N, 10, 3) float32 `.npy`. Each round runs every N
+once, in turn (a load that drifts over minutes moves every N alike); a first, unmeasured round
+fills the compilation cache, which every later run shares; then `--runs` measured rounds:
+wall time of the whole process, its CPU time and its peak resident memory (`os.wait4`'s
 ru_maxrss of that child; the cars are made in another process, so this one stays small and
 adds nothing to it). Reported: the medians, and the marginal rate
 (N2 - N1) / (t2 - t1) between N1 = 1e5 and N2 = 2e6, which leaves out the fixed start-up
 (importing JAX, loading compiled code). For scale, the library's own rate
 (`BatchPredictor` called on an (N, 5) array in memory, the `batch` section of `run.py`) is
-measured in the same session at N = 2e6. `--compare FPE` measures another `fpe` executable
-(say, an older checkout's) on the same files, run for run alternating with this one.
+measured at N = 2e6 in a fresh process after each round. `--compare FPE` measures another
+`fpe` executable (say, an older checkout's) on the same files, run for run alternating with
+this one.
 
 The machine's load average is recorded at the start and the end: on a shared host the wall
 times move with it; the CPU times less so.
@@ -118,40 +120,45 @@ def in_child(call: str, env: dict) -> str:
 
 
 def measure(sizes, runs: int, compare: str | None, work: Path, env: dict) -> dict:
+    """Every size (and executable) once per round, `runs` rounds after a warm-up round: a load
+    that drifts over minutes then moves all sizes alike, not the last ones only. The library's
+    rate is measured once per round too."""
     executables = {"this": fpe_here()} | ({"compare": compare} if compare else {})
-    rows = {name: [] for name in executables}
-    for n in sizes:
-        cars = work / f"cars_{n}.npy"
-        in_child(f"cars_child({str(cars)!r}, {n})", env)
-        out = work / "poses.npy"
-        per = {name: [] for name in executables}
-        for fpe in executables.values():
-            timed(batch_argv(fpe, cars, out), env)  # unmeasured: fills the compilation cache
-        for _ in range(runs):
+    cars = {n: work / f"cars_{n}.npy" for n in sizes}
+    for n, path in cars.items():
+        in_child(f"cars_child({str(path)!r}, {n})", env)
+    out = work / "poses.npy"
+    per = {(name, n): [] for name in executables for n in sizes}
+    library = []
+    for k in range(runs + 1):  # round 0 fills the compilation cache and is not counted
+        for n in sizes:
             for name, fpe in executables.items():
-                per[name].append(timed(batch_argv(fpe, cars, out), env))
-        for name, runs_n in per.items():
-            row = {"n_cars": n, "runs": runs_n}
-            for key in ("wall_s", "cpu_s", "peak_mb"):
-                row[key] = statistics.median(r[key] for r in runs_n)
-            rows[name].append(row)
-            print(
-                f"  {name:8s} N={n:>9d}: {row['wall_s']:6.2f} s wall, {row['cpu_s']:6.2f} s CPU, "
-                f"{row['peak_mb']:6.0f} MB peak",
-                flush=True,
-            )
-        out.unlink(missing_ok=True)
-        if n != LIBRARY_N:
-            cars.unlink()
-    library = None
-    lib_cars = work / f"cars_{LIBRARY_N}.npy"
-    if lib_cars.exists():
-        out = in_child(f"library_child({str(lib_cars)!r}, {runs})", env)
-        library = json.loads(out.strip().splitlines()[-1])
-        library["rate_per_s"] = library["n_cars"] / library["wall_s"]
-        print(f"  library  N={LIBRARY_N}: {library['rate_per_s']:.3g} predictions/s", flush=True)
+                res = timed(batch_argv(fpe, cars[n], out), env)
+                if k:
+                    per[name, n].append(res)
+        if k and LIBRARY_N in cars:
+            line = in_child(f"library_child({str(cars[LIBRARY_N])!r}, 3)", env)
+            library.append(json.loads(line.strip().splitlines()[-1]))
+        print(f"  round {k}/{runs} done", flush=True)
+    rows = {name: [] for name in executables}
+    for (name, n), runs_n in per.items():
+        row = {"n_cars": n, "runs": runs_n}
+        for key in ("wall_s", "cpu_s", "peak_mb"):
+            row[key] = statistics.median(r[key] for r in runs_n)
+        rows[name].append(row)
+        print(
+            f"  {name:8s} N={n:>9d}: {row['wall_s']:6.2f} s wall, {row['cpu_s']:6.2f} s CPU, "
+            f"{row['peak_mb']:6.0f} MB peak",
+            flush=True,
+        )
+    lib = None
+    if library:
+        lib = {"n_cars": LIBRARY_N, "runs": len(library), "per_round": library}
+        lib["wall_s"] = statistics.median(r["wall_s"] for r in library)
+        lib["rate_per_s"] = LIBRARY_N / lib["wall_s"]
+        print(f"  library  N={LIBRARY_N}: {lib['rate_per_s']:.3g} predictions/s", flush=True)
     parent_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return {"rows": rows, "library": library, "parent_peak_mb": parent_mb}
+    return {"rows": rows, "library": lib, "parent_peak_mb": parent_mb}
 
 
 def marginal_sizes(sizes) -> tuple[int, int]:
@@ -161,8 +168,11 @@ def marginal_sizes(sizes) -> tuple[int, int]:
 
 def marginal(rows: list[dict], key: str = "wall_s") -> float | None:
     """(N2 - N1) / (t2 - t1) [predictions/s] of the medians `key` (None if t2 <= t1)."""
+    return _rate(rows, *marginal_sizes([r["n_cars"] for r in rows]), key)
+
+
+def _rate(rows: list[dict], n1: int, n2: int, key: str = "wall_s") -> float | None:
     by_n = {r["n_cars"]: r[key] for r in rows}
-    n1, n2 = marginal_sizes(by_n)
     return (n2 - n1) / (by_n[n2] - by_n[n1]) if by_n[n2] > by_n[n1] else None
 
 
@@ -179,7 +189,8 @@ def write_report(results: dict, out_dir: Path) -> None:
         "Written by `python experiments/benchmarks/batch_io.py` (`make bench`); see its docstring.",
         f"Machine: {results['machine']}. Load average (1 min) {results['load_start']:.2f} at the "
         f"start, {results['load_end']:.2f} at the end. Medians of {results['runs']} runs per N, "
-        "each a fresh `fpe batch` process, after one run that fills the compilation cache. "
+        "each a fresh `fpe batch` process; every size runs once per round, after a first round "
+        "that fills the compilation cache. "
         f"Peak memory is each process's own (`ru_maxrss`; the benchmark process that starts "
         f"them peaked at {results['parent_peak_mb']:.0f} MB, a floor under these).",
         "",
@@ -204,6 +215,15 @@ def write_report(results: dict, out_dir: Path) -> None:
         lines.append(
             f"| {name} | {wall or float('nan'):.3g} | {cpu or float('nan'):.3g} | >= 2e6 ({ok}) |"
         )
+    sizes = sorted(results["sizes"])
+    if len(sizes) > 2 and (sizes[-2], sizes[-1]) != (n1, n2):
+        steady = {name: _rate(rows, sizes[-2], sizes[-1]) for name, rows in results["rows"].items()}
+        lines += [
+            "",
+            f"Marginal rate {_n(sizes[-2])} -> {_n(sizes[-1])} (wall): "
+            + ", ".join(f"{name} {r or float('nan'):.3g}/s" for name, r in steady.items())
+            + ".",
+        ]
     big = [r for r in results["rows"]["this"] if r["n_cars"] == 10_000_000]
     if big:
         ok = "met" if big[0]["peak_mb"] < 1000 else "not met"
@@ -216,8 +236,8 @@ def write_report(results: dict, out_dir: Path) -> None:
         lines += [
             "",
             f"The library alone (`BatchPredictor` on the cars in memory, N = {_n(lib['n_cars'])}, "
-            f"median of {lib['runs']} calls) in the same session: {lib['rate_per_s']:.3g} "
-            "predictions/s.",
+            f"in a fresh process once per round, median over the rounds) in the same session: "
+            f"{lib['rate_per_s']:.3g} predictions/s.",
         ]
     if max(results["load_start"], results["load_end"]) > results["cpus"]:
         lines += [
