@@ -27,6 +27,7 @@ bench: $(VENV)
 	$(BIN)/python experiments/benchmarks/node_latency.py
 	$(BIN)/python experiments/benchmarks/dds_roundtrip.py
 	$(BIN)/python experiments/benchmarks/fit_scale.py
+	$(BIN)/python experiments/benchmarks/batch_io.py
 
 format: $(VENV)
 	$(BIN)/ruff format .

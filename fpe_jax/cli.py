@@ -777,7 +777,7 @@ def cmd_batch(args) -> int:
             on_chunk=lambda done, n: say.count("predicting cars", done, n),
             **_run_options(args, say),
         )
-    n, h = res.poses_m.shape[:2]
+    n, h = res.shape[:2]
     print(
         f"wrote {n} cars x {h} steps to {Path(args.out)} "
         f"({args.dtype}, {res.wall_s:.2f} s incl. compilation)",

@@ -457,11 +457,21 @@ def plot_log(
 
 @dataclasses.dataclass(frozen=True)
 class CarPredictions:
-    """`predict_cars`' result: poses (N, H, 3) x [m], y [m] (map frame), yaw [rad]; the
-    prediction's wall time [s] including compilation; off_track (N,) bool: the cars far from
-    the track (`batch.off_track_cars`), whose predictions mean nothing."""
+    """`predict_cars`' result.
+
+    Attributes:
+        poses_m: (N, H, 3) x [m], y [m] (map frame), yaw [rad]: in memory, or with a `.npy`
+            `out` a read-only memory map of the file written.
+        shape: (N, H, 3).
+        wall_s: wall time [s] of the prediction, compilation included, with the reading and
+            writing of the cars it overlaps.
+        predictor: the `Predictor`.
+        off_track: (N,) bool: the cars far from the track (`batch.off_track_cars`), whose
+            predictions mean nothing.
+    """
 
     poses_m: np.ndarray
+    shape: tuple[int, int, int]
     wall_s: float
     predictor: Predictor
     off_track: np.ndarray
@@ -488,11 +498,20 @@ def predict_cars(
     cars: a CSV (header x,y,yaw,v[,yaw_rate]) or .npy path, or an (N, 4|5) array: x [m], y [m],
     yaw [rad], v [m/s][, yaw rate [rad/s]] in the map frame. out: optional .npy or .csv to write.
     on_chunk(done, n) is told after each chunk; `warn` of the cars far from the track.
+
+    The cars stream through the predictor a chunk at a time: each chunk is read (a .npy in
+    pieces, `io.CarFile`), moved to the local frame and judged on or off the track on the
+    predictor's worker threads; with a .npy `out` its poses are moved back to the map frame and
+    written by a writer thread (`io.PosesFile`) while later chunks run, so memory holds a few
+    chunks whatever N. A CSV (in or out) is held whole: text is the slow path. The file is the
+    one the whole array gives, byte for byte, written under a temporary name and renamed into
+    place at the end.
     """
     import time
 
     from fpe_jax import io
 
+    path = None
     if out is not None:
         path = io.check_output_path(out, force, _paths(cars, waypoints, config))
         if path.suffix.lower() not in (".npy", ".csv"):
@@ -504,9 +523,12 @@ def predict_cars(
     from fpe_jax.geometry._path import on_track_m
     from fpe_jax.geometry._track import Track
     from fpe_jax.predict._batch import (
-        off_track_cars,
+        BatchPredictor,
+        CarBlocks,
+        _check_cars,
+        off_track_judge,
         off_track_summary,
-        predict_chunked,
+        origin_dtype,
         with_origin,
     )
 
@@ -517,22 +539,89 @@ def predict_cars(
     track = Track.from_waypoints(wp - origin)
     source = _log_name(cars, "the cars")
     if isinstance(cars, str | Path):
-        cars = np.asarray(io.read_cars(cars), dtype=np.float64)  # its own float64 copy
+        file = io.CarFile.open(cars)
+        n, read_rows = file.n_cars, file.read
     else:
-        cars = np.array(cars, dtype=np.float64)  # never the caller's array
-    cars[:, :2] -= origin
-    progress(f"predicting {len(cars)} cars")
+        given = _check_cars(cars)
+        n = given.shape[0]
+        read_rows = lambda a, b: np.array(given[a:b], dtype=np.float64)  # noqa: E731 (a copy)
+    off = np.zeros(n, dtype=bool)
+    judge = off_track_judge(pred.params, track)
+
+    def read(a: int, b: int) -> np.ndarray:  # on the predictor's worker threads
+        block = read_rows(a, b)
+        block[:, :2] -= origin
+        off[a:b] = judge(block[:, :2], n)
+        return block
+
+    h, dt_s = pred.params.settings.horizon, pred.params.settings.dt_s
+    out_dtype = origin_dtype(dtype, origin)  # float64 where float32 cannot hold map coordinates
+    predictor = BatchPredictor(pred.params, track, dtype=dtype, chunk=chunk)
+    chunks = predictor.chunks(CarBlocks(n, read), progress=on_chunk)
+    progress(f"predicting {n} cars")
     t0 = time.perf_counter()
-    poses = predict_chunked(pred.params, cars, track, dtype=dtype, chunk=chunk, progress=on_chunk)
+
+    if path is None or path.suffix.lower() == ".csv":  # in memory (text is the slow path)
+        poses = np.empty((n, h, 3), dtype=out_dtype)
+        for rows, part in chunks:
+            if isinstance(rows, slice):
+                with_origin(part, origin, out=poses[rows])
+            else:
+                poses[rows] = with_origin(part, origin, out=np.empty(part.shape, out_dtype))
+        if path is not None:
+            progress(f"writing {out}")
+            io.write_poses(path, poses, dt_s, force=force, off_track=off)
+    else:
+        buffer = np.empty((min(chunk, n), h, 3), dtype=out_dtype)  # reused: no fresh pages
+
+        with io.PosesFile(path, n, h, out_dtype, dt_s, force=force) as f:
+
+            def write(rows, part: np.ndarray) -> None:  # on the writer thread, one at a time
+                moved = with_origin(part, origin, out=buffer[: part.shape[0]])
+                if isinstance(rows, slice):
+                    f.write(moved)
+                else:
+                    f.patch(rows, moved)
+
+            _overlapped(write, chunks)
+        poses = np.load(path, mmap_mode="r")
     wall_s = time.perf_counter() - t0
-    poses = with_origin(poses, origin)  # float64 where float32 cannot hold map coordinates
-    off = off_track_cars(pred.params, cars[:, :2], track)
     if warning := off_track_summary(off, source, on_track_m(np.asarray(track.xy_m))):
         warn(warning)
-    if out is not None:
-        progress(f"writing {out}")
-        io.write_poses(out, poses, pred.params.settings.dt_s, force=force, off_track=off)
-    return CarPredictions(poses, wall_s, pred, off)
+    return CarPredictions(poses, (n, h, 3), wall_s, pred, off)
+
+
+def _overlapped(consume: Callable[..., None], items, depth: int = 4) -> None:
+    """consume(*item) for each item, in order, on a second thread while the next items are made
+    (JAX and file writes release the GIL); at most `depth` items wait. The first error of either
+    side is raised here, after the thread has stopped."""
+    import queue
+    import threading
+
+    todo: queue.Queue = queue.Queue(depth)
+    failed: list[BaseException] = []
+
+    def drain() -> None:
+        while (item := todo.get()) is not None:
+            if not failed:  # after a failure, only empty the queue
+                try:
+                    consume(*item)
+                except BaseException as e:  # noqa: BLE001 (raised on the calling thread)
+                    failed.append(e)
+
+    thread = threading.Thread(target=drain, name="fpe-writer", daemon=True)
+    thread.start()
+    try:
+        for item in items:
+            if failed:
+                break
+            todo.put(item)
+    finally:
+        getattr(items, "close", lambda: None)()  # a generator stopped early cleans up now
+        todo.put(None)
+        thread.join()
+    if failed:
+        raise failed[0]
 
 
 @dataclasses.dataclass(frozen=True)

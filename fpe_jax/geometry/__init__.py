@@ -14,6 +14,7 @@ import importlib
 _LAZY = {
     "BRANCH_COS": "_path",
     "MIN_ON_TRACK_SHARE": "_path",
+    "NearPath": "_path",
     "ON_TRACK_M": "_path",
     "Track": "_track",
     "arclength_along": "_track",
@@ -31,6 +32,7 @@ _LAZY = {
     "nearest_index": "_path",
     "nearest_vertex": "_path",
     "off_track": "_path",
+    "off_track_judge": "_path",
     "on_track_m": "_path",
     "profile_values": "_path",
     "project_rollout": "_track",

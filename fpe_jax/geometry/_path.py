@@ -319,33 +319,68 @@ def near_path(
     Many points are judged on a raster of at most `max_cells` cells over the path: a cell whose
     centre lies within near_m minus its half-diagonal of a vertex is near for every point in it,
     one beyond near_m plus that is far; only the points of the cells between are searched
-    (the same answers as searching every point, at O(1) per point).
+    (the same answers as searching every point, at O(1) per point). `NearPath` keeps the
+    raster for points given in many calls.
     """
-    xy = np.asarray(path_xy_m, dtype=np.float64)
-    pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
-    near_m = on_track_m(xy) if near_m is None else float(near_m)
-    fine = xy[:: _vertex_stride(xy)]
-    lo = fine.min(axis=0) - near_m - 1.0
-    span = fine.max(axis=0) + near_m + 1.0 - lo
-    cell = max(near_m / 8, float(np.sqrt(span[0] * span[1] / max_cells)))
-    shape = np.ceil(span / cell).astype(np.int64)
-    if len(pts) <= shape[0] * shape[1] or cell >= near_m:  # few points: search each
-        idx, _ = nearest_vertex(pts, fine, near_m)
-        return idx >= 0
-    half_diag = cell * math.sqrt(0.5)
-    ij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1)
-    _, d = nearest_vertex(lo + (ij.reshape(-1, 2) + 0.5) * cell, fine, near_m + half_diag)
-    state = np.where(d <= near_m - half_diag, 1, np.where(np.isfinite(d), 2, 0)).astype(np.int8)
-    at = np.floor((pts - lo) / cell).astype(np.int64)
-    inside = np.all((at >= 0) & (at < shape), axis=1)  # outside: farther than near_m from all
-    judged = np.zeros(len(pts), dtype=np.int8)
-    judged[inside] = state.reshape(shape)[at[inside, 0], at[inside, 1]]
-    near = judged == 1
-    unsure = np.flatnonzero(judged == 2)
-    if len(unsure):
-        idx, _ = nearest_vertex(pts[unsure], fine, near_m)
-        near[unsure] = idx >= 0
-    return near
+    return NearPath(path_xy_m, near_m, max_cells)(points_xy_m)
+
+
+class NearPath:
+    """`near_path` for one path, asked many times (a batch judged block by block): the raster
+    is built on the first call that pays for it and kept.
+
+    Args:
+        path_xy_m: (M, 2) resampled path [m].
+        near_m: the distance [m] (default `on_track_m` of the path).
+        max_cells: the raster's cells at most.
+    """
+
+    def __init__(self, path_xy_m, near_m: float | None = None, max_cells: int = 1 << 21):
+        xy = np.asarray(path_xy_m, dtype=np.float64)
+        self.near_m = on_track_m(xy) if near_m is None else float(near_m)
+        self.fine = xy[:: _vertex_stride(xy)]
+        self.lo = self.fine.min(axis=0) - self.near_m - 1.0
+        span = self.fine.max(axis=0) + self.near_m + 1.0 - self.lo
+        self.cell = max(self.near_m / 8, float(np.sqrt(span[0] * span[1] / max_cells)))
+        self.shape = tuple(np.ceil(span / self.cell).astype(np.int64).tolist())
+        self._padded: np.ndarray | None = None
+
+    def __call__(self, points_xy_m, n_points: int | None = None) -> np.ndarray:
+        """(P,) bool for points (P, 2) [m]; n_points: how many points all calls together judge
+        (default P), which decides whether the raster pays (the answers are the same)."""
+        pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+        n = len(pts) if n_points is None else n_points
+        if n <= self.shape[0] * self.shape[1] or self.cell >= self.near_m:  # few: search each
+            idx, _ = nearest_vertex(pts, self.fine, self.near_m)
+            return idx >= 0
+        padded = self._raster()
+        # each point's cell; points outside the raster land in its border of far cells
+        ix, iy = (
+            np.clip(np.floor((pts[:, k] - self.lo[k]) / self.cell), -1, self.shape[k]) + 1
+            for k in (0, 1)
+        )
+        judged = padded[ix.astype(np.intp), iy.astype(np.intp)]
+        near = judged == 1
+        unsure = np.flatnonzero(judged == 2)
+        if len(unsure):
+            idx, _ = nearest_vertex(pts[unsure], self.fine, self.near_m)
+            near[unsure] = idx >= 0
+        return near
+
+    def _raster(self) -> np.ndarray:
+        """(nx + 2, ny + 2) int8 per cell: 1 near for all its points, 0 far for all (and the
+        border), 2 unsure. Two threads building it at once build the same array."""
+        if self._padded is None:
+            shape, cell = self.shape, self.cell
+            half_diag = cell * math.sqrt(0.5)
+            ij = np.stack(np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij"), -1)
+            centres = self.lo + (ij.reshape(-1, 2) + 0.5) * cell
+            _, d = nearest_vertex(centres, self.fine, self.near_m + half_diag)
+            state = np.where(d <= self.near_m - half_diag, 1, np.where(np.isfinite(d), 2, 0))
+            padded = np.zeros((shape[0] + 2, shape[1] + 2), dtype=np.int8)
+            padded[1:-1, 1:-1] = state.reshape(shape)
+            self._padded = padded
+        return self._padded
 
 
 def profile_values(values, s_m, length_m: float, closed: bool) -> np.ndarray:
@@ -372,11 +407,18 @@ def off_track(
     """(P,) bool: points (P, 2) [m] farther than `near_m` [m] from the path (`build_path`'s dict,
     or any with xy_m, heading_rad, ds_m, length_m, closed) and, given a learned line's offset
     profile (P_line,) [m, left positive], from that line too (`near_path`'s rule; near_m
-    defaults to `on_track_m` of the path)."""
+    defaults to `on_track_m` of the path). `off_track_judge` asks it of many blocks of points."""
+    return off_track_judge(path, line_offset_m, near_m)(points_xy_m)
+
+
+def off_track_judge(path: dict, line_offset_m=None, near_m: float | None = None):
+    """`off_track` for one path (and line), made once: judge(points (P, 2) [m], n_points=None)
+    -> (P,) bool, n_points as for `NearPath` (all the points of the blocks judged together)."""
     if near_m is None:
         near_m = on_track_m(path["xy_m"])
-    off = ~near_path(points_xy_m, path["xy_m"], near_m)
-    if line_offset_m is not None and off.any():
+    on_path = NearPath(path["xy_m"], near_m)
+    on_line = None
+    if line_offset_m is not None:
         xy, h = np.asarray(path["xy_m"]), np.asarray(path["heading_rad"])
         d = profile_values(
             line_offset_m,
@@ -384,10 +426,17 @@ def off_track(
             float(path["length_m"]),
             bool(path["closed"]),
         )
-        line = xy + d[:, None] * np.stack([-np.sin(h), np.cos(h)], axis=1)
-        rows = np.flatnonzero(off)
-        off[rows] = ~near_path(np.asarray(points_xy_m).reshape(-1, 2)[rows], line, near_m)
-    return off
+        on_line = NearPath(xy + d[:, None] * np.stack([-np.sin(h), np.cos(h)], axis=1), near_m)
+
+    def judge(points_xy_m, n_points: int | None = None) -> np.ndarray:
+        pts = np.asarray(points_xy_m).reshape(-1, 2)
+        off = ~on_path(pts, n_points)
+        if on_line is not None and off.any():
+            rows = np.flatnonzero(off)
+            off[rows] = ~on_line(pts[rows])
+        return off
+
+    return judge
 
 
 def check_share_near(

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import decimal
+import os
 import re
 from pathlib import Path
 
@@ -216,16 +217,26 @@ def read_table(path) -> Table:
     return Table(p, data, header, t_ns, t_ok)
 
 
-def _check_npy_header(p: Path) -> None:
-    """Refuse a .npy whose header declares more data than the file holds, or than MAX_CARS rows,
-    before anything is allocated (a forged header once asked for 29 TiB)."""
+@dataclasses.dataclass(frozen=True)
+class _NpyLayout:
+    """Where a .npy file's array lies: shape, dtype, C or Fortran order, data offset [bytes]."""
+
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    fortran_order: bool
+    data_start: int
+
+
+def _check_npy_header(p: Path) -> _NpyLayout:
+    """The layout of a .npy; refuse one whose header declares more data than the file holds, or
+    than MAX_CARS rows, before anything is allocated (a forged header once asked for 29 TiB)."""
     try:
         with open(p, "rb") as f:
             version = np.lib.format.read_magic(f)
             read = {(1, 0): np.lib.format.read_array_header_1_0}.get(
                 version, np.lib.format.read_array_header_2_0
             )
-            shape, _, dtype = read(f)
+            shape, fortran_order, dtype = read(f)
             data_start = f.tell()
     except Exception as e:  # a forged header fails in numpy's parser in many ways (TokenError...)
         raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
@@ -238,6 +249,141 @@ def _check_npy_header(p: Path) -> None:
         )  # fmt: skip
     if shape and shape[0] > spec.MAX_CARS:
         raise InputError(p, f"{shape[0]} cars", f"at most {spec.MAX_CARS} per call; split the file")
+    return _NpyLayout(tuple(shape), dtype, bool(fortran_order), data_start)
+
+
+_CAR_LIMITS = (spec.MAX_COORD_M, spec.MAX_COORD_M, spec.MAX_YAW_RAD, spec.MAX_SPEED_MPS)
+_CAR_LIMITS += (spec.MAX_YAW_RATE_RPS,)
+CAR_BLOCK = 1 << 16  # cars read and checked at a time when a whole file is scanned
+
+
+def _car_values_ok(arr: np.ndarray) -> bool:
+    """Whether every car (k, 4|5) is finite and within the limits (a quick check of a block)."""
+    limits = np.asarray(_CAR_LIMITS[: arr.shape[1]])
+    return bool(np.all(np.abs(arr) <= limits))  # NaN compares False
+
+
+def _check_car_values(p, blocks) -> None:
+    """InputError naming `p` for the first problem among the cars, given as consecutive blocks
+    (k, 4|5) float64: rows with NaN or inf (their count and the first), else the first column
+    (in x, y, yaw, v, yaw_rate order) with a value beyond its limit, and its first car. A float32
+    rollout overflows beyond these (1e308 becomes inf): refused, not predicted. The same message
+    whatever the blocks."""
+    n_bad, first_bad, first_out, start = 0, None, {}, 0
+    for arr in blocks:
+        bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
+        if bad.size and first_bad is None:
+            first_bad = start + int(bad[0])
+        n_bad += bad.size
+        for c in range(arr.shape[1]):
+            out = np.flatnonzero(np.abs(arr[:, c]) > _CAR_LIMITS[c])
+            if out.size and c not in first_out:
+                first_out[c] = (start + int(out[0]), float(arr[out[0], c]))
+        start += arr.shape[0]
+    if n_bad:
+        raise InputError(
+            p, f"{n_bad} row(s) with NaN or inf, first car index {first_bad}", "finite numbers"
+        )
+    for c in sorted(first_out):
+        car, value = first_out[c]
+        raise InputError(
+            p,
+            f"{STATE_COLUMNS[c]} of car {car} is {value:g}",
+            f"|{STATE_COLUMNS[c]}| <= {_CAR_LIMITS[c]:g}",
+        )
+
+
+def _check_car_count(p, n: int) -> None:
+    if n == 0:
+        raise InputError(p, "holds no cars", "at least one row")
+    if n > spec.MAX_CARS:
+        raise InputError(p, f"{n} cars", f"at most {spec.MAX_CARS}; split the file")
+
+
+@dataclasses.dataclass(frozen=True)
+class CarFile:
+    """The cars of a file, read a block at a time: what `fpe batch` streams through the predictor.
+
+    A `.npy` (C or Fortran order, any real dtype) is read with one positioned read per block and
+    column layout, so memory holds only the blocks in flight, never the file (pages of a memory
+    map would count as the process's memory until unmapped); blocks may be read from several
+    threads at once. A CSV is read whole by `read_cars` (text is the slow path) and handed out in
+    slices. Every block is checked as `read_cars` checks the whole file; a block that fails
+    makes the whole file be scanned, so the error is the one `read_cars` gives.
+
+    Attributes:
+        path: the file.
+        n_cars: N.
+        n_columns: 4 or 5 (x [m], y [m], yaw [rad], v [m/s][, yaw rate [rad/s]]).
+    """
+
+    path: Path
+    n_cars: int
+    n_columns: int
+    _layout: _NpyLayout | None = None
+    _rows: np.ndarray | None = None  # a CSV's cars, read whole
+
+    @classmethod
+    def open(cls, path) -> CarFile:
+        """Open and check a car file's layout (a .npy's header, or a whole CSV)."""
+        p = Path(path)
+        if p.suffix.lower() != ".npy":
+            arr = read_cars(p)
+            return cls(p, arr.shape[0], arr.shape[1], _rows=arr)
+        if not p.is_file():
+            raise InputError(p, "does not exist", "a .npy array or a CSV of cars")
+        lay = _check_npy_header(p)
+        real = np.issubdtype(lay.dtype, np.floating) or np.issubdtype(lay.dtype, np.integer)
+        if len(lay.shape) != 2 or lay.shape[1] not in (4, 5) or not real or lay.dtype.hasobject:
+            raise InputError(
+                p,
+                f"array of shape {lay.shape} dtype {lay.dtype}",
+                "(N, 4|5) x, y, yaw, v[, yaw_rate]",
+            )
+        _check_car_count(p, lay.shape[0])
+        return cls(p, lay.shape[0], lay.shape[1], _layout=lay)
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Cars start..stop (k, 4|5) as a new float64 array, checked (InputError naming the
+        file, as `read_cars`, if any car of the file is bad)."""
+        arr = self._read_raw(start, stop)
+        if self._rows is None and not _car_values_ok(arr):
+            _check_car_values(self.path, self.blocks(CAR_BLOCK, check=False))
+            raise InputError(self.path, "changed while it was read", "a file left alone meanwhile")
+        return arr
+
+    def blocks(self, size: int = CAR_BLOCK, *, check: bool = True):
+        """Yield the cars in consecutive blocks of `size` rows (the last one shorter)."""
+        for start in range(0, self.n_cars, size):
+            yield self.read(start, start + size) if check else self._read_raw(start, start + size)
+
+    def _read_raw(self, start: int, stop: int) -> np.ndarray:
+        if self._rows is not None:
+            return np.array(self._rows[start:stop], dtype=np.float64)
+        stop = min(stop, self.n_cars)
+        lay, k, cols = self._layout, stop - start, self.n_columns
+        item = lay.dtype.itemsize
+        raw = np.empty((cols, k) if lay.fortran_order else (k, cols), dtype=lay.dtype)
+        with open(self.path, "rb", buffering=0) as f:
+            if lay.fortran_order:  # each column lies whole: read its rows start..stop
+                for c in range(cols):
+                    _pread_into(f, raw[c], lay.data_start + (c * self.n_cars + start) * item)
+            else:
+                _pread_into(f, raw, lay.data_start + start * cols * item)
+        raw = raw.T if lay.fortran_order else raw
+        return np.ascontiguousarray(raw, dtype=np.float64)  # native float64 whatever the file's
+
+
+def _pread_into(f, buf: np.ndarray, offset: int) -> None:
+    """Fill the contiguous array `buf` with the file's bytes from `offset` (positioned reads:
+    safe from several threads at once)."""
+    view = memoryview(buf.reshape(-1).view(np.uint8))
+    done = 0
+    while done < len(view):
+        got = os.preadv(f.fileno(), [view[done:]], offset + done)
+        if got == 0:  # the header check saw enough bytes: the file shrank meanwhile
+            raise InputError(f.name, "ended before its header's data", "an intact np.save file")
+        done += got
 
 
 def read_cars(path) -> np.ndarray:
@@ -245,55 +391,26 @@ def read_cars(path) -> np.ndarray:
 
     Returns (N, 4|5) float64 rows x [m], y [m], yaw [rad], v [m/s][, yaw_rate [rad/s]].
     Raises InputError naming the file and the problem (missing column, NaN row, bad shape).
+    `CarFile` reads the same cars a block at a time.
     """
     p = Path(path)
     if p.suffix.lower() == ".npy":
-        if not p.is_file():
-            raise InputError(p, "does not exist", "a .npy array or a CSV of cars")
-        _check_npy_header(p)
-        try:
-            arr = np.load(p, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as e:
-            raise InputError(p, f"is not a readable .npy array ({e})", "np.save output") from None
-        real = np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
-        if arr.ndim != 2 or arr.shape[1] not in (4, 5) or not real:
-            raise InputError(
-                p,
-                f"array of shape {arr.shape} dtype {arr.dtype}",
-                "(N, 4|5) x, y, yaw, v[, yaw_rate]",
-            )
-        arr = arr.astype(np.float64)
-    else:
-        table = read_table(p)
-        if table.header is None:
-            raise InputError(p, "has no header", "a header line x,y,yaw,v[,yaw_rate]")
-        missing = [c for c in STATE_COLUMNS[:4] if c not in table.header]
-        if missing:
-            raise InputError(
-                p,
-                f"header {','.join(table.header)!r} lacks {', '.join(missing)}",
-                "columns x,y,yaw,v[,yaw_rate]",
-            )
-        names = [c for c in STATE_COLUMNS if c in table.header]
-        arr = np.column_stack([table.data[:, table.header.index(c)] for c in names])
-    if arr.shape[0] == 0:
-        raise InputError(p, "holds no cars", "at least one row")
-    if arr.shape[0] > spec.MAX_CARS:
-        raise InputError(p, f"{arr.shape[0]} cars", f"at most {spec.MAX_CARS}; split the file")
-    bad = np.flatnonzero(~np.all(np.isfinite(arr), axis=1))
-    if bad.size:
+        cars = CarFile.open(p)
+        arr = cars._read_raw(0, cars.n_cars)
+        _check_car_values(p, [arr])
+        return arr
+    table = read_table(p)
+    if table.header is None:
+        raise InputError(p, "has no header", "a header line x,y,yaw,v[,yaw_rate]")
+    missing = [c for c in STATE_COLUMNS[:4] if c not in table.header]
+    if missing:
         raise InputError(
-            p, f"{bad.size} row(s) with NaN or inf, first car index {bad[0]}", "finite numbers"
+            p,
+            f"header {','.join(table.header)!r} lacks {', '.join(missing)}",
+            "columns x,y,yaw,v[,yaw_rate]",
         )
-    # beyond these a float32 rollout overflows (1e308 becomes inf): refused, not predicted
-    limits = (spec.MAX_COORD_M, spec.MAX_COORD_M, spec.MAX_YAW_RAD, spec.MAX_SPEED_MPS)
-    limits += (spec.MAX_YAW_RATE_RPS,)
-    for c in range(arr.shape[1]):
-        out = np.flatnonzero(np.abs(arr[:, c]) > limits[c])
-        if out.size:
-            raise InputError(
-                p,
-                f"{STATE_COLUMNS[c]} of car {out[0]} is {arr[out[0], c]:g}",
-                f"|{STATE_COLUMNS[c]}| <= {limits[c]:g}",
-            )
+    names = [c for c in STATE_COLUMNS if c in table.header]
+    arr = np.column_stack([table.data[:, table.header.index(c)] for c in names])
+    _check_car_count(p, arr.shape[0])
+    _check_car_values(p, [arr])
     return arr

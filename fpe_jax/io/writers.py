@@ -14,6 +14,7 @@ import contextlib
 import io
 import os
 import secrets
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -413,36 +414,130 @@ def write_poses(
     off_track (1 for a car far from the track, 0 else) when `off_track` (N,) bool is given.
 
     Written to a temporary file in the target's folder and renamed into place, so a failure
-    never leaves a partial file; an existing file is replaced only with `force`.
+    never leaves a partial file; an existing file is replaced only with `force`. `PosesFile`
+    writes the same bytes a block of cars at a time.
     """
-    target = Path(path)
-    suffix = target.suffix.lower()
-    if suffix not in (".npy", ".csv"):
-        raise InputError(target, f"unknown output type {suffix!r}", "OUT.npy or OUT.csv")
-    with atomic_output(target, force) as tmp:
-        if suffix == ".npy":
-            with open(tmp, "xb") as f:
-                np.save(f, poses)
+    n, h, _ = poses.shape
+    with PosesFile(
+        path, n, h, poses.dtype, dt_s, force=force, off_track=off_track is not None
+    ) as f:
+        f.write(poses, off_track)
+    return Path(path)
+
+
+class PosesFile:
+    """`fpe batch`'s output (N, H, 3) written block by block, in car order, as `write_poses` writes
+    it whole (the same bytes): a `.npy` (its header, then each block's bytes) or CSV rows.
+
+        with PosesFile("out.npy", n, h, np.float32, dt_s) as out:
+            for poses in blocks:        # (k, H, 3) each, k summing to n
+                out.write(poses)
+
+    The file is written under a temporary name in the target's folder and renamed into place
+    when the `with` body ends normally having written all N cars; on any failure (Ctrl-C
+    included) or a short count the temporary file is removed and nothing else changes. An
+    existing target is replaced only with `force`.
+
+    Args:
+        path: OUT.npy or OUT.csv.
+        n_cars, horizon: N and H.
+        dtype: the .npy's dtype (blocks are cast to it); CSV writes every value as float64.
+        dt_s: step [s] (CSV horizon_s column).
+        off_track: whether the CSV has the off_track column (then each `write` gives it).
+    """
+
+    def __init__(
+        self, path, n_cars: int, horizon: int, dtype, dt_s: float, *, force=False, off_track=False
+    ):
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        if suffix not in (".npy", ".csv"):
+            raise InputError(self.path, f"unknown output type {suffix!r}", "OUT.npy or OUT.csv")
+        self.csv = suffix == ".csv"
+        self.n_cars, self.horizon, self.dtype = n_cars, horizon, np.dtype(dtype)
+        self.dt_s, self.off_track, self.force = dt_s, off_track, force
+        self.written = 0
+        self._atomic = self._file = None
+        self._data_start = 0
+
+    def __enter__(self) -> PosesFile:
+        self._atomic = atomic_output(self.path, self.force)
+        tmp = self._atomic.__enter__()
+        try:
+            self._file = open(tmp, "x" if self.csv else "xb")
+            if self.csv:
+                cols = "car,step,horizon_s,x,y,yaw" + ",off_track" * self.off_track
+                self._file.write(cols + "\n")
+            else:  # the header np.save writes for this shape and dtype
+                header = {
+                    "descr": np.lib.format.dtype_to_descr(self.dtype),
+                    "fortran_order": False,
+                    "shape": (self.n_cars, self.horizon, 3),
+                }
+                np.lib.format.write_array_header_1_0(self._file, header)
+                self._data_start = self._file.tell()
+        except BaseException:
+            self.__exit__(*sys.exc_info())
+            raise
+        return self
+
+    def write(self, poses: np.ndarray, off_track=None) -> None:
+        """Append the next k cars' poses (k, H, 3) [and their off_track flags (k,) bool]."""
+        k = poses.shape[0]
+        if poses.shape[1:] != (self.horizon, 3) or self.written + k > self.n_cars:
+            raise ValueError(f"block of shape {poses.shape} after {self.written} of {self.n_cars}")
+        if self.csv:
+            _write_poses_csv(self._file, poses, self.dt_s, off_track, first_car=self.written)
         else:
-            _write_poses_csv(tmp, poses, dt_s, off_track)
-    return target
+            self._file.write(np.ascontiguousarray(poses, dtype=self.dtype).data)
+        self.written += k
+
+    def patch(self, rows: np.ndarray, poses: np.ndarray) -> None:
+        """Rewrite the poses (k, H, 3) of cars `rows` (k,) (ascending, already written); .npy
+        only (a CSV row's length depends on its values)."""
+        rows = np.asarray(rows, dtype=np.int64)
+        if self.csv or rows.size and (rows[0] < 0 or rows[-1] >= self.written):
+            raise ValueError(f"cannot rewrite rows {rows[:3]}... of {self.path}")
+        self._file.flush()
+        data = np.ascontiguousarray(poses, dtype=self.dtype)
+        row_bytes = self.horizon * 3 * self.dtype.itemsize
+        runs = np.split(np.arange(rows.size), np.flatnonzero(np.diff(rows) != 1) + 1)
+        for run in runs:  # consecutive cars in one write
+            if run.size:
+                offset = self._data_start + int(rows[run[0]]) * row_bytes
+                os.pwrite(self._file.fileno(), data[run[0] : run[-1] + 1].tobytes(), offset)
+
+    def __exit__(self, kind, value, tb) -> bool:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+        short = kind is None and self.written != self.n_cars
+        if short:
+            kind, tb = ValueError, None
+            value = ValueError(f"{self.path}: wrote {self.written} of {self.n_cars} cars")
+        atomic, self._atomic = self._atomic, None
+        if atomic is not None:
+            atomic.__exit__(kind, value, tb)  # renames into place, or removes the temporary file
+        if short:
+            raise value
+        return False
 
 
 def _write_poses_csv(
-    path: Path, poses: np.ndarray, dt_s: float, off_track=None, rows_per_block: int = 200_000
+    f, poses: np.ndarray, dt_s: float, off_track=None, *, first_car=0, rows_per_block=200_000
 ):
+    """CSV rows car,step,horizon_s,x,y,yaw[,off_track] of poses (k, H, 3), cars numbered from
+    first_car, to the open text file f."""
     n, h, _ = poses.shape
     step = np.arange(1, h + 1)
     fmt = ["%d", "%d", "%.3f", "%.6f", "%.6f", "%.6f"] + ["%d"] * (off_track is not None)
-    with open(path, "w") as f:
-        f.write("car,step,horizon_s,x,y,yaw" + ",off_track" * (off_track is not None) + "\n")
-        cars_per_block = max(rows_per_block // h, 1)
-        for start in range(0, n, cars_per_block):
-            block = poses[start : start + cars_per_block].astype(np.float64)
-            k = block.shape[0]
-            car = np.repeat(np.arange(start, start + k), h)
-            st = np.tile(step, k)
-            cols = [car, st, st * dt_s, block.reshape(-1, 3)]
-            if off_track is not None:
-                cols.append(np.repeat(np.asarray(off_track[start : start + k], dtype=int), h))
-            np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",")
+    cars_per_block = max(rows_per_block // h, 1)
+    for start in range(0, n, cars_per_block):
+        block = poses[start : start + cars_per_block].astype(np.float64)
+        k = block.shape[0]
+        car = np.repeat(np.arange(first_car + start, first_car + start + k), h)
+        st = np.tile(step, k)
+        cols = [car, st, st * dt_s, block.reshape(-1, 3)]
+        if off_track is not None:
+            cols.append(np.repeat(np.asarray(off_track[start : start + k], dtype=int), h))
+        np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",")

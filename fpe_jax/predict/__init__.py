@@ -12,6 +12,7 @@ import importlib
 # public name -> the private module that defines it (imported on first use)
 _LAZY = {
     "BatchPredictor": "_batch",
+    "CarBlocks": "_batch",
     "ChunkPlan": "_batch",
     "ProjectionGrid": "_batch",
     "car_mesh": "_shard",
@@ -21,6 +22,8 @@ _LAZY = {
     "leading_size": "_shard",
     "model_states": "_predict",
     "off_track_cars": "_batch",
+    "off_track_judge": "_batch",
+    "origin_dtype": "_batch",
     "off_track_summary": "_batch",
     "pad_axis0": "_shard",
     "predict": "_predict",

@@ -27,6 +27,10 @@ How it stays fast and bounded:
   The rare cars the grid cannot answer (farther than its margin from the track) get the
   exhaustive search afterwards, in small batches, and are predicted again. Inside the rollout,
   every step projects locally from the previous step's arc length (`Track.project_local`).
+- **Streamed.** `BatchPredictor.chunks` yields each chunk's poses as it finishes, in car order
+  (the rare off-grid cars' final rows after the last chunk), and reads `CarBlocks` (a file in
+  pieces) on the worker threads: `fpe batch` writes each chunk while later ones run, with
+  neither all cars nor all poses in memory.
 - **float32 by default** (float64 on request): every float array of the parameters, the track
   and the cars is cast, and the computation runs under `jax.enable_x64(dtype == float64)`, so
   constants created inside the predictor take the same precision whatever the global flag says.
@@ -43,7 +47,7 @@ import functools
 import itertools
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
@@ -55,7 +59,8 @@ from jaxtyping import Array, Bool, Float, Int
 from fpe_jax import spec
 from fpe_jax.compile._rows import pad_rows
 from fpe_jax.errors import InputError
-from fpe_jax.geometry._path import BRANCH_COS, BRANCH_M, ON_TRACK_M, off_track
+from fpe_jax.geometry._path import BRANCH_COS, BRANCH_M, ON_TRACK_M
+from fpe_jax.geometry._path import off_track_judge as geometry_off_track_judge
 from fpe_jax.geometry._track import Track
 from fpe_jax.model._params import Params
 from fpe_jax.model._state import State
@@ -397,6 +402,26 @@ def _state_columns(states: State) -> dict[str, np.ndarray]:
     return cols
 
 
+_CAR_NAMES = ("x_m", "y_m", "yaw_rad", "v_mps", "yaw_rate_rps", "s_m")  # an array's table
+
+
+@dataclasses.dataclass(frozen=True)
+class CarBlocks:
+    """N cars handed out a block at a time (a file read in pieces): read(start, stop) returns
+    the cars start..stop as (k, 4|5) rows x [m], y [m], yaw [rad], v [m/s][, yaw_rate [rad/s]].
+    `BatchPredictor` calls it from its worker threads, for disjoint ranges."""
+
+    n_cars: int
+    read: Callable[[int, int], np.ndarray]
+
+
+def _n_cars(cars) -> int:
+    """N of an (N, 4|5) array or a State (InputError for any other shape)."""
+    if isinstance(cars, State):
+        return _state_columns(cars)["x_m"].shape[0]
+    return _check_cars(cars).shape[0]
+
+
 def _car_table(cars, dtype) -> tuple[tuple[str, ...], np.ndarray]:
     """(State field names, (N, F) table in dtype) from an (N, 4|5) array or a State."""
     if isinstance(cars, State):
@@ -406,12 +431,11 @@ def _car_table(cars, dtype) -> tuple[tuple[str, ...], np.ndarray]:
     # an array: straight into the table (no State on the host: cheaper for small batches);
     # fields not given here take State's defaults inside the compiled call
     arr = _check_cars(cars)
-    names = ("x_m", "y_m", "yaw_rad", "v_mps", "yaw_rate_rps", "s_m")
-    table = np.empty((arr.shape[0], len(names)), dtype=dtype)
+    table = np.empty((arr.shape[0], len(_CAR_NAMES)), dtype=dtype)
     table[:, :4] = arr[:, :4]
     table[:, 4] = arr[:, 4] if arr.shape[1] == 5 else 0.0
     table[:, 5] = np.nan
-    return names, table
+    return _CAR_NAMES, table
 
 
 @eqx.filter_jit
@@ -535,45 +559,71 @@ class BatchPredictor:
         """Poses (N, H, 3) or (P, N, H, 3) x [m], y [m], yaw [rad] at t + h * dt_s, h = 1..H.
 
         Args:
-            cars: (N, 4|5) rows x [m], y [m], yaw [rad], v [m/s][, yaw_rate [rad/s]], or a
+            cars: (N, 4|5) rows x [m], y [m], yaw [rad], v [m/s][, yaw_rate [rad/s]], a
                 `State` with leading axis N (its `s_m`, if given, is the arc-length hint; NaN
-                entries are projected).
+                entries are projected), or `CarBlocks`.
             out: optional preallocated result array (e.g. `np.lib.format.open_memmap`), so host
                 memory stays bounded too.
             progress: called as progress(done_cars, n_cars) after each chunk.
             info: if a dict, filled with the `ChunkPlan` fields.
         """
-        names, table = _car_table(cars, self.dtype)
-        n = table.shape[0]
+        n = cars.n_cars if isinstance(cars, CarBlocks) else _n_cars(cars)
         h = self.horizon
         out_shape = (n, h, 3) if self.n_sets is None else (self.n_sets, n, h, 3)
         if out is None:
             out = np.empty(out_shape, dtype=self.dtype)
         elif out.shape != out_shape:
             raise InputError("out", f"array of shape {out.shape}", f"shape {out_shape}")
+        for rows, poses in self.chunks(cars, progress=progress, info=info):
+            if self.n_sets is None:
+                out[rows] = poses
+            else:
+                out[:, rows] = poses
+        return out
+
+    def chunks(
+        self,
+        cars,
+        *,
+        progress: Callable[[int, int], None] | None = None,
+        info: dict | None = None,
+    ) -> Iterator[tuple[slice | np.ndarray, np.ndarray]]:
+        """Yield (rows, poses): first each chunk in car order, rows = slice(start, stop) and
+        poses (k, H, 3) or (P, k, H, 3); then, for the rare cars off the projection grid,
+        their final poses, rows an ascending index array. Writing each item's poses at its
+        rows gives `__call__`'s result exactly (a chunk's off-grid rows are provisional until
+        then). Cars as for `__call__`; with `CarBlocks` each chunk's cars are read on the worker
+        thread that predicts them, so neither the cars nor the poses of all N need be in memory
+        at once. `info` is filled when the last item has been yielded."""
+        if isinstance(cars, CarBlocks):
+            names, n = _CAR_NAMES, cars.n_cars
+            rows = lambda a, b: _car_table(cars.read(a, b), self.dtype)[1]  # noqa: E731
+        else:
+            names, table = _car_table(cars, self.dtype)
+            n = table.shape[0]
+            rows = lambda a, b: table[a:b]  # noqa: E731
         c = chunk_size(n, self.max_chunk, self._n_devices)
         plan = ChunkPlan(n, c, math.ceil(n / c), np.dtype(self.dtype).name)
         tail = chunk_size(n % c or c, c, self._n_devices)
         plan.tail_chunk = tail if tail < c else 0
-        with self._precision():
-            ok = np.ones(n, dtype=bool)
-            for start, stop, poses, good in self._run(names, table, c, progress):
-                _store(out, start, stop, poses, self.n_sets)
-                ok[start:stop] = good[: stop - start]
-            redo = np.flatnonzero(~ok)
-            if redo.size:  # rare: exact arc lengths by exhaustive search, then predict again
-                plan.n_off_grid = int(redo.size)
-                table[redo, names.index("s_m")] = self._exhaustive(table, names, redo)
-                sub = table[redo]
-                for start, stop, poses, _ in self._run(names, sub, c, None):
-                    rows = redo[start:stop]
-                    if self.n_sets is None:
-                        out[rows] = poses[: stop - start]
-                    else:
-                        out[:, rows] = poses[:, : stop - start]
+        redo, redo_cars = [], []
+        for start, stop, block, poses, ok in self._run(names, rows, n, c, progress):
+            bad = np.flatnonzero(~ok)
+            if bad.size:
+                redo.append(start + bad)
+                redo_cars.append(block[bad])
+            yield slice(start, stop), poses
+        if redo:  # rare: exact arc lengths by exhaustive search, then predict again
+            redo, sub = np.concatenate(redo), np.concatenate(redo_cars)
+            plan.n_off_grid = int(redo.size)
+            with self._precision():
+                sub[:, names.index("s_m")] = self._exhaustive(sub, names)
+            for start, stop, _, poses, _ in self._run(
+                names, lambda a, b: sub[a:b], len(sub), c, None
+            ):
+                yield redo[start:stop], poses
         if info is not None:
             info.update(dataclasses.asdict(plan))
-        return out
 
     def compile_seconds(self, cars, chunk: int) -> float:
         """Seconds to compile, ahead of time, the chunk function for `chunk` cars (`cars` as for
@@ -587,8 +637,23 @@ class BatchPredictor:
             _predict_block.lower(names, self._static, self._dynamic, block).compile()
             return time.perf_counter() - t0
 
-    def _run(self, names, table, c, progress):
-        """Yield (start, stop, poses, ok) per chunk, as NumPy, in order.
+    def _predict_table(self, names, table, c) -> tuple[np.ndarray, np.ndarray]:
+        """Poses (k, H, 3) or (P, k, H, 3) and ok (k,) of the k <= c cars of `table` (k, F) in
+        one compiled call, padded to `chunk_size(k, c)` rows."""
+        from fpe_jax.predict import _shard as shard
+
+        k = table.shape[0]
+        with self._precision():  # config contexts are per thread
+            block = pad_rows(table, chunk_size(k, c, self._n_devices))
+            if self.mesh is not None:
+                block = shard.shard_along_axis0(block, self.mesh)
+            poses, ok = _predict_block(names, self._static, self._dynamic, jnp.asarray(block))
+            poses, ok = np.asarray(poses), np.asarray(ok)[:k]
+        return (poses[:k] if self.n_sets is None else poses[:, :k]), ok
+
+    def _run(self, names, rows, n, c, progress):
+        """Yield (start, stop, table, poses, ok) per chunk, as NumPy, in order; rows(start, stop)
+        gives a chunk's (k, F) table.
 
         Chunks run on `workers` threads: XLA runs one chunk's step loop on one core, so two
         chunks in flight use two (1.4x the rate on this 2-core machine). The first chunk of a
@@ -596,19 +661,11 @@ class BatchPredictor:
         the calling thread (a pool costs ~0.4 ms). At most 2 x workers results wait to be
         consumed, keeping memory bounded.
         """
-        from fpe_jax.predict import _shard as shard
-
-        n = table.shape[0]
 
         def work(start):
             stop = min(start + c, n)
-            rows = chunk_size(stop - start, c, self._n_devices)  # c, or smaller for a tail
-            with self._precision():  # config contexts are per thread
-                block = pad_rows(table[start:stop], rows)
-                if self.mesh is not None:
-                    block = shard.shard_along_axis0(block, self.mesh)
-                poses, ok = _predict_block(names, self._static, self._dynamic, jnp.asarray(block))
-                return start, stop, np.asarray(poses), np.asarray(ok)
+            table = rows(start, stop)
+            return (start, stop, table, *self._predict_table(names, table, c))
 
         starts = iter(range(0, n, c))
         if n <= c or (names, c) not in self._compiled:  # one chunk needs no thread
@@ -624,24 +681,30 @@ class BatchPredictor:
             window = collections.deque(
                 pool.submit(work, s) for s in itertools.islice(starts, 2 * self.workers)
             )
-            while window:
-                done = window.popleft().result()
-                nxt = next(starts, None)
-                if nxt is not None:
-                    window.append(pool.submit(work, nxt))
-                yield done
-                if progress is not None:
-                    progress(done[1], n)
+            try:
+                while window:
+                    done = window.popleft().result()
+                    nxt = next(starts, None)
+                    if nxt is not None:
+                        window.append(pool.submit(work, nxt))
+                    yield done
+                    if progress is not None:
+                        progress(done[1], n)
+            finally:  # a consumer that stops early (an error, Ctrl-C) waits for no more chunks
+                for f in window:
+                    f.cancel()
 
-    def _exhaustive(self, table, names, rows) -> np.ndarray:
-        xy = table[rows][:, [names.index("x_m"), names.index("y_m")]]
-        yaw = table[rows][:, names.index("yaw_rad")]
-        s = np.empty(len(rows), dtype=self.dtype)
-        for start in range(0, len(rows), _SLOW_BATCH):
+    def _exhaustive(self, table, names) -> np.ndarray:
+        """Arc lengths (k,) of the cars of `table` (k, F) by exhaustive search."""
+        xy = table[:, [names.index("x_m"), names.index("y_m")]]
+        yaw = table[:, names.index("yaw_rad")]
+        k = table.shape[0]
+        s = np.empty(k, dtype=self.dtype)
+        for start in range(0, k, _SLOW_BATCH):
             pts = pad_rows(xy[start : start + _SLOW_BATCH], _SLOW_BATCH)
             h = pad_rows(yaw[start : start + _SLOW_BATCH], _SLOW_BATCH)
             res = np.asarray(_project_exhaustive(self._track, jnp.asarray(pts), jnp.asarray(h)))
-            s[start : start + _SLOW_BATCH] = res[: min(_SLOW_BATCH, len(rows) - start)]
+            s[start : start + _SLOW_BATCH] = res[: min(_SLOW_BATCH, k - start)]
         return s
 
 
@@ -672,20 +735,19 @@ def predict_chunked(
     return predictor(cars, out=out, progress=progress, info=info)
 
 
-def _store(out: np.ndarray, start: int, stop: int, result, n_sets) -> None:
-    res = np.asarray(result)
-    if n_sets is None:
-        out[start:stop] = res[: stop - start]
-    else:
-        out[:, start:stop] = res[:, : stop - start]
-
-
 def off_track_cars(params: Params, cars_xy_m, track: Track) -> np.ndarray:
     """(N,) bool: the cars (N, 2) [m] (in the track's frame) that lie farther than
     `fpe_jax.geometry.on_track_m` of the track from its line and, for the line model, from the
     learned line: the rule of the on-track checks (`fpe_jax.geometry.off_track`). Their
     predictions follow the nearest part of the track, which for a car in another map frame
     means nothing."""
+    return off_track_judge(params, track)(np.asarray(cars_xy_m, dtype=np.float64))
+
+
+def off_track_judge(params: Params, track: Track):
+    """`off_track_cars` for one predictor and track, made once for many blocks of cars:
+    judge(cars_xy_m (k, 2) [m], n_points=None) -> (k,) bool, n_points the cars of all blocks
+    together (`fpe_jax.geometry.NearPath`)."""
     path = dict(
         xy_m=np.asarray(track.xy_m, dtype=np.float64),
         heading_rad=np.asarray(track.heading_rad, dtype=np.float64),
@@ -694,7 +756,7 @@ def off_track_cars(params: Params, cars_xy_m, track: Track) -> np.ndarray:
         closed=track.closed,
     )
     line = np.asarray(params.line_offset_m) if params.settings.model == "line" else None
-    return off_track(np.asarray(cars_xy_m, dtype=np.float64), path, line)
+    return geometry_off_track_judge(path, line)
 
 
 def off_track_summary(
@@ -716,16 +778,34 @@ def off_track_summary(
 ORIGIN_MAX_FLOAT32_M = 1000.0  # beyond a kilometre float32 cannot hold a position to the mm
 
 
-def with_origin(poses: np.ndarray, origin_m, block: int = 1 << 16) -> np.ndarray:
-    """Poses (N, H, 3) in the track's local frame moved back by the map origin (2,) [m]: x, y
-    plus the origin computed in float64, block by block (no full float64 copy), in place when
-    the poses' dtype can hold map coordinates (|origin| <= ORIGIN_MAX_FLOAT32_M or float64),
-    else into a new float64 array."""
+def origin_dtype(dtype, origin_m) -> np.dtype:
+    """The dtype of poses in `dtype` once moved by the map origin (2,) [m]: float64 where
+    float32 cannot hold map coordinates to the mm (|origin| > ORIGIN_MAX_FLOAT32_M)."""
+    far = np.abs(np.asarray(origin_m, dtype=np.float64)).max() > ORIGIN_MAX_FLOAT32_M
+    return np.dtype(np.float64) if far else np.dtype(dtype)
+
+
+def with_origin(
+    poses: np.ndarray, origin_m, block: int = 1 << 16, *, out: np.ndarray | None = None
+) -> np.ndarray:
+    """Poses (..., 3) in the track's local frame moved back by the map origin (2,) [m]: x, y
+    plus the origin, each sum the float64 sum rounded to the result's dtype, block by block
+    along the first axis (no full float64 copy), into `out` if given, else in place when the
+    poses' dtype can hold map coordinates (`origin_dtype`), else into a new float64 array."""
     origin = np.asarray(origin_m, dtype=np.float64)
-    far = poses.dtype != np.float64 and np.abs(origin).max() > ORIGIN_MAX_FLOAT32_M
-    out = np.empty(poses.shape, dtype=np.float64) if far else poses
+    if out is None:
+        same = origin_dtype(poses.dtype, origin) == poses.dtype
+        out = poses if same else np.empty(poses.shape, dtype=np.float64)
+    # -0.0 leaves every yaw as it is (-0.0 included); the whole rows are added at once
+    shift = np.array([origin[0], origin[1], -0.0])
+    if poses.dtype == out.dtype == np.float32 and np.all(shift.astype(np.float32) == shift):
+        # a float32 sum of float32 numbers is their float64 sum rounded to float32 (double
+        # rounding is harmless for a sum when 53 >= 2 * 24 + 2 bits), at a third of the cost
+        shift = shift.astype(np.float32)
+    width = poses[:1].size  # one car's values, added as one row (4x the rate of rows of 3)
+    flat = width % 3 == 0 and poses.flags.c_contiguous and out.flags.c_contiguous
+    rows = (lambda x: x.reshape(-1, width)) if flat else (lambda x: x)  # noqa: E731
+    shift = np.tile(shift, width // 3) if flat else shift
     for a in range(0, len(poses), block):
-        part = poses[a : a + block].astype(np.float64)
-        part[..., :2] += origin
-        out[a : a + block] = part
+        np.add(rows(poses[a : a + block]), shift, out=rows(out[a : a + block]))
     return out
