@@ -630,3 +630,37 @@ def test_blend_from_a_settings_only_start_drives_at_the_measured_speed(oval_driv
 
 
 BLEND_CHOICES_OF = {"auto": ("position", "heading"), "position": ("position",)}
+
+
+def _line_dataset(oval_drives, horizon: int = 10):
+    """A line-model Params learned on the fit drive and that drive's Dataset."""
+    fit_d, _, track = oval_drives
+    p0 = F._line_init([fit_d.drive], [track], Settings(horizon=horizon), "kalman")
+    p0 = dataclasses.replace(p0, pace_return_1ps=jnp.asarray(0.7))
+    (d,) = E.make_datasets([fit_d.drive], [track], p0.settings, "training")
+    return p0, d
+
+
+def test_the_line_model_is_fitted_on_cross_fitted_lines(oval_drives):
+    """Each fit row is predicted from its fold's line (learned without the fold's time), as the
+    uncertainty's residuals are: `_group_poses` over `_cross_lines` equals `_cross_fitted`, and
+    differs from the in-sample prediction."""
+    p0, d = _line_dataset(oval_drives)
+    fold, lines = F._cross_lines([d])
+    assert fold.shape == (len(d.targets.rows),) and len(np.unique(fold)) == 3  # 40 s drive
+    assert all(v.shape == (3, len(p0.line_offset_m)) for v in lines.values())
+    pred = F._group_poses(p0, d.states(p0), d.track, jnp.asarray(fold), lines).xy_m
+    np.testing.assert_allclose(np.asarray(pred), E._cross_fitted(p0, d), atol=1e-9)
+    in_sample = E.predict_targets(p0, d).xy_m
+    assert np.max(np.abs(np.asarray(pred) - in_sample)) > 0.05
+
+
+def test_lead_time_scale_weighs_every_step_by_its_typical_error(oval_drives):
+    """Each step's factor is 1 / its mean error at the fit's start, normalised to a mean square
+    of 1 over the targets: the data weigh as much against the priors as unscaled."""
+    p0, d = _line_dataset(oval_drives, horizon=30)
+    scale = F.lead_time_scale(p0, [d])
+    err = np.asarray(E.evaluate(p0, [d])["per_step_m"])
+    count = d.targets.mask.sum(axis=0)
+    np.testing.assert_allclose(scale * err, (scale * err)[0], rtol=1e-12)
+    np.testing.assert_allclose(np.sum(count * scale**2) / np.sum(count), 1.0, rtol=1e-12)
