@@ -166,7 +166,7 @@ def _data_residuals(pred, target, mask, huber_m, step_scale=None):
     e = jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12)
     factor = _huber_scale(e, huber_m)
     if step_scale is not None:
-        factor = factor * step_scale
+        factor = factor * jnp.reshape(step_scale, (1,) * (factor.ndim - 1) + (-1,))
     return jnp.where(mask[..., None], d * factor[..., None], 0.0)
 
 
@@ -684,7 +684,7 @@ def fit_params(
     if init.settings.model == "line":
         cross = [_cross_lines(part) for part in parts]
         cross = [(pad_rows(fold, n), lines) for (fold, lines), n in zip(cross, sizes)]
-    scales = [lead_time_scale(init, part) for part in parts]
+    scales = [lead_time_scale(init, datasets)] * len(parts)  # one for all: however grouped
     abstract = [
         (shape_of(xy), part[0].track, xy, m, *c, sc)
         for part, (xy, m), c, sc in zip(parts, targets, cross, scales)
