@@ -154,7 +154,11 @@ def test_the_filters_fitted_values_stay_near_their_defaults_on_a_short_drive(ova
     data = E.make_datasets([drive], [track], res.params.settings, "training")
     raw = unconstrain(res.params)
     free, fixed = eqx.partition(raw, F._free_mask(raw, F.default_groups(res.params.settings)))
-    groups = [(d.states(res.params), d.track, d.targets.xy_m, d.targets.mask) for d in data]
+    # (no cross-fitted lines, no step scale: the data residuals as they are)
+    groups = [
+        (d.states(res.params), d.track, d.targets.xy_m, d.targets.mask, None, None, None)
+        for d in data
+    ]
     full = F._residuals(free, (fixed, groups, F.HUBER_M))
     prior = np.sqrt(F.FILTER_PRIOR_M2) * np.log([values[k] / v for k, v in FILTER_DEFAULTS.items()])
     np.testing.assert_allclose(np.asarray(full[-4:]), prior, rtol=1e-12, atol=1e-15)
@@ -257,7 +261,8 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
     assert i_bfgs["converged"] and i_lm["converged"]
     assert i_bfgs["loss"] == pytest.approx(i_lm["loss"], rel=1e-4)
     (d,) = data
-    groups = [(d.states(init), track, jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask))]
+    xy, mask = jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask)
+    groups = [(d.states(init), track, xy, mask, None, None, F.lead_time_scale(init, [d]))]
     for params, info in fits.values():  # the reported loss is the loss at the returned values
         raw = F.unconstrain(params)
         free, fixed = eqx.partition(raw, F._free_mask(raw, ("delay", "speed")))
@@ -425,7 +430,8 @@ def test_residual_gradient_matches_finite_differences(oval_drives):
     init = presets["default"]
     data = E.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
     raw = F.unconstrain(init)
-    groups = [(data.states(init), track, jnp.asarray(data.targets.xy_m), data.targets.mask)]
+    xy, scale = jnp.asarray(data.targets.xy_m), F.lead_time_scale(init, [data])
+    groups = [(data.states(init), track, xy, data.targets.mask, None, None, scale)]
 
     def loss(delay_raw):
         r = dataclasses.replace(raw, delay_s=delay_raw)
