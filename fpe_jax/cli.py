@@ -268,7 +268,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--fit",
         help=f"comma list of {','.join(FIT_NAMES)} (default: the model's own: line "
-        "delay,tau,pace,smoothing,filter; filter only with the kalman estimator)",
+        "delay,tau,smoothing,filter; filter only with the kalman estimator)",
     )
     p.add_argument(
         "--estimator",

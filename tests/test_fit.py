@@ -670,3 +670,19 @@ def test_lead_time_scale_weighs_every_step_by_its_typical_error(oval_drives):
     count = d.targets.mask.sum(axis=0)
     np.testing.assert_allclose(scale * err, (scale * err)[0], rtol=1e-12)
     np.testing.assert_allclose(np.sum(count * scale**2) / np.sum(count), 1.0, rtol=1e-12)
+
+
+def test_the_pace_return_is_fitted_only_when_named(oval_drives):
+    """The line model's default groups leave pace_return_1ps at 0 (the car keeps its pace:
+    tests/test_speed_shift.py); named, it starts from PACE_RETURN_INIT_1PS (the softplus is
+    flat at 0) and moves."""
+    fit_d, _, track = oval_drives
+    drive = fit_d.drive.slice_time(0, 20)
+    init = F._line_init([drive], [track], Settings(), "kalman")
+    assert "pace" not in F.default_groups(init.settings) and float(init.pace_return_1ps) == 0.0
+    (data,) = E.make_datasets([drive], [track], init.settings, "training")
+    default, _ = F.fit_params([data], init)
+    assert float(default.pace_return_1ps) <= 1e-6  # 0 through the maps' _RAW_EPS
+    named, info = F.fit_params([data], init, free=("pace",))
+    assert info["converged"] and float(named.pace_return_1ps) > 0.0
+    assert float(named.pace_return_1ps) != pytest.approx(F.PACE_RETURN_INIT_1PS, abs=1e-3)
