@@ -262,7 +262,7 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
     assert i_bfgs["loss"] == pytest.approx(i_lm["loss"], rel=1e-4)
     (d,) = data
     xy, mask = jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask)
-    groups = [(d.states(init), track, xy, mask, None, None, F.lead_time_scale(init, [d]))]
+    groups = [(d.states(init), track, xy, mask, None, None, None)]  # the default fit's
     for params, info in fits.values():  # the reported loss is the loss at the returned values
         raw = F.unconstrain(params)
         free, fixed = eqx.partition(raw, F._free_mask(raw, ("delay", "speed")))

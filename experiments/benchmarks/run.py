@@ -409,8 +409,7 @@ def scipy_objective(groups, raw, free):
 
     Args:
         groups: list of (states dict of (N,) float64 arrays x_m, y_m, yaw_rad, v_mps, s_m,
-            the blend model's `Runner` on the drive's track, targets (N, H, 2) [m], mask (N, H),
-            the fit's step scale (H,), `fit.lead_time_scale`).
+            the blend model's `Runner` on the drive's track, targets (N, H, 2) [m], mask (N, H)).
         raw: the starting point's raw values (`fpe_jax.model.unconstrain`).
         free: the fitted field names (the rest stay at their raw value).
 
@@ -433,12 +432,11 @@ def scipy_objective(groups, raw, free):
     to_physical = jax.jit(lambda vec: constrain(unpack(vec)))
     half_sum = jax.jit(
         lambda w, preds, xy, masks, vec: (
-            0.5 * jnp.sum(jnp.square(robust_residuals(w, preds, xy, masks, [vec], HUBER_M, scales)))
+            0.5 * jnp.sum(jnp.square(robust_residuals(w, preds, xy, masks, [vec], HUBER_M)))
         )
     )
     targets = [jnp.asarray(g[2]) for g in groups]
     masks = [jnp.asarray(g[3]) for g in groups]
-    scales = [jnp.asarray(g[4]) for g in groups]
 
     def loss(vec: np.ndarray) -> float:
         phys = jax.device_get(to_physical(vec)).physical()
@@ -446,7 +444,7 @@ def scipy_objective(groups, raw, free):
             runner.with_params(phys).predict_from_state(
                 st["x_m"], st["y_m"], st["yaw_rad"], st["v_mps"], st["s_m"]
             )[..., :2]
-            for st, runner, *_ in groups
+            for st, runner, _, _ in groups
         ]
         return float(half_sum(np.asarray(phys["weights"]), preds, targets, masks, vec))
 
@@ -500,10 +498,7 @@ def fit_child(minutes: float, with_scipy: bool) -> None:
         st = data.states(init)
         states = {k: np.asarray(getattr(st, k)) for k in ("x_m", "y_m", "yaw_rad", "v_mps", "s_m")}
         runner = Runner(params_to_config(init), res.centerline_xy_m, source="benchmark")
-        from fpe_jax.fit._fit import lead_time_scale
-
-        scale = lead_time_scale(init, [data])
-        groups = [(states, runner, data.targets.xy_m, data.targets.mask, scale)]
+        groups = [(states, runner, data.targets.xy_m, data.targets.mask)]
         free = [f for g in DEFAULT_FIT for f in FIT_GROUPS[g]]
         loss, x0, names = scipy_objective(groups, unconstrain(init), free)
         raw_fit = unconstrain(fitted)
