@@ -75,6 +75,7 @@ FIT_GROUPS = {
     "delay": ("delay_s",),
     "speed": ("speed_weight", "speed_mps"),
     "tau": ("offset_tau_s", "speed_tau_s"),
+    "pace": ("pace_return_1ps",),
     "smoothing": ("position_smoothing",),
     "filter": ("filter_accel_mps2", "filter_lat_accel_mps2", "filter_obs_m", "filter_gate_sigma"),
 }
@@ -157,6 +158,7 @@ PARAM_RULES = (
     Rule("speed_mps", lo=0.0, hi=MAX_SPEED_MPS, unit="m/s"),
     Rule("offset_tau_s", lo=MIN_TAU_S, hi=1000.0, unit="s", optional=True),
     Rule("speed_tau_s", lo=MIN_TAU_S, hi=1000.0, unit="s", optional=True),
+    Rule("pace_return_1ps", lo=0.0, hi=1000.0, unit="1/s", optional=True),
     Rule("position_smoothing", lo=0.0, hi=1.0, optional=True),
     Rule("filter_accel_mps2", lo=MIN_FILTER_NOISE, hi=1000.0, unit="m/s^2", optional=True),
     Rule("filter_lat_accel_mps2", lo=MIN_FILTER_NOISE, hi=1000.0, unit="m/s^2", optional=True),

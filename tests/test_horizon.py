@@ -53,6 +53,7 @@ def test_runner_matches_jax_at_horizon_50_with_the_line_model(estimator):
         delay_s=0.12,
         offset_tau_s=0.8,
         speed_tau_s=0.3,
+        pace_return_1ps=0.7,
         position_smoothing=0.6,
         **profile,
     )

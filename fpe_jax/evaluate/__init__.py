@@ -12,6 +12,7 @@ _LAZY = {
     "Targets": "_evaluate",
     "covariance_map": "_evaluate",
     "coverage": "_metrics",
+    "cross_fold_lines": "_evaluate",
     "errors_m": "_metrics",
     "evaluate": "_evaluate",
     "fit_covariance": "_metrics",

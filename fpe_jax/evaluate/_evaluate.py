@@ -240,11 +240,17 @@ CROSS_FOLDS = 5
 MIN_FOLD_S = 12.0
 
 
-def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
-    """(N, H, 2) positions [m] of the line model at d's targets, each from a line learned on the
-    rest of d's drive (CROSS_FOLDS contiguous folds in time): the line fits its own drive's
-    truth, so in-sample residuals would understate the error on drives the line was not
-    learned on."""
+def cross_fold_lines(d: Dataset) -> tuple[np.ndarray, list[dict[str, np.ndarray]]]:
+    """The folds of d's prediction rows for cross-fitting the line model, and each fold's line.
+
+    The drive is cut into CROSS_FOLDS contiguous folds in time (fewer on a short drive, at
+    least MIN_FOLD_S each, at least 2); each fold's line is learned on the rest of the drive
+    (`fpe_jax.model.line_from_samples`). The line fits its own drive's truth, so predictions
+    from it at the rows it was learned on are better than on a drive it was not learned on.
+
+    Returns (fold (N,) int, the fold of each of d's prediction rows; lines, per fold the
+    profile as `learn_line` gives it).
+    """
     from fpe_jax.model._line import line_from_samples, line_samples
 
     # at least MIN_FOLD_S per fold: on a 40 s drive five folds' lines were too good (the oval
@@ -253,17 +259,28 @@ def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
     edges = np.linspace(d.drive.t_s[0], d.drive.t_s[-1], folds + 1)
     edges[-1] = np.inf
     t_rows = d.drive.t_s[d.targets.rows]
-    out = np.zeros((len(t_rows), params.settings.horizon, 2))
+    fold = np.clip(np.searchsorted(edges, t_rows, side="right") - 1, 0, folds - 1)
     whole = line_samples(d.drive, d.track)  # projected once; each fold leaves out its part
+    lines = [
+        line_from_samples([whole.outside(lo, hi)], d.track) for lo, hi in zip(edges[:-1], edges[1:])
+    ]
+    return fold, lines
+
+
+def _cross_fitted(params: Params, d: Dataset) -> np.ndarray:
+    """(N, H, 2) positions [m] of the line model at d's targets, each from a line learned on the
+    rest of d's drive (`cross_fold_lines`): in-sample residuals would understate the error on
+    drives the line was not learned on."""
+    fold, lines = cross_fold_lines(d)
+    out = np.zeros((len(fold), params.settings.horizon, 2))
     states = d.states(params)
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        fold = (t_rows >= lo) & (t_rows < hi)
-        if not fold.any():
+    for i, line in enumerate(lines):
+        rows = fold == i
+        if not rows.any():
             continue
-        line = line_from_samples([whole.outside(lo, hi)], d.track)
         fold_params = dataclasses.replace(params, **{k: device_array(v) for k, v in line.items()})
-        fold_states = jax.tree.map(lambda x, f=fold: x[f], states)
-        out[fold] = predict_rows(fold_params, fold_states, d.track).xy_m
+        fold_states = jax.tree.map(lambda x, f=rows: x[f], states)
+        out[rows] = predict_rows(fold_params, fold_states, d.track).xy_m
     return out
 
 

@@ -64,7 +64,8 @@ def format_fitted(result: FitResult) -> str:
         return choice + (
             f"fitted (line model, {_steps(info)}): delay "
             f"{p['delay_s']:.3f} s, offset decay {p['offset_tau_s']:.3f} s, speed-profile blend "
-            f"{p['speed_tau_s']:.3f} s, position smoothing {p['position_smoothing']:.2f}"
+            f"{p['speed_tau_s']:.3f} s, pace return {p['pace_return_1ps']:.3f} /s, position "
+            f"smoothing {p['position_smoothing']:.2f}"
             + (
                 f", filter noise {p['filter_accel_mps2']:.2f} / {p['filter_lat_accel_mps2']:.2f} "
                 f"m/s^2, {p['filter_obs_m']:.3f} m, gate {p['filter_gate_sigma']:.2f} sigma\n"

@@ -5,7 +5,8 @@ can load the same files.
 Schema (version 2):
     {"schema_version": 2,
      "params": {"lookahead_m", "lookahead_gain_s", "weights": [H], "delay_s", "speed_weight",
-                "speed_mps", optional: "offset_tau_s", "speed_tau_s", "position_smoothing",
+                "speed_mps", optional: "offset_tau_s", "speed_tau_s", "pace_return_1ps",
+                "position_smoothing",
                 "filter_accel_mps2", "filter_lat_accel_mps2", "filter_obs_m",
                 "filter_gate_sigma" (frenet / line models),
                 "line_offset_m", "line_speed_mps", "line_coverage": [P] (line model only)},

@@ -77,6 +77,7 @@ ROS2_PARAMS = (
     ("typical_speed_mps", "params", "speed_mps", float, "speed the measured one shrinks to [m/s]"),
     ("offset_decay_s", "params", "offset_tau_s", float, "frenet/line: lateral offset decay [s]"),
     ("speed_profile_blend_s", "params", "speed_tau_s", float, "line: profile blend-in time [s]"),
+    ("pace_return_1ps", "params", "pace_return_1ps", float, "line: pace back to profile [1/s]"),
     ("position_smoothing", "params", "position_smoothing", float, "frenet/line: 0 newest, 1 fit"),
     ("estimator", "settings", "estimator", str, "frenet/line start: kalman or theil-sen"),
     ("filter_accel_mps2", "params", "filter_accel_mps2", float, "kalman: along accel [m/s^2]"),
@@ -163,7 +164,8 @@ def to_ros2_yaml(
         f"    schema_version: {int(cfg['schema_version'])}",
     ]
     # the values of configs from before the frenet / line models and the Kalman estimator
-    older = {"offset_tau_s": 1.0, "speed_tau_s": 0.5, "position_smoothing": 0.0} | FILTER_DEFAULTS
+    older = {"offset_tau_s": 1.0, "speed_tau_s": 0.5, "position_smoothing": 0.0}
+    older |= {"pace_return_1ps": 0.0} | FILTER_DEFAULTS
     sections = {"params": older | cfg["params"], "settings": cfg["settings"]}
     rows = list(ROS2_PARAMS)
     if cfg["settings"]["model"] == "line":

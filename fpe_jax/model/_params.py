@@ -3,8 +3,9 @@
 Params holds physical values users read (`lookahead_m`, `weights`, ...). The fitter works on
 unconstrained raw values: `unconstrain(params)` and `constrain(raw)` map between the two, so
 every fitted value stays in its valid range without clipping (lookahead >= min_lookahead_m,
-gain >= 0, weights and speed_weight in [0, 1], delay >= 0, speed_mps >= 0, time constants
->= MIN_TAU_S, the filter's noise values >= MIN_FILTER_NOISE and its gate >= MIN_GATE_SIGMA).
+gain >= 0, weights and speed_weight in [0, 1], delay, speed_mps and pace_return_1ps >= 0, time
+constants >= MIN_TAU_S, the filter's noise values >= MIN_FILTER_NOISE and its gate >=
+MIN_GATE_SIGMA).
 The learned line's profile arrays are never fitted by the solver (they are learned from the fit
 drives first, `fpe_jax.model`) and pass through both maps unchanged.
 """
@@ -95,6 +96,10 @@ class Params(eqx.Module):
             from the car's current offset to the line (the centerline for "frenet").
         speed_tau_s: () line model: time constant [s] with which the speed profile's shape
             v(s') / v(s_now) is blended into the car's current along-track speed.
+        pace_return_1ps: () line model: rate [1/s] at which the car's own pace (its speed
+            relative to the speed profile's at the same place) returns to the profile's: the
+            share of its own pace left after t seconds is exp(-rate t). 0 keeps its pace over
+            the whole horizon (configs written before this value read 0).
         position_smoothing: () frenet / line models, in [0, 1]: where the rollout starts
             along and across the track: 0 = the newest observation's projection, 1 = the
             track-frame estimate at the newest stamp (the Kalman filter's, or the Theil-Sen
@@ -128,6 +133,7 @@ class Params(eqx.Module):
     speed_mps: Float[Array, "*sets"]
     offset_tau_s: Float[Array, "*sets"]
     speed_tau_s: Float[Array, "*sets"]
+    pace_return_1ps: Float[Array, "*sets"]
     position_smoothing: Float[Array, "*sets"]
     filter_accel_mps2: Float[Array, "*sets"]
     filter_lat_accel_mps2: Float[Array, "*sets"]
@@ -151,6 +157,7 @@ class Params(eqx.Module):
         speed_mps=1.0,
         offset_tau_s=1.0,
         speed_tau_s=0.5,
+        pace_return_1ps=0.0,
         position_smoothing=0.0,
         filter_accel_mps2=FILTER_DEFAULTS["filter_accel_mps2"],
         filter_lat_accel_mps2=FILTER_DEFAULTS["filter_lat_accel_mps2"],
@@ -181,6 +188,7 @@ class Params(eqx.Module):
             speed_mps=device_array(speed_mps, dtype=float),
             offset_tau_s=device_array(offset_tau_s, dtype=float),
             speed_tau_s=device_array(speed_tau_s, dtype=float),
+            pace_return_1ps=device_array(pace_return_1ps, dtype=float),
             position_smoothing=device_array(position_smoothing, dtype=float),
             filter_accel_mps2=device_array(filter_accel_mps2, dtype=float),
             filter_lat_accel_mps2=device_array(filter_lat_accel_mps2, dtype=float),
@@ -204,6 +212,7 @@ class Params(eqx.Module):
             "speed_mps": float(self.speed_mps),
             "offset_tau_s": float(self.offset_tau_s),
             "speed_tau_s": float(self.speed_tau_s),
+            "pace_return_1ps": float(self.pace_return_1ps),
             "position_smoothing": float(self.position_smoothing),
             "filter_accel_mps2": float(self.filter_accel_mps2),
             "filter_lat_accel_mps2": float(self.filter_lat_accel_mps2),
@@ -266,6 +275,7 @@ def unconstrain(params: Params) -> Params:
         speed_mps=_inv_softplus(params.speed_mps),
         offset_tau_s=_inv_softplus(params.offset_tau_s - MIN_TAU_S),
         speed_tau_s=_inv_softplus(params.speed_tau_s - MIN_TAU_S),
+        pace_return_1ps=_inv_softplus(params.pace_return_1ps),
         position_smoothing=_logit(params.position_smoothing),
         filter_accel_mps2=_inv_softplus(params.filter_accel_mps2 - MIN_FILTER_NOISE),
         filter_lat_accel_mps2=_inv_softplus(params.filter_lat_accel_mps2 - MIN_FILTER_NOISE),
@@ -288,6 +298,7 @@ def constrain(raw: Params) -> Params:
         speed_mps=jax.nn.softplus(raw.speed_mps),
         offset_tau_s=MIN_TAU_S + jax.nn.softplus(raw.offset_tau_s),
         speed_tau_s=MIN_TAU_S + jax.nn.softplus(raw.speed_tau_s),
+        pace_return_1ps=jax.nn.softplus(raw.pace_return_1ps),
         position_smoothing=jax.nn.sigmoid(raw.position_smoothing),
         filter_accel_mps2=MIN_FILTER_NOISE + jax.nn.softplus(raw.filter_accel_mps2),
         filter_lat_accel_mps2=MIN_FILTER_NOISE + jax.nn.softplus(raw.filter_lat_accel_mps2),

@@ -251,6 +251,11 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
     profile's shape scaled to the car's own: v(t) = v0 (1 + (v_p(s(t)) / v_p(s_ref) - 1)
     (1 - exp(-t / speed_tau_s))), s_ref where the speed was measured, so the car keeps its pace
     and brakes where the profile brakes (a profile speed below MIN_PROFILE_SPEED_MPS: ratio 1).
+    Over longer leads the car's own pace returns to the profile's: the speed blended in is
+    q(t) v0 v_p(s(t)) / v_p(s_ref) + (1 - q(t)) v_p(s(t)), q(t) = exp(-t pace_return_1ps)
+    (where v_p(s(t)) is a speed reference; 0: the car's pace is kept): a car whose speed
+    wanders about its typical one, or that stops and goes, is best predicted far ahead at its
+    typical speed there.
     Where the profile's coverage c(s) is 0 (the profile there is `fpe_jax.model`'s prior from the
     track's curvature) the car keeps its own offset and follows only the profile's change:
     target l(s) + (d0 - l(s0)) exp(-t / FALLBACK_TAU_S), held and slowly decaying; in general
@@ -309,7 +314,12 @@ def rollout_frenet(params: Params, state: State, track: Track) -> Poses:
                 vp > MIN_PROFILE_SPEED_MPS, jnp.clip(vp / vp0, 0.0, MAX_SPEED_RATIO), 1.0
             )
             ratio = 1.0 + ok0 * (ratio - 1.0)
-            v = v0 * (1.0 + (ratio - 1.0) * -jnp.expm1(-(t0 + age) / params.speed_tau_s))
+            # the car's own pace (v0 along the profile's shape) hands over to the profile's
+            # where the profile is a speed reference
+            own = v0 * ratio
+            back = -jnp.expm1(-(t0 + age) * params.pace_return_1ps)
+            goal = own + jnp.where(vp > MIN_PROFILE_SPEED_MPS, back * (vp - own), 0.0)
+            v = v0 + (goal - v0) * -jnp.expm1(-(t0 + age) / params.speed_tau_s)
             s = s + v * dt
             return s, s
 
@@ -341,9 +351,11 @@ def estimate_variance(params: Params, state: State) -> Float[Array, "H 2"]:
     filter's last update, so the estimate's error covaries with z's by exactly the estimate's
     own variance (a Kalman gain times r^2 is the posterior variance): var(s0) = u r^2 +
     (1 - u) P_ss with u = (1 - w)^2, and cov(s0, speed) = P_sv. Along the track at the step's
-    time t (the delay included): var(s0) + 2 t P_sv + t^2 P_vv; across: var(d0) times the
-    squared sensitivity of the offset's return to its start, (1 + t / tau)^2 exp(-2 t / tau)
-    for the line model's critically damped return, exp(-2 t / tau) for frenet's decay.
+    time t (the delay included): var(s0) + 2 g P_sv + g^2 P_vv, g = t, or (1 - exp(-r t)) / r
+    where the car's pace returns to the profile's at rate r = pace_return_1ps; across: var(d0)
+    times the squared sensitivity of the offset's return to its start, (1 + t / tau)^2
+    exp(-2 t / tau) for the line model's critically damped return, exp(-2 t / tau) for
+    frenet's decay.
     """
     h = params.settings.horizon
     if state.filter_cov is None:
@@ -355,7 +367,11 @@ def estimate_variance(params: Params, state: State) -> Float[Array, "H 2"]:
     r2 = params.filter_obs_m * params.filter_obs_m
     var_s0 = u * r2 + (1.0 - u) * p[0, 0]
     var_d0 = u * r2 + (1.0 - u) * p[2, 2]
-    along = var_s0 + 2.0 * t * p[0, 1] + t * t * p[1, 1]
+    # how far an error in the speed carries: t, or with the pace's return to the profile
+    # (line model) its integral, (1 - exp(-r t)) / r
+    r = params.pace_return_1ps
+    reach = jnp.where(r > 0.0, -jnp.expm1(-r * t) / jnp.where(r > 0.0, r, 1.0), t)
+    along = var_s0 + 2.0 * reach * p[0, 1] + reach * reach * p[1, 1]
     decay = jnp.exp(-t / params.offset_tau_s)
     if params.line_offset_m.shape[0] > 0:  # static: the line model
         decay = (1.0 + t / params.offset_tau_s) * decay

@@ -329,6 +329,7 @@ class Runner:
         self._typical_speed_mps = float(p["speed_mps"])
         self._offset_tau_s = float(p.get("offset_tau_s", 1.0))
         self._speed_tau_s = float(p.get("speed_tau_s", 0.5))
+        self._pace_return_1ps = float(p.get("pace_return_1ps", 0.0))
         self._smoothing = float(p.get("position_smoothing", 0.0))
         self._filter = tuple(float(p.get(k, FILTER_DEFAULTS[k])) for k in FILTER_KEYS)
         self._line = [[float(v) for v in p[k]] for k in LINE_KEYS] if self.model == "line" else None
@@ -680,7 +681,12 @@ class Runner:
                 _, _, vp = self._line_at(s)
                 ratio = min(max(vp / vp0, 0.0), MAX_SPEED_RATIO)
                 ratio = 1.0 + ok0 * (1.0 if vp > MIN_PROFILE_SPEED_MPS else 0.0) * (ratio - 1.0)
-                v = v0 * (1.0 + (ratio - 1.0) * -math.expm1(-(t + age) / self._speed_tau_s))
+                own_pace = v0 * ratio
+                goal = own_pace
+                if vp > MIN_PROFILE_SPEED_MPS:  # the car's pace hands over to the profile's
+                    back = -math.expm1(-(t + age) * self._pace_return_1ps)
+                    goal += back * (vp - own_pace)
+                v = v0 + (goal - v0) * -math.expm1(-(t + age) / self._speed_tau_s)
                 s = s + v * dt
                 t += dt
                 line, c, _ = self._line_at(s)

@@ -39,7 +39,11 @@ def _objective(drive, model: str):
     data = E.make_datasets([d], [track], init.settings, "training", kalman=model == "line")[0]
     raw = unconstrain(init)
     free, fixed = eqx.partition(raw, F._free_mask(raw, F.default_groups(init.settings)))
-    groups = [(data.states(init), track, jnp.asarray(data.targets.xy_m), data.targets.mask)]
+    # the line model's rows predicted from their folds' lines, every model's steps scaled
+    fold, lines = F._cross_lines([data]) if model == "line" else (None, None)
+    scale = F.lead_time_scale(init, [data])
+    xy = jnp.asarray(data.targets.xy_m)
+    groups = [(data.states(init), track, xy, data.targets.mask, fold, lines, scale)]
     y0, unravel = ravel_pytree(free)
     return y0, (fixed, groups, F.HUBER_M), unravel, data, init
 
@@ -52,8 +56,9 @@ def test_blocked_loss_and_gradient_equal_the_loss_in_one_piece(drive, model):
     y0, (fixed, groups, huber), unravel, data, _ = _objective(drive, model)
     n = len(data.targets.rows)
     assert n > 2 * BLOCK and n % BLOCK, n  # several blocks and a partial one
-    states, track, xy, mask = groups[0]
-    short = (jax.tree.map(lambda x: x[:100], states), track, xy[:100], mask[:100])
+    states, track, xy, mask, fold, lines, scale = groups[0]
+    cut = jax.tree.map(lambda x: x[:100], (states, xy, mask, fold))
+    short = (cut[0], track, cut[1], cut[2], cut[3], lines, scale)
     args = (fixed, [groups[0], short], huber)
     whole = jax.jit(jax.value_and_grad(lambda y: F._loss(unravel(y), args)))
     blocked = jax.jit(jax.value_and_grad(lambda y: F._loss(unravel(y), args, BLOCK)))
@@ -89,8 +94,9 @@ def _temp_bytes(drive, n_rows: int, block_rows: int | None, datasets: int = 1) -
     evaluates) of the line model on `datasets` datasets of n_rows target rows each (the
     drive's rows repeated)."""
     y0, (fixed, groups, huber), unravel, data, _ = _objective(drive, "line")
-    states, track, xy, mask = groups[0]
-    big = (pad_rows(states, n_rows), track, pad_rows(xy, n_rows), pad_rows(mask, n_rows))
+    states, track, xy, mask, fold, lines, scale = groups[0]
+    big = pad_rows((states, xy, mask, fold), n_rows)
+    big = (big[0], track, big[1], big[2], big[3], lines, scale)
     shapes = [jax.tree.map(lambda x: jax.ShapeDtypeStruct(np.shape(x), x.dtype), big)] * datasets
 
     def value_and_grad(y, g):
@@ -135,7 +141,8 @@ free, fixed = eqx.partition(raw, F._free_mask(raw, F.default_groups(init.setting
 d = data[0]
 n = -(-len(d.targets.rows) // 128) * 128  # whole blocks of 64, as many on each device
 g = [(E.pad_rows(d.states(init), n), track, E.pad_rows(d.targets.xy_m, n),
-      E.pad_rows(d.targets.mask, n) & (np.arange(n) < len(d.targets.rows))[:, None])]
+      E.pad_rows(d.targets.mask, n) & (np.arange(n) < len(d.targets.rows))[:, None],
+      None, None, F.lead_time_scale(init, data))]
 y0, unravel = ravel_pytree(free)
 args = (fixed, g, F.HUBER_M)
 losses = {k: jax.jit(jax.value_and_grad(lambda y, k=k: F._loss(unravel(y), args, 64, k)))

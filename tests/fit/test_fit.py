@@ -154,7 +154,11 @@ def test_the_filters_fitted_values_stay_near_their_defaults_on_a_short_drive(ova
     data = E.make_datasets([drive], [track], res.params.settings, "training")
     raw = unconstrain(res.params)
     free, fixed = eqx.partition(raw, F._free_mask(raw, F.default_groups(res.params.settings)))
-    groups = [(d.states(res.params), d.track, d.targets.xy_m, d.targets.mask) for d in data]
+    # (no cross-fitted lines, no step scale: the data residuals as they are)
+    groups = [
+        (d.states(res.params), d.track, d.targets.xy_m, d.targets.mask, None, None, None)
+        for d in data
+    ]
     full = F._residuals(free, (fixed, groups, F.HUBER_M))
     prior = np.sqrt(F.FILTER_PRIOR_M2) * np.log([values[k] / v for k, v in FILTER_DEFAULTS.items()])
     np.testing.assert_allclose(np.asarray(full[-4:]), prior, rtol=1e-12, atol=1e-15)
@@ -257,7 +261,8 @@ def test_both_solvers_reach_the_same_fit(oval_drives):
     assert i_bfgs["converged"] and i_lm["converged"]
     assert i_bfgs["loss"] == pytest.approx(i_lm["loss"], rel=1e-4)
     (d,) = data
-    groups = [(d.states(init), track, jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask))]
+    xy, mask = jnp.asarray(d.targets.xy_m), jnp.asarray(d.targets.mask)
+    groups = [(d.states(init), track, xy, mask, None, None, None)]  # the default fit's
     for params, info in fits.values():  # the reported loss is the loss at the returned values
         raw = F.unconstrain(params)
         free, fixed = eqx.partition(raw, F._free_mask(raw, ("delay", "speed")))
@@ -425,7 +430,8 @@ def test_residual_gradient_matches_finite_differences(oval_drives):
     init = presets["default"]
     data = E.make_datasets([fit_d.drive.slice_time(0, 8)], [track], init.settings, "training")[0]
     raw = F.unconstrain(init)
-    groups = [(data.states(init), track, jnp.asarray(data.targets.xy_m), data.targets.mask)]
+    xy, scale = jnp.asarray(data.targets.xy_m), F.lead_time_scale(init, [data])
+    groups = [(data.states(init), track, xy, data.targets.mask, None, None, scale)]
 
     def loss(delay_raw):
         r = dataclasses.replace(raw, delay_s=delay_raw)
@@ -630,3 +636,53 @@ def test_blend_from_a_settings_only_start_drives_at_the_measured_speed(oval_driv
 
 
 BLEND_CHOICES_OF = {"auto": ("position", "heading"), "position": ("position",)}
+
+
+def _line_dataset(oval_drives, horizon: int = 10):
+    """A line-model Params learned on the fit drive and that drive's Dataset."""
+    fit_d, _, track = oval_drives
+    p0 = F._line_init([fit_d.drive], [track], Settings(horizon=horizon), "kalman")
+    p0 = dataclasses.replace(p0, pace_return_1ps=jnp.asarray(0.7))
+    (d,) = E.make_datasets([fit_d.drive], [track], p0.settings, "training")
+    return p0, d
+
+
+def test_the_line_model_is_fitted_on_cross_fitted_lines(oval_drives):
+    """Each fit row is predicted from its fold's line (learned without the fold's time), as the
+    uncertainty's residuals are: `_group_poses` over `_cross_lines` equals `_cross_fitted`, and
+    differs from the in-sample prediction."""
+    p0, d = _line_dataset(oval_drives)
+    fold, lines = F._cross_lines([d])
+    assert fold.shape == (len(d.targets.rows),) and len(np.unique(fold)) == 3  # 40 s drive
+    assert all(v.shape == (3, len(p0.line_offset_m)) for v in lines.values())
+    pred = F._group_poses(p0, d.states(p0), d.track, jnp.asarray(fold), lines).xy_m
+    np.testing.assert_allclose(np.asarray(pred), E._cross_fitted(p0, d), atol=1e-9)
+    in_sample = E.predict_targets(p0, d).xy_m
+    assert np.max(np.abs(np.asarray(pred) - in_sample)) > 0.05
+
+
+def test_lead_time_scale_weighs_every_step_by_its_typical_error(oval_drives):
+    """Each step's factor is 1 / its mean error at the fit's start, normalised to a mean square
+    of 1 over the targets: the data weigh as much against the priors as unscaled."""
+    p0, d = _line_dataset(oval_drives, horizon=30)
+    scale = F.lead_time_scale(p0, [d])
+    err = np.asarray(E.evaluate(p0, [d])["per_step_m"])
+    count = d.targets.mask.sum(axis=0)
+    np.testing.assert_allclose(scale * err, (scale * err)[0], rtol=1e-12)
+    np.testing.assert_allclose(np.sum(count * scale**2) / np.sum(count), 1.0, rtol=1e-12)
+
+
+def test_the_pace_return_is_fitted_only_when_named(oval_drives):
+    """The line model's default groups leave pace_return_1ps at 0 (the car keeps its pace:
+    tests/test_speed_shift.py); named, it starts from PACE_RETURN_INIT_1PS (the softplus is
+    flat at 0) and moves."""
+    fit_d, _, track = oval_drives
+    drive = fit_d.drive.slice_time(0, 20)
+    init = F._line_init([drive], [track], Settings(), "kalman")
+    assert "pace" not in F.default_groups(init.settings) and float(init.pace_return_1ps) == 0.0
+    (data,) = E.make_datasets([drive], [track], init.settings, "training")
+    default, _ = F.fit_params([data], init)
+    assert float(default.pace_return_1ps) <= 1e-6  # 0 through the maps' _RAW_EPS
+    named, info = F.fit_params([data], init, free=("pace",))
+    assert info["converged"] and float(named.pace_return_1ps) > 0.0
+    assert float(named.pace_return_1ps) != pytest.approx(F.PACE_RETURN_INIT_1PS, abs=1e-3)

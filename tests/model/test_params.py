@@ -101,6 +101,7 @@ def test_create_broadcasts_weights_and_reports_physical_values():
         "speed_mps": 1.0,
         "offset_tau_s": 1.0,
         "speed_tau_s": 0.5,
+        "pace_return_1ps": 0.0,
         "position_smoothing": 0.0,
         **FILTER_DEFAULTS,
     }

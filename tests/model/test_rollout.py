@@ -491,3 +491,57 @@ def test_uncovered_line_follows_the_priors_change_from_the_cars_own_offset():
     faster = dataclasses.replace(p, line_speed_mps=jnp.asarray(2.0 + 0.2 * s_pts))
     x_end = float(eqx.filter_jit(rollout_frenet)(faster, st, track).x_m[-1])
     assert x_end > s[-1] + 0.05, x_end
+
+
+def _pace_positions(v0, vp, delay_s, speed_tau_s, rate_1ps):
+    """(H,) the along-track positions [m] the line model's speed law gives from x = 5 m on a
+    profile of constant speed vp: v = v0 + (1 - exp(-t r)) (1 - exp(-t / tau)) (vp - v0) over
+    each step, t its start (the delay step first)."""
+    dts = np.concatenate([[delay_s], np.full(H, DT)])
+    t0 = np.cumsum(dts) - dts
+    v = v0 + -np.expm1(-t0 * rate_1ps) * -np.expm1(-t0 / speed_tau_s) * (vp - v0)
+    return (5.0 + np.cumsum(v * dts))[1:]
+
+
+@pytest.mark.parametrize("rate_1ps", [0.0, 0.7, 50.0])
+def test_the_cars_pace_returns_to_the_profiles(rate_1ps):
+    """A car faster than its profile (3 against 2 m/s) keeps its pace with pace_return_1ps 0
+    (the profile's shape only: a constant profile, a constant speed) and slows to the
+    profile's speed at that rate otherwise; exact on the straight."""
+    track, st = line_track(0.0), state(5.0, 0.0, 0.0, 3.0)
+    p = line_model(1.0, delay_s=0.05, speed_tau_s=0.3, pace_return_1ps=rate_1ps)
+    x = np.asarray(eqx.filter_jit(rollout_frenet)(p, st, track).x_m)
+    np.testing.assert_allclose(x, _pace_positions(3.0, 2.0, 0.05, 0.3, rate_1ps), atol=1e-9)
+    if rate_1ps == 0.0:
+        np.testing.assert_allclose(x, 5.0 + 3.0 * (0.05 + STEPS), atol=1e-9)
+
+
+def test_no_pace_return_where_the_profile_is_no_speed_reference():
+    """Where the profile is slower than MIN_PROFILE_SPEED_MPS (no reference) the car keeps its
+    own speed, whatever the rate."""
+    track, st = line_track(0.0), state(5.0, 0.0, 0.0, 3.0)
+    p = line_model(1.0, speed_tau_s=0.3, pace_return_1ps=5.0)
+    p = dataclasses.replace(p, line_speed_mps=jnp.full(60, 0.1))
+    x = np.asarray(eqx.filter_jit(rollout_frenet)(p, st, track).x_m)
+    np.testing.assert_allclose(x, 5.0 + 3.0 * STEPS, atol=1e-9)
+
+
+def test_pace_return_under_vmap_and_its_gradient():
+    """vmapped over cars equals one at a time; d(last x)/d(rate) matches central differences."""
+    track = line_track(0.0)
+    states = jax.tree.map(
+        lambda *xs: jnp.stack(xs), state(5.0, 0.0, 0.0, 3.0), state(6.0, 0.1, 0.0, 1.0)
+    )
+    p = line_model(1.0, speed_tau_s=0.3, pace_return_1ps=0.7)
+    batch = jax.vmap(rollout_frenet, in_axes=(None, 0, None))(p, states, track).x_m
+    for i in range(2):
+        one = rollout_frenet(p, jax.tree.map(lambda x, i=i: x[i], states), track).x_m
+        np.testing.assert_allclose(batch[i], one, atol=1e-12)
+
+    def last_x(rate):
+        q = dataclasses.replace(p, pace_return_1ps=jnp.asarray(rate).reshape(()))
+        return rollout_frenet(q, state(5.0, 0.0, 0.0, 3.0), track).x_m[-1]
+
+    grad = float(jax.grad(last_x)(jnp.asarray(0.7)))
+    np.testing.assert_allclose(grad, fd_gradient(last_x, np.asarray(0.7), 1e-5), rtol=1e-6)
+    assert grad < 0.0  # a faster return to the slower profile: less far

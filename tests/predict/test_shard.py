@@ -152,7 +152,7 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
         group = (data.states(init), jnp.asarray(data.targets.xy_m), jnp.asarray(data.targets.mask))
 
         def fit_loss(f, st, tgt, mask, tr):
-            r = _residuals(f, (fixed, [(st, tr, tgt, mask)], HUBER_M))
+            r = _residuals(f, (fixed, [(st, tr, tgt, mask, None, None, None)], HUBER_M))
             return 0.5 * jnp.sum(r * r)
 
         one = jax.jit(fit_loss)(free, *group, ftrack)  # the value: gradients cost 10 s more

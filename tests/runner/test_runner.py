@@ -99,6 +99,7 @@ def line_params(wp, drive, upto_s: float, estimator: str = "theil-sen") -> Param
         delay_s=0.12,
         offset_tau_s=0.8,
         speed_tau_s=0.3,
+        pace_return_1ps=0.7,
         position_smoothing=0.6,
         **profile,
     )
