@@ -63,7 +63,7 @@ MODEL_FIT = {
 }
 # Not "pace" by default: the pace's return to the profile assumes the car keeps the pace of the
 # fit drives. Fitted on slow laps of the oval it went to ~15 /s, and on fast laps the prediction
-# slowed to the slow profile at once (tests/test_speed_shift.py: FDE 3.25 m against 0.15 m for
+# slowed to the slow profile at once (tests/fit/test_speed_shift.py: FDE 3.25 m against 0.15 m for
 # a fit on fast laps). Where the opponent's pace is known to hold (a planner's 3-5 s on the
 # drives the profile was learned from, experiments/horizon), `--fit` names it.
 # the groups only one estimator has (the line model's defaults add its estimator's own)

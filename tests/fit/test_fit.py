@@ -674,7 +674,7 @@ def test_lead_time_scale_weighs_every_step_by_its_typical_error(oval_drives):
 
 def test_the_pace_return_is_fitted_only_when_named(oval_drives):
     """The line model's default groups leave pace_return_1ps at 0 (the car keeps its pace:
-    tests/test_speed_shift.py); named, it starts from PACE_RETURN_INIT_1PS (the softplus is
+    tests/fit/test_speed_shift.py); named, it starts from PACE_RETURN_INIT_1PS (the softplus is
     flat at 0) and moves."""
     fit_d, _, track = oval_drives
     drive = fit_d.drive.slice_time(0, 20)
