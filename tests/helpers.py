@@ -364,6 +364,11 @@ class NoJax:
             raise ImportError(f"{name} is blocked: this process has no JAX")
 sys.meta_path.insert(0, NoJax())
 """
+# appended to a NO_JAX program: fails when any JAX package got imported anyway
+CHECK_NO_JAX = """
+leaked = [m for m in ("jax", "jaxlib", "equinox", "optimistix") if m in sys.modules]
+assert not leaked, leaked
+"""
 
 # loads a StableHLO export in a new process and predicts for 1, 7 and 1000 cars
 FRESH = """

@@ -265,7 +265,7 @@ def test_the_node_imports_no_jax():
     import subprocess
     import sys
 
-    from test_runner import CHECK_NO_JAX, NO_JAX
+    from helpers import CHECK_NO_JAX, NO_JAX
 
     code = NO_JAX + "import fpe_jax.node, fpe_jax.node._cli, fpe_jax.node._core\n" + CHECK_NO_JAX
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

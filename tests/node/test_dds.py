@@ -53,7 +53,7 @@ from fpe_jax.node._dds import (
     ros_type_name,
 )
 
-HELPERS = Path(__file__).with_name("ros2_helpers.py")
+HELPERS = Path(__file__).parents[1] / "ros2_helpers.py"
 ROUNDS = 8  # 0.2 s of messages at 40 Hz
 
 

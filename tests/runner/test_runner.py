@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import CASES, NO_JAX, assert_parity, predictor, run_drive, track_drive
+from helpers import CASES, CHECK_NO_JAX, NO_JAX, assert_parity, predictor, run_drive, track_drive
 
 from fpe_jax import Params, Settings, Track, predict_drive, presets
 from fpe_jax.errors import InputError
@@ -24,11 +24,6 @@ from fpe_jax.runner._runner import GoalScan, Runner, RunnerPath, run_stream
 from fpe_jax.spec import SCHEMA_VERSION
 
 ROOT = Path(__file__).resolve().parents[2]
-
-CHECK_NO_JAX = """
-leaked = [m for m in ("jax", "jaxlib", "equinox", "optimistix") if m in sys.modules]
-assert not leaked, leaked
-"""
 
 
 @pytest.fixture(scope="module")
