@@ -17,8 +17,6 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
-from fpe_jax.io import ros_msgs as rm
-
 FLAVOURS = ("ros1", "ros2")
 # the node's outputs: name -> (default topic, type); a topic of None switches one off
 OUTPUTS = {
@@ -30,13 +28,16 @@ OUTPUTS = {
 }
 
 _NODE_MSGS = Path(__file__).with_name("msgs")
-_IO_MSGS = Path(rm.__file__).with_name("msgs")
 
 
 def msg_files(flavour: str) -> dict[str, Path]:
     """{"pkg/msg/Type": .msg file} of the types this flavour adds to rosbags' store."""
+    # imported here: the CLI reads OUTPUTS for its flags, and `fpe --help` loads no reader
+    from fpe_jax.io import ros_msgs as rm
+
     _check_flavour(flavour)
-    files = sorted(_IO_MSGS.glob("*/*.msg")) + sorted((_NODE_MSGS / flavour).glob("*/*.msg"))
+    shipped = Path(rm.__file__).with_name("msgs")
+    files = sorted(shipped.glob("*/*.msg")) + sorted((_NODE_MSGS / flavour).glob("*/*.msg"))
     return {f"{f.parent.name}/msg/{f.stem}": f for f in files}
 
 
@@ -50,6 +51,8 @@ def typestore(flavour: str):
     """The rosbags `Typestore` of a flavour ("ros1": Noetic, "ros2": Jazzy) with the shipped
     packages registered. Cached: one store per flavour and process."""
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    from fpe_jax.io import ros_msgs as rm
 
     _check_flavour(flavour)
     store = get_typestore(Stores.ROS1_NOETIC if flavour == "ros1" else Stores.ROS2_JAZZY)
