@@ -18,40 +18,44 @@ NumPy-only.
 Every bad input raises `fpe_jax.errors.InputError`.
 """
 
-from fpe_jax.io.drives import describe_log, dropped_note, load_drive
-from fpe_jax.io.tables import CarFile, read_cars
-from fpe_jax.io.waypoints import Waypoints, load_waypoints
-from fpe_jax.io.writers import (
-    PosesFile,
-    atomic_output,
-    check_not_input,
-    check_output_path,
-    check_output_paths,
-    write_bytes,
-    write_drive_csv,
-    write_drive_mcap,
-    write_poses,
-    write_predictions,
-    write_text,
-)
+import importlib
+from pathlib import Path
 
-__all__ = [
-    "CarFile",
-    "PosesFile",
-    "Waypoints",
-    "atomic_output",
-    "check_not_input",
-    "check_output_path",
-    "check_output_paths",
-    "describe_log",
-    "dropped_note",
-    "load_drive",
-    "load_waypoints",
-    "read_cars",
-    "write_bytes",
-    "write_drive_csv",
-    "write_drive_mcap",
-    "write_poses",
-    "write_predictions",
-    "write_text",
-]
+# public name -> the module that defines it, imported on first use: a command that needs one
+# reader (or none: `fpe presets`) loads only that
+_LAZY = {
+    "CarFile": "tables",
+    "PosesFile": "writers",
+    "Waypoints": "waypoints",
+    "atomic_output": "writers",
+    "check_not_input": "writers",
+    "check_output_path": "writers",
+    "check_output_paths": "writers",
+    "describe_log": "drives",
+    "dropped_note": "drives",
+    "load_drive": "drives",
+    "load_waypoints": "waypoints",
+    "read_cars": "tables",
+    "write_bytes": "writers",
+    "write_drive_csv": "writers",
+    "write_drive_mcap": "writers",
+    "write_poses": "writers",
+    "write_predictions": "writers",
+    "write_text": "writers",
+}
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    elif (Path(__file__).parent / f"{name}.py").is_file():  # a module: `io.apriltag`
+        value = importlib.import_module(f"{__name__}.{name}")
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
