@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.util
-import os
 import sys
 import time
 from pathlib import Path
@@ -223,19 +222,13 @@ def markdown(rows, wall_s: float) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--mirror",
-        type=Path,
-        default=Path(os.environ.get("FPE_MIRROR", "/work/.mirror")),
-        help="folder of OWNER+NAME/repo git mirrors (default $FPE_MIRROR or /work/.mirror)",
-    )
-    ap.add_argument("--seed", type=int, default=0, help="the detector's seed (0)")
-    args = ap.parse_args(argv)
     import jax
 
     jax.config.update("jax_enable_x64", True)
     study = _study()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    study.add_source_args(ap)
+    args = ap.parse_args(argv)
     t0 = time.perf_counter()
     rows = []
     for src in study.SOURCES:

@@ -346,8 +346,8 @@ def markdown(
     return "\n".join(lines) + "\n"
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_source_args(ap: argparse.ArgumentParser) -> None:
+    """The flags naming where the recordings are and the detector's seed (also diagnose.py's)."""
     ap.add_argument(
         "--mirror",
         type=Path,
@@ -355,6 +355,11 @@ def main(argv=None) -> int:
         help="folder of OWNER+NAME/repo git mirrors (default $FPE_MIRROR or /work/.mirror)",
     )
     ap.add_argument("--seed", type=int, default=0, help="the detector's seed (0)")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_source_args(ap)
     ap.add_argument(
         "--estimator",
         choices=ESTIMATORS,
