@@ -291,6 +291,7 @@ def _build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--block-rows",
         type=int,
+        metavar="N",
         help="target rows per block of the loss: memory vs. one more rollout (default: 8192)",
     )
     g = p.add_argument_group(
@@ -299,7 +300,12 @@ def _build_parser() -> argparse.ArgumentParser:
     g.add_argument(
         "--num-processes", type=int, metavar="N", help="processes in the fit (default: 1)"
     )
-    g.add_argument("--process-id", type=int, metavar="I", help="this process, 0 to N-1")
+    g.add_argument(
+        "--process-id",
+        type=int,
+        metavar="I",
+        help="this process, 0 to N-1; process 0 writes and reports (default: 0 when N is 1)",
+    )
     g.add_argument(
         "--coordinator",
         metavar="HOST:PORT",
