@@ -337,13 +337,21 @@ def _sharded_sum(params, track, huber_m, blocks, shared, devices: int):
     """`_scan_blocks` with the blocks split evenly over a mesh of the first `devices` JAX
     devices (`jax.shard_map`): each device scans its own blocks, the partial sums are added
     (`psum`, whose transpose hands every device the same cotangent), params and track are
-    copied to every device."""
+    copied to every device.
+
+    The copies enter each device's computation as values that vary by device (`pcast`): the
+    line model's filter and rollout scan carries that start from params and take in the
+    device's own rows, and a scan's carry must keep one such type. Its transpose adds the
+    devices' cotangents, the gradient of params."""
     from jax.sharding import Mesh
     from jax.sharding import PartitionSpec as P
 
     mesh = Mesh(np.array(jax.devices()[:devices]), ("blocks",))
 
     def local(params, track, huber_m, blocks, shared):
+        params, track, huber_m, shared = jax.lax.pcast(
+            (params, track, huber_m, shared), ("blocks",), to="varying"
+        )
         return jax.lax.psum(_scan_blocks(params, track, huber_m, blocks, shared), "blocks")
 
     specs = (P(), P(), P(), P("blocks"), P())
