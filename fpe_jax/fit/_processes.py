@@ -221,8 +221,13 @@ def _gather(group: ProcessGroup, deadline: float) -> None:
             except OSError:
                 pass
             conn.close()
-        for conn in joined.values():
-            conn.sendall(b"go\n")
+        for i, conn in joined.items():
+            try:
+                conn.sendall(b"go\n")
+            except OSError:
+                raise InputError(
+                    "coordinator", f"process {i} left before the fit started", "it to run on"
+                ) from None
         for conn in joined.values():  # the peer closes first: no lingering socket on the port
             _read_line(conn, time.monotonic() + 5.0)
     finally:
