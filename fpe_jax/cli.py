@@ -288,6 +288,35 @@ def _build_parser() -> argparse.ArgumentParser:
         help="optimistix solver: bfgs on the robust loss (default) or lm on the residuals",
     )
     p.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    p.add_argument(
+        "--block-rows",
+        type=int,
+        metavar="N",
+        help="target rows per block of the loss: memory vs. one more rollout (default: 8192)",
+    )
+    g = p.add_argument_group(
+        "several processes (one per host or socket; start each with the same logs and options)"
+    )
+    g.add_argument(
+        "--num-processes", type=int, metavar="N", help="processes in the fit (default: 1)"
+    )
+    g.add_argument(
+        "--process-id",
+        type=int,
+        metavar="I",
+        help="this process, 0 to N-1; process 0 writes and reports (default: 0 when N is 1)",
+    )
+    g.add_argument(
+        "--coordinator",
+        metavar="HOST:PORT",
+        help="process 0's host and a free port there (default: $JAX_COORDINATOR_ADDRESS)",
+    )
+    g.add_argument(
+        "--coordinator-timeout",
+        type=float,
+        metavar="S",
+        help="seconds to wait for every process to join (default: 120)",
+    )
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
@@ -524,8 +553,15 @@ def cmd_fit(args) -> int:
             settings=_settings_from_args(args),
             force=args.force,
             log_options=_drive_options(args),
+            block_rows=args.block_rows,
+            coordinator=args.coordinator,
+            num_processes=args.num_processes,
+            process_id=args.process_id,
+            coordinator_timeout_s=args.coordinator_timeout,
             **_run_options(args, say),
         )
+    if not res.primary:  # process 0 of a multi-process fit reports
+        return 0
     from fpe_jax.fit._report import format_fitted, format_table
 
     result = res.result
@@ -917,6 +953,11 @@ LIBRARY_FLAGS = {
     "waypoints": "--waypoints",
     "half-width": "--half-width",
     "max_gap_s": "--max-tf-gap",
+    "block_rows": "--block-rows",
+    "coordinator": "--coordinator",
+    "num_processes": "--num-processes",
+    "process_id": "--process-id",
+    "coordinator_timeout_s": "--coordinator-timeout",
 }
 
 

@@ -34,16 +34,27 @@ def _silent(msg: str) -> None:
 
 
 def start_jax(
-    progress: Progress = _silent, *, x64: bool = True, cache: bool = True, executables=True
+    progress: Progress = _silent,
+    *,
+    x64: bool = True,
+    cache: bool = True,
+    executables=True,
+    processes=None,
 ):
     """Import JAX (telling `progress`): float64 unless x64=False, the compilation cache unless
     cache=False (of whole executables, or with executables=False of JAX's XLA output:
-    `cache.enable`). Returns the jax module."""
+    `cache.enable`), joined to the other processes of a `ProcessGroup` (`processes`,
+    `fpe_jax.fit._processes.join`) before anything asks for a device. Returns the jax module."""
     progress("loading JAX")
     import jax
 
     if x64:
         jax.config.update("jax_enable_x64", True)
+    if processes is not None:
+        from fpe_jax.fit._processes import join
+
+        progress(f"joining {processes.num_processes} processes at {processes.address}")
+        join(processes)
     from fpe_jax.compile import _cache as exe_cache
 
     if not cache:
@@ -631,6 +642,7 @@ class FitOutcome:
     result: Any
     config: dict
     out: Path
+    primary: bool = True  # False on processes 1 and on of a multi-process fit: nothing written
 
 
 def _solver_option(name: str | None):
@@ -710,18 +722,35 @@ def fit_logs(
     cache: bool = True,
     progress: Progress = _silent,
     warn: Progress = _silent,
+    block_rows: int | None = None,
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+    coordinator_timeout_s: float | None = None,
 ) -> FitOutcome:
     """Fit the predictor to drive logs and write the tuned config (`fpe fit`).
 
     logs: drive logs (paths or Drives), or one recipe .toml (which names the drives, waypoints,
     options and perhaps `out`); waypoints: the drives' waypoint file or (K, 2) array. The other
     options override the recipe's (None: the recipe's, or the defaults); `settings` ({flag:
-    (Settings field, value)}) go on top of the recipe's [settings]. Returns the fit, the config and
-    the path written.
+    (Settings field, value)}) go on top of the recipe's [settings]. block_rows: target rows per
+    block of the fit's loss (`fit_params`). Returns the fit, the config and the path written.
+
+    With num_processes > 1 this is one of that many processes started alike (same logs and
+    options; `fpe_jax.fit._processes`): process_id 0 .. num_processes - 1, coordinator process
+    0's HOST:PORT (default $JAX_COORDINATOR_ADDRESS), coordinator_timeout_s how long to wait
+    for all of them. The row blocks of the loss are spread over every process's devices; every
+    process ends with the same fit (checked); only process 0 reports progress and warnings and
+    writes `out` (the others return primary=False). Call it before anything has run on JAX in
+    this process.
     """
     from fpe_jax import io
+    from fpe_jax.fit import _processes
     from fpe_jax.io.config import params_to_config, write_config
 
+    group = _processes.process_group(coordinator, num_processes, process_id, coordinator_timeout_s)
+    if group is not None and not group.primary:  # process 0 says it all, once
+        progress = warn = _silent
     logs = list(logs)
     fit_names = None if fit is None else spec.check_fit_names(fit, "free", "value")
     if holdout is not None:
@@ -740,7 +769,7 @@ def fit_logs(
     if out is None:
         raise InputError("--out", "missing (neither flag nor recipe names it)", "CONFIG.json")
     out = io.check_output_path(out, force, _paths(*opts["inputs"]))
-    start_jax(progress, cache=cache)
+    jax = start_jax(progress, cache=cache, processes=group)
     from fpe_jax.fit._fit import fit as fit_drives
     from fpe_jax.fit._report import line_section, provenance
     from fpe_jax.geometry._track import Track
@@ -759,20 +788,28 @@ def fit_logs(
     )
     for (d, _, desc), tr in zip(drives + tests, tracks + (test_tracks or []), strict=True):
         check_drive_on_track(d, tr, source=wp_source, name=desc, allow=allow_off_track)
-    result = fit_drives(
-        [d for d, _, _ in drives],
-        tracks,
-        free=fit_names or opts["fit"] or None,
-        model=opts["model"] or "line",
-        blend=opts["blend"],
-        holdout=opts["holdout"],
-        test_drives=[d for d, _, _ in tests] or None,
-        test_tracks=test_tracks,
-        solver=_solver_option(opts["solver"]),
-        estimator=opts["estimator"] or spec.LINE_ESTIMATOR,
-        init=init,
-        progress=progress,
-    )
+    try:
+        result = fit_drives(
+            [d for d, _, _ in drives],
+            tracks,
+            free=fit_names or opts["fit"] or None,
+            model=opts["model"] or "line",
+            blend=opts["blend"],
+            holdout=opts["holdout"],
+            test_drives=[d for d, _, _ in tests] or None,
+            test_tracks=test_tracks,
+            solver=_solver_option(opts["solver"]),
+            estimator=opts["estimator"] or spec.LINE_ESTIMATOR,
+            init=init,
+            progress=progress,
+            block_rows=block_rows,
+            devices=1 if group is None else len(jax.devices()),
+        )
+    except Exception as e:
+        lost = None if group is None else _processes.lost_process(group, e)
+        if lost is None:
+            raise
+        raise lost from e
     meta = drives[0][0].meta
     topics = {"pose": meta.get("pose_topic"), "truth": meta.get("truth_topic")}
     sources = [desc for _, _, desc in drives] + [f"test:{desc}" for _, _, desc in tests]
@@ -784,8 +821,17 @@ def fit_logs(
     cfg = params_to_config(
         result.params, uncertainty=result.uncertainty, provenance=prov, line=line
     )
-    write_config(out, cfg, force=force)
-    return FitOutcome(result, cfg, out)
+    if group is not None:  # the fitted values and the report, not the clock or the paths
+        import json
+
+        same = {k: cfg[k] for k in ("params", "settings", "uncertainty")}
+        same |= {"heldout": result.report, "line": line and line["waypoints_sha256"]}
+        _processes.check_same(group, json.dumps(same, sort_keys=True).encode())
+    if group is None or group.primary:
+        write_config(out, cfg, force=force)
+    if group is not None:
+        _processes.leave()
+    return FitOutcome(result, cfg, out, primary=group is None or group.primary)
 
 
 def _local_entries(entries):

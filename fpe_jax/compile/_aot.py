@@ -193,7 +193,9 @@ def _entry(key: str) -> tuple[Path, bytes] | None:
     """Where the executable of `key` is stored and this user's key that authenticates it; None
     when the cache is off or the key is refused (one warning: executables stay in memory)."""
     folder = cache.active_dir()
-    if folder is None:
+    if folder is None or jax.distributed.is_initialized():
+        # a multi-process program's executables name the devices of every process: kept in
+        # memory, as each process of the group compiles the same programs
         return None
     secret = cache.user_key()
     if secret is None:

@@ -337,13 +337,21 @@ def _sharded_sum(params, track, huber_m, blocks, shared, devices: int):
     """`_scan_blocks` with the blocks split evenly over a mesh of the first `devices` JAX
     devices (`jax.shard_map`): each device scans its own blocks, the partial sums are added
     (`psum`, whose transpose hands every device the same cotangent), params and track are
-    copied to every device."""
+    copied to every device.
+
+    The copies enter each device's computation as values that vary by device (`pcast`): the
+    line model's filter and rollout scan carries that start from params and take in the
+    device's own rows, and a scan's carry must keep one such type. Its transpose adds the
+    devices' cotangents, the gradient of params."""
     from jax.sharding import Mesh
     from jax.sharding import PartitionSpec as P
 
     mesh = Mesh(np.array(jax.devices()[:devices]), ("blocks",))
 
     def local(params, track, huber_m, blocks, shared):
+        params, track, huber_m, shared = jax.lax.pcast(
+            (params, track, huber_m, shared), ("blocks",), to="varying"
+        )
         return jax.lax.psum(_scan_blocks(params, track, huber_m, blocks, shared), "blocks")
 
     specs = (P(), P(), P(), P("blocks"), P())
@@ -596,9 +604,10 @@ def fit_params(
 
     Returns the fitted Params and solver info: solver (its name: "bfgs", "lm" or the class
     name), steps (over all rows), presolve_steps (over the subsample; 0 without), converged,
-    loss, seconds (all of this call) and of those trace_s (tracing the solver), compile_s (XLA)
-    or load_s (its stored executable, `aot`), all on a second thread while the states are
-    estimated and all 0 when an earlier call made it, and solve_s.
+    loss, devices (that shared the row blocks), processes (JAX's processes), seconds (all of
+    this call) and of those trace_s (tracing the solver), compile_s (XLA) or load_s (its stored
+    executable, `aot`), all on a second thread while the states are estimated and all 0 when an
+    earlier call made it, and solve_s.
 
     Raises InputError naming the argument (free, solver, presolve_rows) for a value it cannot
     use, and naming jax_enable_x64 when JAX runs in float32 (`_require_float64`).
@@ -712,8 +721,8 @@ def fit_params(
     took = dict(compiled.seconds)
     t = time.perf_counter()
     out = jax.block_until_ready(compiled(free, fixed, groups, huber, **static))
-    if devices > 1:  # replicated over the mesh: back to the device the rest runs on
-        out = jax.device_put(out, jax.devices()[0])
+    if devices > 1:  # replicated over the mesh: this process's copy, where the rest runs
+        out = jax.tree.map(lambda x: x.addressable_data(0), out)
     value, steps, presolve_steps, ok, loss = out
     took["solve_s"] = time.perf_counter() - t
     fitted = constrain(eqx.combine(value, fixed))
@@ -725,6 +734,8 @@ def fit_params(
         "converged": bool(ok),
         "loss": float(loss),
         "seconds": time.perf_counter() - t0,
+        "devices": int(devices),
+        "processes": jax.process_count(),
         **took,
     }
     return fitted, info
@@ -756,6 +767,7 @@ def fit(
     fit: Sequence[str] | None = None,
     estimator: str = LINE_ESTIMATOR,
     devices: int = 1,
+    block_rows: int | None = None,
 ) -> FitResult:
     """Fit on the training data, report on held-out data.
 
@@ -782,7 +794,9 @@ def fit(
         estimator: the line model's track-frame state estimator, "kalman" (the default; its
             noise values are the "filter" group) or "theil-sen" (ignored when `init` is a
             line-model Params: its own applies).
-        devices: how many of `jax.devices()` share each solve's row blocks (`fit_params`).
+        devices: how many of `jax.devices()` share each solve's row blocks (`fit_params`;
+            after `jax.distributed` has started, the devices of every process: `_processes`).
+        block_rows: target rows per block of the loss (`fit_params`; default FIT_BLOCK_ROWS).
 
     Raises InputError naming the argument (free, model, solver, estimator) for a value it
     cannot use, and
@@ -850,14 +864,18 @@ def fit(
             if p0.settings.model == "line":
                 p0 = dataclasses.replace(p0, **inner_line)
             progress(f"choosing the model: fitting {_label(p0)} on the inner split")
-            p, _ = fit_params(inner_fit, p0, free=groups, solver=solver, devices=devices)
+            p, _ = fit_params(
+                inner_fit, p0, free=groups, solver=solver, block_rows=block_rows, devices=devices
+            )
             selection[label] = score(p)
         best = min(selection, key=selection.get)
     else:
         best = next(iter(candidates))
     p0, free = candidates[best]
     progress(f"fitting {_label(p0)} on {sum(len(d.targets.rows) for d in train)} predictions")
-    params, info = fit_params(train, p0, free=free, solver=solver, devices=devices)
+    params, info = fit_params(
+        train, p0, free=free, solver=solver, block_rows=block_rows, devices=devices
+    )
     progress(f"estimating uncertainty on {len(train)} training drive(s)")
     uncertainty = fit_uncertainty(params, train)
     progress(f"evaluating the fit on {len(test)} held-out drive(s)")

@@ -27,7 +27,9 @@ def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
         "solver": {
             k: result.info[k]
             for k in ("solver", "steps", "presolve_steps", "converged", "loss", "seconds")
-        },
+        }
+        # where a fit ran on several devices or processes (`fpe_jax.fit._processes`)
+        | {k: result.info[k] for k in ("devices", "processes") if result.info.get(k, 1) > 1},
         "heldout": result.report,
         "fitted_at": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "fpe_jax_version": __version__,

@@ -91,11 +91,13 @@ def kalman_window(
             is the same linear filter, with the same gains, run on the observations
             z = age^2 / 2 of a unit acceleration: the rate it ends with is minus that time.
     """
-    dtype = s_m.dtype
     q_s, q_d, r2 = accel_mps2 * accel_mps2, lat_accel_mps2 * lat_accel_mps2, obs_m * obs_m
-    zero = jnp.zeros((), dtype)
+    # the constants of the scan's carry are made like an observation (`zeros_like`): inside
+    # `jax.shard_map` (the fit's row blocks over devices) the carry then has the type the
+    # observations give it after a step (one value per device), as a scan requires
+    zero = jnp.zeros_like(s_m[0])
     p0 = r2 + INIT_POS_SIGMA_M**2
-    v0, vd0 = (jnp.asarray(x**2, dtype) for x in (INIT_SPEED_SIGMA_MPS, INIT_LAT_RATE_SIGMA_MPS))
+    v0, vd0 = (zero + x**2 for x in (INIT_SPEED_SIGMA_MPS, INIT_LAT_RATE_SIGMA_MPS))
 
     # the prior at the oldest valid observation's stamp (the robust lines carried back there)
     age0 = jnp.max(jnp.where(valid, age_s, 0.0))

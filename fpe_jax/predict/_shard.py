@@ -22,22 +22,18 @@ One host, several devices (GPUs, or CPU "devices" for testing):
 To try several devices on a CPU, set `XLA_FLAGS=--xla_force_host_platform_device_count=2`
 before JAX initialises (i.e. in the environment of a fresh process).
 
-Several hosts (e.g. 2 machines x 4 GPUs): start the same script on every host, each with its
-process id, and call `jax.distributed.initialize` before anything else touches JAX:
-
-    jax.distributed.initialize(coordinator_address="host0:1234", num_processes=2,
-                               process_id=int(os.environ["RANK"]))
-    mesh = car_mesh()            # jax.devices() now lists all 8 devices, on both hosts
-    sharding = NamedSharding(mesh, PartitionSpec("cars"))
-    # each host contributes its own rows (its share of cars / samples):
-    x_global = jax.make_array_from_process_local_data(sharding, x_local)
-    poses = predict_batch(replicate(params, mesh), State(x_m=x_global, ...), replicate(track, mesh))
-    local = [np.asarray(s.data) for s in poses.addressable_shards]   # this host's results
-
-On SLURM or Open MPI clusters `jax.distributed.initialize()` without arguments reads the
-coordinator and ranks from the environment. Every host must run the same program with equal
-shapes; the per-host row count times the number of hosts must divide evenly by the device count
-(use `pad_axis0` and mask padded samples out of losses).
+Several processes (hosts, or CPU sockets): `fpe fit --num-processes N --process-id I
+--coordinator HOST:PORT` runs a fit as N processes (`fpe_jax.pipeline.fit_logs`); its module
+`fpe_jax.fit._processes` meets the processes, calls `jax.distributed.initialize` before anything
+asks for a device, and checks that every process ends with the same fit. `jax.devices()` then
+lists the devices of every process, so `car_mesh()` spans them all, and a jitted program over
+that mesh runs in every process at once (each must call it, with equal shapes). Arrays whose
+every process holds the same values (the fit's data, params, the track) can be passed as they
+are; an array of which each process holds only its own rows is assembled with
+`jax.make_array_from_process_local_data(NamedSharding(mesh, PartitionSpec("cars")), x_local)`,
+and a replicated result is read with `x.addressable_data(0)`. The per-process row count times
+the number of processes must divide evenly by the device count (use `pad_axis0` and mask padded
+samples out of losses). docs/fitting-at-scale.md says how to run it and what it costs.
 """
 
 from __future__ import annotations

@@ -187,3 +187,59 @@ def test_more_devices_than_jax_has_are_refused(drive):
     for bad in (0, len(jax.devices()) + 1):
         with pytest.raises(InputError, match="^devices: .*a whole number from 1 to"):
             F.fit_params([data], init, devices=bad)
+
+
+LINE_TWO_DEVICES = r"""
+import json
+import jax
+jax.config.update("jax_enable_x64", True)
+import equinox as eqx
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from fpe_jax.evaluate import _evaluate as E
+from fpe_jax.fit import _fit as F
+from fpe_jax.model._params import Settings, unconstrain
+from fpe_jax.sim import simulate
+from fpe_jax.geometry._track import Track
+
+res = simulate("oval", duration_s=40, latency_s=0.3, seed=11)
+track = Track.from_waypoints(res.centerline_xy_m)
+init = F._line_init([res.drive], [track], Settings(), "kalman")
+data = E.make_datasets([res.drive], [track], init.settings, "training", kalman=True)
+raw = unconstrain(init)
+free, fixed = eqx.partition(raw, F._free_mask(raw, (*F.default_groups(init.settings), "pace")))
+d = data[0]
+n = -(-len(d.targets.rows) // 128) * 128  # whole blocks of 64, as many on each device
+fold, lines = F._cross_lines(data)
+g = [(E.pad_rows(d.states(init), n), track, E.pad_rows(d.targets.xy_m, n),
+      E.pad_rows(d.targets.mask, n) & (np.arange(n) < len(d.targets.rows))[:, None],
+      E.pad_rows(fold, n), lines, F.lead_time_scale(init, data))]
+y0, unravel = ravel_pytree(free)
+args = (fixed, g, F.HUBER_M)
+out = {"devices": len(jax.devices())}
+for k in (1, 2):
+    v, grad = jax.jit(jax.value_and_grad(lambda y: F._loss(unravel(y), args, 64, k)))(y0)
+    out[f"loss_{k}"], out[f"grad_{k}"] = float(v), np.asarray(grad).tolist()
+print(json.dumps(out))
+"""
+
+
+def test_the_line_models_loss_over_two_forced_cpu_devices_equals_one_devices(tmp_path):
+    """The line model (Kalman filter, cross-fitted lines, the pace free) over two devices: its
+    scans' carries start from constants and take in each device's own rows, which
+    `jax.shard_map` accepts only when the constants vary by device as the rows do. Loss and
+    gradient equal one device's to 1e-12 relative (the order of the sum)."""
+    env = {
+        **os.environ,
+        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+        "FPE_CACHE_DIR": str(tmp_path / "cache"),
+    }
+    proc = subprocess.run(
+        [sys.executable, "-c", LINE_TWO_DEVICES], capture_output=True, text=True, env=env
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["devices"] == 2
+    assert out["loss_2"] == pytest.approx(out["loss_1"], rel=1e-12)
+    g1, g2 = np.array(out["grad_1"]), np.array(out["grad_2"])
+    np.testing.assert_allclose(g2, g1, rtol=1e-12, atol=1e-12 * np.max(np.abs(g1)))
