@@ -201,10 +201,11 @@ def make_case(src: Source, poses: dict, seed: int):
     )
 
 
-def run_case(case, estimator: str | None = None) -> dict:
-    """Fit (3 s horizon; the line model's state `estimator`, None: the fit's default) on the
-    case's fit drive; median final errors at 1 s and 3 s of the fitted predictor and every
-    baseline on its test drive, coverage and the on-track check."""
+def run_case(case, estimator: str | None = None, free: tuple[str, ...] | None = None) -> dict:
+    """Fit (3 s horizon; the line model's state `estimator`, None: the fit's default; the fit
+    groups `free`, None: the fit's default) on the case's fit drive; median final errors at 1 s
+    and 3 s of the fitted predictor and every baseline on its test drive, coverage and the
+    on-track check."""
     from fpe_jax.errors import InputError
     from fpe_jax.evaluate._evaluate import heldout_predictions
     from fpe_jax.fit._fit import BASELINES, baseline, fit
@@ -232,6 +233,7 @@ def run_case(case, estimator: str | None = None) -> dict:
         init=init,
         test_drives=[case.test_drive],
         test_tracks=[track],
+        free=free,
         **kw,
     )
     fit_s = time.perf_counter() - t0
@@ -372,7 +374,15 @@ def main(argv=None) -> int:
         help="only each recording's steady part (`steady_part`: its run-up and final stop "
         "left out); the results then go to real_drives_steady.md / .png",
     )
+    ap.add_argument(
+        "--fit",
+        metavar="GROUPS",
+        help="the fit groups, comma-separated as `fpe fit --fit` takes them (default: the fit's "
+        "own); naming pace makes it the long-horizon fit (cross-fitted lines, every lead time "
+        "alike); the results then go to real_drives_fit-GROUP-GROUP....md / .png",
+    )
     args = ap.parse_args(argv)
+    free = tuple(g.strip() for g in args.fit.split(",")) if args.fit else None
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -390,7 +400,7 @@ def main(argv=None) -> int:
         kept.append((src, poses["t_s"][0], poses["t_s"][-1]))
         case = make_case(src, poses, args.seed)
         print(f"{src.name}: fitting ({len(case.fit_drive.t_s)} detections)", flush=True)
-        rows.append((src, run_case(case, args.estimator)))
+        rows.append((src, run_case(case, args.estimator, free)))
         print(f"  {rows[-1][1]['fde']}", flush=True)
     if not rows:
         print("no source present: nothing written")
@@ -399,14 +409,25 @@ def main(argv=None) -> int:
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = "real_drives" + (f"_{args.estimator}" if args.estimator else "")
     stem += "_steady" if args.steady else ""
+    stem += f"_fit-{'-'.join(free)}" if free else ""
     png = _plot(rows, RESULTS / f"{stem}.png")
     md = RESULTS / f"{stem}.md"
     flags = (f" --estimator {args.estimator}" if args.estimator else "") + (
         " --steady" if args.steady else ""
     )
+    flags += f" --fit {','.join(free)}" if free else ""
     text = markdown(rows, skipped, time.perf_counter() - t0, peak_mib, png, flags)
     if args.estimator:
         text = text.replace("\n\n", f"\n\nFit with `--estimator {args.estimator}`.\n\n", 1)
+    if free:
+        note = f"Fit with `--fit {','.join(free)}`" + (
+            ": the long-horizon fit (the time constants fitted on predictions from lines "
+            "learned without the rows they predict, every lead time weighed alike, the "
+            "pace's return to the speed profile free)."
+            if "pace" in free
+            else "."
+        )
+        text = text.replace("\n\n", f"\n\n{note}\n\n", 1)
     if args.steady:
         note = (
             "With `--steady`: each recording cut to its steady part, from the first to the last "
