@@ -170,16 +170,19 @@ def fit_case(
     fit: Sequence[str] | None = None,
     model: str = "line",
     init=None,
+    estimator: str | None = None,
     progress: Callable[[str], None] = lambda msg: None,
 ):
     """Fit on the case's fit drive and report on its test drive -> `fpe_jax.fit.FitResult`.
 
-    model, blend, init: as `fpe_jax.fit.fit` takes them (default: the line model; init's
+    model, blend, init, estimator: as `fpe_jax.fit.fit` takes them (default: the line model
+    with `fit`'s default estimator; init's
     prediction grid, e.g. a 50-step horizon, is the fit's and the report's); needs float64 as
     `fit` does (the caller enables jax_enable_x64 at start-up)."""
     from fpe_jax.fit._fit import fit as fit_drives
 
     track = case.track()
+    kw = {} if estimator is None else {"estimator": estimator}
     return fit_drives(
         [case.fit_drive],
         [track],
@@ -190,6 +193,7 @@ def fit_case(
         test_tracks=[track],
         init=init,
         progress=progress,
+        **kw,
     )
 
 

@@ -141,6 +141,28 @@ def test_the_line_models_estimator_is_the_kalman_filter_unless_told(oval_drives)
         F.fit([drive], [track], model="line", estimator="ukf")
 
 
+def test_a_study_case_is_fitted_with_the_estimator_it_is_given(oval_drives):
+    """`fit_case` passes the line model's estimator on to the fit (the horizon study chooses it
+    per case); its report scores that fit on the case's test drive."""
+    from fpe_jax.fit._cases import Case, fit_case
+
+    fit_d, test_d, _ = oval_drives
+    case = Case(
+        name="oval",
+        waypoints_xy_m=fit_d.centerline_xy_m,
+        fit_drive=fit_d.drive.slice_time(0, 20),
+        test_drive=test_d.drive.slice_time(0, 10),
+        latency_s=0.3,
+        half_width_m=None,
+        description="short oval drives",
+    )
+    res = fit_case(case, fit=("delay", "smoothing"), estimator="theil-sen")
+    assert res.params.settings.estimator == "theil-sen"
+    assert res.info["fit"] == ["delay", "smoothing"]
+    data = E.make_datasets([case.test_drive], [case.track()], res.params.settings, "test")
+    assert res.report["fitted"]["fde_m"] == pytest.approx(E.evaluate(res.params, data)["fde_m"])
+
+
 def test_the_filters_fitted_values_stay_near_their_defaults_on_a_short_drive(oval_drives):
     """The prior on the filter's values (FILTER_PRIOR_M2): fitted on 20 s, each stays within a
     factor 2 of its default (without the prior, the Levine lap's fit went to a gate of 1.0 and
