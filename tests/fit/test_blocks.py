@@ -166,7 +166,7 @@ def test_a_fit_over_two_forced_cpu_devices_equals_the_one_device_fit(tmp_path):
     1e-12 relative and the same fit (loss to 1e-10 relative, values to 1e-6)."""
     env = {
         **os.environ,
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2",
         "FPE_CACHE_DIR": str(tmp_path / "cache"),
     }
     proc = subprocess.run(
@@ -231,7 +231,7 @@ def test_the_line_models_loss_over_two_forced_cpu_devices_equals_one_devices(tmp
     gradient equal one device's to 1e-12 relative (the order of the sum)."""
     env = {
         **os.environ,
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2",
         "FPE_CACHE_DIR": str(tmp_path / "cache"),
     }
     proc = subprocess.run(

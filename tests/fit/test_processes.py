@@ -36,8 +36,9 @@ def free_port() -> int:
 
 def child_env() -> dict:
     """The environment of a started process: one CPU device, no coordinator of the caller's."""
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", P.COORDINATOR_ENV)}
-    return env | {"JAX_PLATFORMS": "cpu", "PYTHONUNBUFFERED": "1"}
+    env = {k: v for k, v in os.environ.items() if k != P.COORDINATOR_ENV}
+    flags = [f for f in env.pop("XLA_FLAGS", "").split() if "device_count" not in f]
+    return env | {"XLA_FLAGS": " ".join(flags), "JAX_PLATFORMS": "cpu", "PYTHONUNBUFFERED": "1"}
 
 
 def start(args: list[str]) -> subprocess.Popen:
