@@ -6,7 +6,8 @@ On a shared machine a load that drifts over minutes moves runs made minutes apar
 checkouts take turns (A B A B ... for each command) and each one's median is reported, with the
 median CPU time (user + system of the child, all threads), which other processes' load moves
 less than the wall time. `--parser` adds the CPU time of `fpe`'s start in a fresh process:
-importing `fpe_jax.cli` and parsing a `fpe predict` line.
+importing `fpe_jax.cli` and parsing a `fpe predict` line; `--imports MOD,...` the CPU time of
+importing those modules in a fresh process (numpy first, apart, as every command imports it).
 
     python experiments/benchmarks/warm_ab.py OLD=../old/.venv NEW=.venv --runs 9
 
@@ -40,6 +41,14 @@ except TypeError:  # a checkout whose parser is always whole
 parser.parse_args(argv)
 print(t1 - t0, time.process_time() - t1)
 """
+IMPORTS_CODE = """
+import importlib, sys, time
+import numpy
+t0 = time.process_time()
+for name in sys.argv[1].split(","):
+    importlib.import_module(name)
+print(time.process_time() - t0)
+"""
 
 
 def run_fpe(venv: Path, argv: list[str], cache: Path) -> tuple[float, float]:
@@ -58,18 +67,8 @@ def run_fpe(venv: Path, argv: list[str], cache: Path) -> tuple[float, float]:
     return wall, after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("checkouts", nargs="+", metavar="LABEL=VENV")
-    ap.add_argument("--runs", type=int, default=9, help="warm runs per command and checkout")
-    ap.add_argument("--commands", default="predict,evaluate,fit", help="comma list")
-    ap.add_argument("--parser", action="store_true", help="also time the CLI's start")
-    args = ap.parse_args()
-    venvs = {}
-    for item in args.checkouts:
-        label, _, venv = item.partition("=")
-        venvs[label] = Path(venv).resolve()
-    tmp = Path(tempfile.mkdtemp(prefix="fpe-warm-ab-"))
+def time_commands(venvs: dict[str, Path], names: list[str], runs: int, tmp: Path) -> None:
+    """Print the median warm wall and CPU times of the commands `names` of each checkout."""
     first = next(iter(venvs.values()))
     drive = tmp / "drive"
     fpe = str(first / "bin" / "fpe")
@@ -90,7 +89,6 @@ def main() -> None:
         "evaluate": ["evaluate", *log, "--config", str(config)],
         "fit": ["fit", *log, "--out", "{out}/c.json", "--force"],
     }
-    names = args.commands.split(",")
     times: dict[tuple[str, str], list[tuple[float, float]]] = {}
     for name in names:
         argvs = {}
@@ -99,11 +97,11 @@ def main() -> None:
             out.mkdir(exist_ok=True)
             argvs[label] = [a.replace("{out}", str(out)) for a in commands[name]]
             run_fpe(venv, argvs[label], tmp / f"cache-{label}-{name}")  # fills the cache
-        for _ in range(args.runs):
+        for _ in range(runs):
             for label, venv in venvs.items():
                 t = run_fpe(venv, argvs[label], tmp / f"cache-{label}-{name}")
                 times.setdefault((name, label), []).append(t)
-    print(f"load average {os.getloadavg()[0]:.1f}; medians of {args.runs} interleaved runs")
+    print(f"load average {os.getloadavg()[0]:.1f}; medians of {runs} interleaved runs")
     print("| command | checkout | wall [s] | CPU [s] | wall runs [s] |")
     print("| --- | --- | --- | --- | --- |")
     for name in names:
@@ -111,8 +109,26 @@ def main() -> None:
             t = times[name, label]
             wall = statistics.median(w for w, _ in t)
             cpu = statistics.median(c for _, c in t)
-            runs = " ".join(f"{w:.2f}" for w, _ in t)
-            print(f"| fpe {name} | {label} | {wall:.3f} | {cpu:.3f} | {runs} |")
+            walls = " ".join(f"{w:.2f}" for w, _ in t)
+            print(f"| fpe {name} | {label} | {wall:.3f} | {cpu:.3f} | {walls} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("checkouts", nargs="+", metavar="LABEL=VENV")
+    ap.add_argument("--runs", type=int, default=9, help="warm runs per command and checkout")
+    ap.add_argument("--commands", default="predict,evaluate,fit", help="comma list")
+    ap.add_argument("--parser", action="store_true", help="also time the CLI's start")
+    ap.add_argument("--imports", metavar="MOD,...", help="also time importing these modules")
+    args = ap.parse_args()
+    venvs = {}
+    for item in args.checkouts:
+        label, _, venv = item.partition("=")
+        venvs[label] = Path(venv).resolve()
+    tmp = Path(tempfile.mkdtemp(prefix="fpe-warm-ab-"))
+    names = [n for n in args.commands.split(",") if n]
+    if names:
+        time_commands(venvs, names, args.runs, tmp)
     if args.parser:
         starts: dict[str, list[tuple[float, float]]] = {}
         for _ in range(max(args.runs, 11)):
@@ -132,6 +148,22 @@ def main() -> None:
             imp = statistics.median(i for i, _ in t) * 1e3
             parse = statistics.median(p for _, p in t) * 1e3
             print(f"| {label} | {imp:.1f} | {parse:.1f} |")
+    if args.imports:
+        spent: dict[str, list[float]] = {}
+        for _ in range(max(args.runs, 11)):
+            for label, venv in venvs.items():
+                proc = subprocess.run(
+                    [str(venv / "bin" / "python"), "-c", IMPORTS_CODE, args.imports],
+                    capture_output=True,
+                    text=True,
+                    check=True,
+                    cwd=tmp,
+                )
+                spent.setdefault(label, []).append(float(proc.stdout))
+        print(f"\n| checkout | import {args.imports} CPU [ms] |")
+        print("| --- | --- |")
+        for label, t in spent.items():
+            print(f"| {label} | {statistics.median(t) * 1e3:.1f} |")
 
 
 if __name__ == "__main__":
