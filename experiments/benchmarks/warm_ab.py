@@ -13,7 +13,7 @@ importing those modules in a fresh process (numpy first, apart, as every command
 
 Each LABEL=VENV names a checkout by its virtual environment (its `bin/fpe` and `bin/python`).
 The drive and config are made once with the first one; every checkout reads the same files.
-Nothing is written outside a temporary folder.
+Nothing is written outside a temporary folder, which is removed at the end.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -126,6 +127,13 @@ def main() -> None:
         label, _, venv = item.partition("=")
         venvs[label] = Path(venv).resolve()
     tmp = Path(tempfile.mkdtemp(prefix="fpe-warm-ab-"))
+    try:
+        measure(args, venvs, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def measure(args, venvs: dict[str, Path], tmp: Path) -> None:
     names = [n for n in args.commands.split(",") if n]
     if names:
         time_commands(venvs, names, args.runs, tmp)
