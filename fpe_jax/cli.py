@@ -207,7 +207,31 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: {action.default})"
 
 
-def _build_parser() -> argparse.ArgumentParser:
+class _Skipped(argparse.ArgumentParser):
+    """The subparser of a command that `_build_parser(only=...)` leaves out: takes its arguments
+    and groups and keeps nothing (none of ArgumentParser's own set-up is done)."""
+
+    def __init__(self) -> None:
+        pass
+
+    def add_argument(self, *args, **kwargs) -> None:
+        pass
+
+    def add_argument_group(self, *args, **kwargs) -> _Skipped:
+        return self
+
+    def add_mutually_exclusive_group(self, *args, **kwargs) -> _Skipped:
+        return self
+
+    def set_defaults(self, **kwargs) -> None:
+        pass
+
+
+def _build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or with `only` (the first word of a command line) of that
+    command alone: parsing its line needs no other (a command's start then skips adding the other
+    commands' arguments and importing the node package for its own). A word that names no
+    command gets the whole parser, which says so."""
     from fpe_jax import __version__  # the package root imports nothing eagerly
 
     parser = argparse.ArgumentParser(
@@ -221,6 +245,8 @@ def _build_parser() -> argparse.ArgumentParser:
 
     def command(name: str, help: str, example: str) -> argparse.ArgumentParser:
         """The subparser of `fpe NAME`, which runs `cmd_NAME`; its help ends with `example`."""
+        if only is not None and name != only:
+            return _Skipped()
         p = sub.add_parser(
             name,
             help=help,
@@ -454,13 +480,14 @@ def _build_parser() -> argparse.ArgumentParser:
         help="warn, not fail, when the first observations are off the waypoints",
     )
 
-    from fpe_jax.node import _cli as node_cli  # JAX-free
+    if only in (None, "node"):
+        from fpe_jax.node import _cli as node_cli  # JAX-free
 
-    node_cli.add_parser(
-        sub,
-        formatter_class=_HelpFormatter,
-        epilog="example:\n  fpe node --ros1 --config car/config.json --waypoints car/track.csv",
-    )
+        node_cli.add_parser(
+            sub,
+            formatter_class=_HelpFormatter,
+            epilog="example:\n  fpe node --ros1 --config car/config.json --waypoints car/track.csv",
+        )
 
     p = command(
         "demo",
@@ -483,8 +510,6 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
 
-    from fpe_jax.node import _view  # JAX-free
-
     p = command(
         "view",
         "predict a drive log and show it in Foxglove (live WebSocket or MCAP)",
@@ -492,9 +517,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("log", help="observations: CSV (t,x,y[,yaw][,v]), .mcap, rosbag2 folder, .bag")
     _add_predictor_flags(p, required=False)
-    _view.add_arguments(p)
+    if only in (None, "view"):
+        from fpe_jax.node import _view  # JAX-free
+
+        _view.add_arguments(p)
     _add_log_flags(p)
     _add_run_flags(p, off_track=True)
+    if only is not None and only not in sub.choices:
+        return _build_parser()
     return parser
 
 
@@ -964,7 +994,8 @@ LIBRARY_FLAGS = {
 def main(argv: list[str] | None = None) -> int:
     import threading
 
-    args = _build_parser().parse_args(argv)
+    words = sys.argv[1:] if argv is None else argv
+    args = _build_parser(words[0] if words else None).parse_args(argv)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _sigterm) if main_thread else None
     previous_hook = sys.unraisablehook

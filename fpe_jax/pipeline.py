@@ -669,9 +669,9 @@ def _fit_inputs(logs, waypoints, test, out, flags: dict, log_options, progress, 
     """(drives, test drives, out, options) of `fit_logs`: entries (drive, waypoints, description)
     read from the logs (or the one recipe .toml they name), the options of the recipe (or the
     defaults) with the given `flags` on top, and under "inputs" the files read."""
-    from fpe_jax.fit._recipe import load_recipe
-
     if len(logs) == 1 and str(logs[0]).endswith(".toml"):
+        from fpe_jax.fit._recipe import load_recipe  # (and tomllib) only for a recipe
+
         r = load_recipe(logs[0])
         opts = dict(
             holdout=r.holdout,

@@ -38,3 +38,26 @@ def test_help_says_every_default_and_ends_with_an_example(name):
         assert "default" in said or said.endswith("(required)"), (name, action.option_strings)
         if action.default not in (None, False):
             assert str(action.default) in said, (name, action.option_strings, said)
+
+
+def _only(word: str) -> dict[str, argparse.ArgumentParser]:
+    (sub,) = (a for a in _build_parser(word)._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+@pytest.mark.parametrize("name", sorted(_subparsers()))
+def test_the_parser_of_one_command_is_that_part_of_the_whole(name):
+    """`main` builds the parser of the command it runs: the same help, so the same arguments."""
+    only = _only(name)
+    assert list(only) == [name]
+    assert only[name].format_help() == _subparsers()[name].format_help()
+
+
+def test_the_parser_of_one_command_parses_as_the_whole():
+    line = ["predict", "d.mcap", "--waypoints", "w.csv", "--out", "p.csv", "--dt", "0.05"]
+    assert vars(_build_parser("predict").parse_args(line)) == vars(_build_parser().parse_args(line))
+
+
+@pytest.mark.parametrize("word", ["nosuch", "--help", "-h", "--quiet"])
+def test_a_word_that_names_no_command_gets_the_whole_parser(word):
+    assert _only(word).keys() == _subparsers().keys()

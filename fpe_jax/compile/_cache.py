@@ -321,7 +321,9 @@ STALE_TEMP_S = 600.0  # a temporary entry this old was left by a killed writer
 
 
 def _mac(secret: bytes, name: str, body: bytes) -> bytes:
-    return hmac.digest(secret, MAGIC + name.encode() + b"\0" + body, "sha256")
+    h = hmac.new(secret, MAGIC + name.encode() + b"\0", "sha256")
+    h.update(body)  # apart: joined to the prefix, a body of megabytes would be copied first
+    return h.digest()
 
 
 def entry_name(secret: bytes, key: str) -> str:
@@ -374,7 +376,8 @@ def store_signed(path: Path, secret: bytes, body: bytes) -> None:
         _remove_stale_temps(path.parent)
         flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
         with os.fdopen(os.open(tmp, flags, 0o600), "wb") as f:
-            f.write(MAGIC + _mac(secret, path.name, body) + body)
+            f.write(MAGIC + _mac(secret, path.name, body))
+            f.write(body)
         os.replace(tmp, path)  # atomic: a concurrent reader sees the old file or the whole new one
     except OSError as e:
         warn("unwritable", f"{path.parent}: {e.strerror or e}")

@@ -41,14 +41,10 @@ from fpe_jax import spec
 from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io import tables
+from fpe_jax.io.logs import DETECTION_TYPES as DETECTION_TYPES  # re-exported
 from fpe_jax.io.logs import check_stamps_vary
 from fpe_jax.io.tf import Rigid, TfBuffer, format_stamp, quat_from_matrix
 
-DETECTION_TYPES = (
-    "apriltag_ros/AprilTagDetectionArray",
-    "apriltags2_ros/AprilTagDetectionArray",
-    "apriltag_msgs/AprilTagDetectionArray",
-)
 DETECTION_TOPIC = "/tag_detections"
 FAMILY = "tag36h11"  # the detector library's name for the 36h11 family
 TAG_SIZE_M = 0.1085  # the thesis' tag

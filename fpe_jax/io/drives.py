@@ -21,10 +21,10 @@ import numpy as np
 from fpe_jax import spec
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
-from fpe_jax.io import apriltag, tables
 from fpe_jax.io import ros_msgs as rm
-from fpe_jax.io.apriltag import DETECTION_TYPES
+from fpe_jax.io import tables
 from fpe_jax.io.logs import (
+    DETECTION_TYPES,
     ODOMETRY_TYPES,
     POSE_TYPES,
     STAMPED_POSE_TYPES,
@@ -34,7 +34,6 @@ from fpe_jax.io.logs import (
     is_log_path,
     open_log,
 )
-from fpe_jax.io.tf import TfBuffer
 
 _POSE_EXPECTED = (
     "PoseStamped, PoseWithCovarianceStamped, Odometry, TFMessage or AprilTagDetectionArray"
@@ -179,6 +178,8 @@ def _log_series(log: Log, topic: str, tf_pair, log_time: bool, tags: dict):
     """
     rows, extra = [], {}
     if log.topics[topic].msgtype in DETECTION_TYPES:
+        from fpe_jax.io import apriltag  # with the TF reader: only for detection topics
+
         tag_id = 0 if tags.get("tag_id") is None else tags["tag_id"]
         rows, extra["detection"] = apriltag.detection_rows(
             log,
@@ -443,6 +444,9 @@ def describe_log(
             for i in log.topics.values()
         ],
     }
+    from fpe_jax.io import apriltag
+    from fpe_jax.io.tf import TfBuffer
+
     tf_pair = (tf_parent.lstrip("/"), tf_child.lstrip("/"))
     if any(i.msgtype in TF_TYPES and i.count for i in log.topics.values()):
         try:

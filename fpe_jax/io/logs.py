@@ -41,6 +41,11 @@ ODOMETRY_TYPES = ("nav_msgs/Odometry",)
 TF_TYPES = ("tf2_msgs/TFMessage", "tf/tfMessage")  # the second: old ROS 1 `tf` package
 POSE_TYPES = STAMPED_POSE_TYPES + ODOMETRY_TYPES + TF_TYPES
 PATH_TYPES = ("nav_msgs/Path",)
+DETECTION_TYPES = (  # AprilTag detections (`fpe_jax.io.apriltag`)
+    "apriltag_ros/AprilTagDetectionArray",
+    "apriltags2_ros/AprilTagDetectionArray",
+    "apriltag_msgs/AprilTagDetectionArray",
+)
 
 
 @dataclasses.dataclass(frozen=True)

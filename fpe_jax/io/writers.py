@@ -23,7 +23,6 @@ import numpy as np
 
 from fpe_jax.errors import InputError
 from fpe_jax.io import ros_msgs as rm
-from fpe_jax.io import scene
 
 PREDICTION_TOPIC = "/future_pose"
 OBSERVATION_TOPIC = "/opp/pose"
@@ -271,6 +270,8 @@ def write_drive_mcap(path, *, pose=None, odom=None, tf=None, force: bool = False
 def _marker(
     ns: int | np.integer, ident: int, kind: int, points: list, rgba: tuple, space="future_pose"
 ) -> dict:
+    from fpe_jax.io import scene
+
     return scene.ros2_marker(ns, "map", space, ident, kind, rgba, points=points)
 
 
@@ -341,9 +342,16 @@ def write_predictions(
             cols.append(np.repeat(np.asarray(valid, dtype=np.int64), h))
             fmt.append("%d")
             header += ",valid"
+        table = np.column_stack(cols)
+        # np.savetxt's text to the byte (its rows are `line % tuple(row)` too), formatted in one
+        # `%` over all the values: a third less time than row by row
+        text = (",".join(fmt) + "\n") * len(table) % tuple(table.ravel().tolist())
         with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
-            np.savetxt(f, np.column_stack(cols), fmt=fmt, delimiter=",", header=header, comments="")
+            f.write(header + "\n")
+            f.write(text)
         return Path(path)
+
+    from fpe_jax.io import scene  # the MCAP's prediction scene: not needed for CSV
 
     ns = _stamps_ns(path, stamps, "predictions")
     steps_ns = ns[:, None] + rm.seconds_to_ns(np.arange(1, h + 1) * float(dt_s))

@@ -214,6 +214,25 @@ def test_a_failed_write_leaves_no_temporary_file(tmp_path, monkeypatch, capsys):
     assert [p.name for p in (tmp_path / "sub").rglob("*") if p.is_file()] == []
 
 
+def test_an_entry_is_stored_as_magic_hmac_body(tmp_path, monkeypatch, capsys):
+    """The stored format (MAGIC, HMAC-SHA256 of MAGIC + name + NUL + body under the user's key,
+    body): entries written by earlier versions stay valid, and one byte changed anywhere is not."""
+    import hmac
+
+    monkeypatch.setattr(cache, "_SHOWN", set())
+    secret, body = os.urandom(32), os.urandom(100_000)
+    path = tmp_path / f"{'c' * 64}.exe"
+    cache.store_signed(path, secret, body)
+    mac = hmac.digest(secret, cache.MAGIC + path.name.encode() + b"\0" + body, "sha256")
+    assert path.read_bytes() == cache.MAGIC + mac + body
+    assert cache.load_signed(path, secret) == body
+    blob = bytearray(path.read_bytes())
+    blob[-1] ^= 1
+    path.write_bytes(bytes(blob))
+    assert cache.load_signed(path, secret) is None
+    assert "not written by fpe for this user, or damaged" in capsys.readouterr().err
+
+
 def test_temporary_entries_of_a_killed_writer_are_removed(tmp_path, monkeypatch):
     aot_dir = tmp_path / "sub" / "aot"
     aot_dir.mkdir(parents=True)

@@ -325,7 +325,7 @@ def command(args):
 
 args = cli._build_parser().parse_args(["presets"])
 args.func = command
-cli._build_parser = lambda: type("P", (), {"parse_args": lambda self, argv: args})()
+cli._build_parser = lambda *only: type("P", (), {"parse_args": lambda self, argv: args})()
 cli.entry()
 """
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
@@ -356,7 +356,7 @@ def command(args):
 
 args = cli._build_parser().parse_args(["presets"])
 args.func = command
-cli._build_parser = lambda: type("P", (), {{"parse_args": lambda self, argv: args}})()
+cli._build_parser = lambda *only: type("P", (), {{"parse_args": lambda self, argv: args}})()
 cli.entry()
 """
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
@@ -398,7 +398,7 @@ def command(args):
 
 args = cli._build_parser().parse_args(["presets"])
 args.func = command
-cli._build_parser = lambda: type("P", (), {{"parse_args": lambda self, argv: args}})()
+cli._build_parser = lambda *only: type("P", (), {{"parse_args": lambda self, argv: args}})()
 cli.entry()
 """
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)

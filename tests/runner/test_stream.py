@@ -183,8 +183,8 @@ def test_a_ctrl_c_lost_in_a_callback_is_sent_again(monkeypatch, capsys):
 
 
 def _parser_with(build, func):
-    def patched():
-        parser = build()
+    def patched(*only):
+        parser = build(*only)
         parser._subparsers._group_actions[0].choices["presets"].set_defaults(func=func)
         return parser
 
