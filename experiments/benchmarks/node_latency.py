@@ -41,7 +41,7 @@ from ros2_helpers import LOOPBACK_URI  # noqa: E402
 from fpe_jax.io.config import params_to_config, write_config  # noqa: E402
 from fpe_jax.io.writers import write_xy_csv  # noqa: E402
 from fpe_jax.model._params import presets  # noqa: E402
-from fpe_jax.node._core import time_dict  # noqa: E402
+from fpe_jax.node._wire import time_dict  # noqa: E402
 from fpe_jax.runner._runner import RunnerPath  # noqa: E402
 from fpe_jax.sim._sim import simulate  # noqa: E402
 

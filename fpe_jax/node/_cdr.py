@@ -576,3 +576,104 @@ class CdrCodec:
         if view[:2] != b"\x00\x01":
             raise _Unchecked  # not CDR_LE: for the caller's general decoder
         return self.reader(type_name)(view[4:], 0)[0]
+
+
+# ---- templates: the bytes of messages that differ only in a few numbers ----------------------
+
+
+def _get(msg: Any, path: tuple) -> Any:
+    for key in path:
+        msg = msg[key]
+    return msg
+
+
+_PROBE_DTYPES = {"d": np.dtype("<f8"), "I": np.dtype("<u4"), "i": np.dtype("<i4")}
+
+
+class Template:
+    """Messages of one type that differ only in some numeric leaves (stamps, coordinates): the
+    message is encoded once by the type's writer, and each new one is those bytes with the leaves
+    written in by one `struct.Struct.pack` (the bytes between them passed as they are). Works for
+    any wire format whose fixed-size primitives are their little-endian bytes (CDR, ROS 1), as
+    long as the leaves keep the message's length (numbers, never strings or sequence lengths).
+
+    Args:
+        encode: msg dict -> its bytes (the transport's writer).
+        msg: the message with every other field as it is to be sent.
+        groups: {group name: (struct code "d", "I" or "i", [leaf path, ...])}: a path is the keys
+            and list indices from the message down to one primitive field, e.g.
+            ("header", "stamp", "sec"); `fill` takes each group's values in path order.
+
+    Each leaf is found by encoding the message with every leaf set to a distinct probe value and
+    locating its bytes; the template is then checked to reproduce both encodings byte for byte,
+    so a leaf it cannot place raises ValueError here instead of sending wrong bytes later.
+    """
+
+    def __init__(self, encode: Callable[[Mapping], bytes], msg: Mapping,
+                 groups: Mapping[str, tuple[str, list[tuple]]]):  # fmt: skip
+        rng = np.random.default_rng(0)
+        probe, probes = _copy(msg), {}
+        for name, (code, paths) in groups.items():
+            if code not in _PROBE_DTYPES:
+                raise ValueError(f"Template: struct code {code!r} of group {name!r} is not d, I, i")
+            # distinct values whose bytes are unlikely anywhere else in the message
+            n = len(paths)
+            vals = rng.uniform(1.0, 2.0, n) if code == "d" else rng.integers(2**24, 2**31, n)
+            probes[name] = vals.astype(_PROBE_DTYPES[code])
+            for path, v in zip(paths, vals.tolist(), strict=True):
+                _set(probe, path, v)
+        base_bytes, probe_bytes = bytes(encode(msg)), bytes(encode(probe))
+        if len(base_bytes) != len(probe_bytes):
+            raise ValueError("Template: a leaf changes the message's length (not a number?)")
+        leaves = []  # (offset, code, group, index in the group)
+        for name, (code, paths) in groups.items():
+            for k, (path, v) in enumerate(zip(paths, probes[name])):
+                pattern = v.tobytes()
+                at = probe_bytes.find(pattern)
+                if at < 0 or probe_bytes.find(pattern, at + 1) >= 0:
+                    raise ValueError(f"Template: cannot place the leaf {path} of group {name!r}")
+                leaves.append((at, code, name, k))
+        leaves.sort()
+        fmt, args, pos = ["<"], [], 0
+        self._slots: dict[str, list[int]] = {name: [0] * len(g[1]) for name, g in groups.items()}
+        for at, code, name, k in leaves:
+            if at < pos:
+                raise ValueError(f"Template: leaves of group {name!r} overlap")
+            if at > pos:
+                fmt.append(f"{at - pos}s")
+                args.append(base_bytes[pos:at])
+            fmt.append(code)
+            self._slots[name][k] = len(args)
+            args.append(0)
+            pos = at + struct.calcsize(code)
+        if pos < len(base_bytes):
+            fmt.append(f"{len(base_bytes) - pos}s")
+            args.append(base_bytes[pos:])
+        self._struct = struct.Struct("".join(fmt))
+        self._args = args
+        filled = self.fill(**{n: v.tolist() for n, v in probes.items()})
+        base = {n: [_get(msg, p) for p in paths] for n, (_, paths) in groups.items()}
+        if filled != probe_bytes or self.fill(**base) != base_bytes:
+            raise ValueError("Template: the leaves do not account for the message's bytes")
+
+    def fill(self, **values: Any) -> bytes:
+        """One message's bytes: each group's values (a sequence of Python numbers) in path
+        order; raises struct.error for a value its field cannot hold."""
+        args = self._args.copy()
+        for name, slots in self._slots.items():
+            for slot, v in zip(slots, values[name], strict=True):
+                args[slot] = v
+        return self._struct.pack(*args)
+
+
+def _copy(msg: Any) -> Any:
+    """A copy of nested dicts and lists (leaves shared)."""
+    if isinstance(msg, Mapping):
+        return {k: _copy(v) for k, v in msg.items()}
+    if isinstance(msg, list | tuple):
+        return [_copy(v) for v in msg]
+    return msg
+
+
+def _set(msg: Any, path: tuple, value: Any) -> None:
+    _get(msg, path[:-1])[path[-1]] = value
