@@ -434,10 +434,8 @@ class Node:
         """(map-frame covariance (H, 2, 2) [m^2] or None, arc lengths (H,) [m] of the steps):
         the config's per-step track-frame covariance turned by the path heading at each step,
         each step's arc length searched in the window around the previous one's."""
-        path, along, s = self.path, [], s_m
-        for x, y, _ in poses.tolist():
-            s = path.project_window(x, y, s)
-            along.append(s)
+        path = self.path
+        along = path.project_chain(poses[:, :2], s_m)
         if self.cov_track_m2 is None:
             return None, along
         h = np.array([path.heading_at(s) for s in along])
