@@ -102,6 +102,9 @@ class Wire:
         horizon: H predicted steps, dt_s [s] apart.
         obstacle_var: ROS 1 ObstacleArray variances {s_var, d_var, vs_var, vd_var} (the same
             for every prediction), or None for the ROS 2 definition, which has none.
+
+    The path and the covariances of one prediction share its stamps and quaternions: a poses
+    array is read once per stamp (pass a new array for new values, as a runner's update does).
     """
 
     def __init__(self, encode: Callable[[str, dict], bytes], flavour: str, frame_id: str,
@@ -114,6 +117,7 @@ class Wire:
         self.obstacle_var = obstacle_var
         self.step_ns = np.round(np.arange(1, horizon + 1) * dt_s * 1e9).astype(np.int64)
         self._steps = self.step_ns.tolist()
+        self._last: tuple = (None, None, None)  # (poses, ns, their stamps and pose values)
         self._templates: dict[tuple, Template] = {}
 
     def _template(self, key: tuple, make: Callable[[], tuple[str, dict, dict]]) -> Template:
@@ -122,6 +126,15 @@ class Wire:
             type_name, msg, groups = make()
             t = self._templates[key] = Template(lambda m: self.encode(type_name, m), msg, groups)
         return t
+
+    def _prediction(self, ns: int, poses: np.ndarray) -> tuple[list, list, np.ndarray]:
+        """(seconds, nanoseconds) of the stamp and the H step stamps, and `_pose_values`, of
+        one prediction: its path and its covariances share them."""
+        last_poses, last_ns, out = self._last
+        if poses is not last_poses or ns != last_ns:
+            out = (*_stamps(ns, self._steps), _pose_values(poses))
+            self._last = (poses, ns, out)
+        return out
 
     def forget(self, car: str) -> None:
         """Drop what was kept for one opponent (its track ended)."""
@@ -143,8 +156,8 @@ class Wire:
     def path(self, ns: int, poses: np.ndarray) -> bytes:
         """`path_message` as bytes; poses (H, 3) x [m], y [m], yaw [rad]."""
         t = self._template(("path",), self._path_layout)
-        sec, nsec = _stamps(ns, self._steps)
-        return t.fill(sec=sec, nsec=nsec, value=_pose_values(poses).ravel().tolist())
+        sec, nsec, values = self._prediction(ns, poses)
+        return t.fill(sec=sec, nsec=nsec, value=values.ravel().tolist())
 
     def _path_layout(self):
         h = self.horizon
@@ -173,8 +186,8 @@ class Wire:
     def covariances(self, ns: int, poses: np.ndarray, cov_m2: np.ndarray) -> list[bytes]:
         """`covariance_messages` as bytes."""
         fill = self._template(("covariance",), self._covariance_layout).fill
-        sec, nsec = _stamps(ns, self._steps)
-        values = np.column_stack([_pose_values(poses), cov_m2.reshape(-1, 4)]).tolist()
+        sec, nsec, values = self._prediction(ns, poses)
+        values = np.column_stack([values, cov_m2.reshape(-1, 4)]).tolist()
         return [fill(sec=(s,), nsec=(n,), value=v) for s, n, v in zip(sec[1:], nsec[1:], values)]
 
     def _covariance_layout(self):
