@@ -217,6 +217,7 @@ class Node:
             raise ValueError(f"NodeOptions.input: {o.input!r} is not pose, tags or obstacles")
         if self.scene is not None:
             self.scene.track(np.asarray(self.path._table[:, :2]))
+        self.wire.prepare(self.cov_track_m2 is not None)
         self._publish_trajectory(time.monotonic_ns())
 
     # -- warnings
@@ -373,7 +374,6 @@ class Node:
         for c in stale:
             del self.runners[c], self.last_seen_ns[c]
             self._last_markers_ns.pop(c, None)
-            self.wire.forget(c)
         if updated:
             self._publish_views(updated)
 

@@ -136,9 +136,17 @@ class Wire:
             self._last = (poses, ns, out)
         return out
 
-    def forget(self, car: str) -> None:
-        """Drop what was kept for one opponent (its track ended)."""
-        self._templates.pop(("markers", car), None)
+    def prepare(self, with_cov: bool) -> None:
+        """Build the templates of a first prediction's messages (a path, its covariances, a
+        one-opponent ObstacleArray, the markers of an opponent with a one-character id) now,
+        rather than in the callback of that prediction (a few milliseconds each)."""
+        poses = np.zeros((self.horizon, 3))
+        cov = np.zeros((self.horizon, 2, 2)) if with_cov else None
+        self.path(0, poses)
+        if with_cov:
+            self.covariances(0, poses, cov)
+        self.obstacles(0, [0], [[0.0] * 8])
+        self.markers("0", 0, poses, cov)
 
     def _header(self, ns: int = 0) -> dict:
         return header(self.flavour, ns, self.frame_id)
@@ -265,13 +273,16 @@ class Wire:
         }
 
     def markers(self, car: str, ns: int, poses: np.ndarray, cov_m2) -> bytes:
-        """`markers_message` as bytes."""
+        """`markers_message` as bytes (one template for every opponent whose namespace has the
+        same length)."""
+        space = f"future_pose/{car}".encode()
         with_cov = cov_m2 is not None
-        t = self._template(("markers", car), lambda: self._markers_layout(car, with_cov))
+        key = ("markers", len(space), with_cov)
+        t = self._template(key, lambda: self._markers_layout("0" * len(car.encode()), with_cov))
         points = np.concatenate(self._marker_points(poses, cov_m2)).ravel().tolist()
         sec, nsec = divmod(ns, _SEC_NS)
         n = 2 + with_cov
-        return t.fill(sec=(sec,) * n, nsec=(nsec,) * n, value=points)
+        return t.fill(sec=(sec,) * n, nsec=(nsec,) * n, space=(space,) * n, value=points)
 
     def _markers_layout(self, car: str, with_cov: bool):
         cov = np.ones((self.horizon, 1, 1)) * np.eye(2) if with_cov else None
@@ -280,6 +291,10 @@ class Wire:
         for i, marker in enumerate(msg["markers"]):
             for k in range(len(marker["points"])):
                 values += [("markers", i, "points", k, "x"), ("markers", i, "points", k, "y")]
-        headers = [("markers", i, "header") for i in range(len(msg["markers"]))]
-        groups = _stamp_groups(self.flavour, headers) | {"value": ("d", values)}
-        return MARKERS_TYPE, msg, groups
+        n = len(msg["markers"])
+        groups = _stamp_groups(self.flavour, [("markers", i, "header") for i in range(n)])
+        space = (
+            f"{len(msg['markers'][0]['ns'].encode())}s",
+            [("markers", i, "ns") for i in range(n)],
+        )
+        return MARKERS_TYPE, msg, groups | {"space": space, "value": ("d", values)}

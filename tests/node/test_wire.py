@@ -50,15 +50,12 @@ def test_wire_bytes_equal_the_writers_on_the_same_message(flavour):
         want = [encode("geometry_msgs/msg/PoseWithCovarianceStamped", m)
                 for m in w.covariance_messages(ns, poses, cov)]  # fmt: skip
         assert w.covariances(ns, poses, cov) == want
-        for car in ("3", "117"):
+        for car in ("3", "117", "8", "902"):  # one template per length of the id
             for c in (cov, None):
                 msg = w.markers_message(car, ns, poses, c)
-                if c is None:  # a node without covariance: one template per car and kind
-                    w.forget(car)
                 assert w.markers(car, ns, poses, c) == encode(
                     "visualization_msgs/msg/MarkerArray", msg
                 )
-                w.forget(car)
         for n in (1, 4):
             ids = list(range(7, 7 + n))
             values = np.random.default_rng(seed + n).normal(size=(n, 8))
@@ -106,8 +103,9 @@ def test_wire_meaning_and_rosbags_cdr():
 
 
 def test_template_refuses_what_it_cannot_hold():
-    """A string leaf, an unknown struct code, a value its field cannot hold and a wrong number
-    of values are refused: a template never sends wrong bytes."""
+    """A number leaf on a string, an unknown struct code, a string leaf of another length, a
+    value its field cannot hold and a wrong number of values are refused: a template never
+    sends wrong bytes. A fixed-length string leaf is filled as the writer writes it."""
     encode = CdrCodec(typestore("ros2")).encode
     t = "std_msgs/msg/Header"
     msg = {"stamp": {"sec": 1, "nanosec": 2}, "frame_id": "map"}
@@ -115,6 +113,12 @@ def test_template_refuses_what_it_cannot_hold():
         Template(lambda m: encode(t, m), msg, {"f": ("I", [("frame_id",)])})
     with pytest.raises(ValueError, match="struct code"):
         Template(lambda m: encode(t, m), msg, {"f": ("q", [("stamp", "sec")])})
+    with pytest.raises(ValueError, match="length"):  # a string leaf of another length
+        Template(lambda m: encode(t, m), msg, {"f": ("4s", [("frame_id",)])})
+    frame = Template(lambda m: encode(t, m), msg, {"f": ("3s", [("frame_id",)])})
+    assert frame.fill(f=[b"odm"]) == encode(t, msg | {"frame_id": "odm"})
+    with pytest.raises(ValueError, match="3 bytes"):  # struct would cut or pad it silently
+        frame.fill(f=[b"odom"])
     stamp = Template(lambda m: encode(t, m), msg, {"s": ("i", [("stamp", "sec")])})
     assert stamp.fill(s=[7]) == encode(t, msg | {"stamp": {"sec": 7, "nanosec": 2}})
     with pytest.raises(struct.error):
