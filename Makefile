@@ -25,6 +25,7 @@ test: $(VENV)
 bench: $(VENV)
 	$(BIN)/python experiments/benchmarks/run.py
 	$(BIN)/python experiments/benchmarks/node_latency.py
+	$(BIN)/python experiments/benchmarks/node_cpu.py
 	$(BIN)/python experiments/benchmarks/dds_roundtrip.py
 	$(BIN)/python experiments/benchmarks/fit_scale.py
 	$(BIN)/python experiments/benchmarks/batch_io.py

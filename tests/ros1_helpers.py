@@ -75,3 +75,21 @@ def roscore(tmp_path):
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, 9)
             proc.wait()
+
+
+def node_connections(node_name: str = "/future_pose_estimator") -> set[tuple[str, str]]:
+    """{(topic, "i" or "o")}: the connections a running ROS 1 node holds by its own account (its
+    getBusInfo), in (subscribed) and out (published); empty while it is not registered. A
+    publisher counts a subscriber only once it holds the connection, which can be later than the
+    subscriber sees it: this is what the node's own publisher sees."""
+    import xmlrpc.client
+
+    import rosgraph.masterapi
+
+    master = rosgraph.masterapi.Master("/fpe_test_bus_info")
+    try:
+        uri = master.lookupNode(node_name)
+    except rosgraph.masterapi.Error:
+        return set()
+    _code, _msg, info = xmlrpc.client.ServerProxy(uri).getBusInfo("/fpe_test_bus_info")
+    return {(c[4], c[2]) for c in info}

@@ -2,18 +2,17 @@
 
 For 1 opponent (PoseStamped input) and 4 opponents (one f110_msgs/ObstacleArray per tick) at
 40 Hz it measures
-- the node's own update time per opponent (runner update + covariance, inside the node), and
-- end to end: from publishing an observation to receiving its nav_msgs/Path in this process.
-p50 and p99 of each over `--seconds` of a simulated drive. Writes node_latency.md beside this file
-(node_latency_no_markers.md with --no-markers).
+- the node's own update time per opponent (runner update + covariance, inside the node),
+- end to end: from publishing an observation to receiving its nav_msgs/Path in this process,
+- the node process's CPU time per input message,
+p50 and p99 of each over `--seconds` of a simulated drive, for each case of who listens:
+`path` (only this process, to the paths: the node builds no other output), `all` (a second
+process subscribes to every other output too: markers, per-step covariances, predicted
+obstacles, trajectory) and `all-no-markers` (the same with the node run with --no-markers).
+Writes node_latency.md beside this file.
 
-    .venv/bin/python experiments/benchmarks/node_latency.py [--seconds 30] [--runs 3]
-        [--middleware both] [--listen both] [--no-markers]
-
-`--middleware` ros1, ros2 or both (default). `--listen path`: only this process subscribes (to the
-paths), so the node builds no other output (it skips topics nobody subscribes to); `all`: a
-second process also subscribes to every other output (markers, covariances, predicted
-obstacles, trajectory), so the node builds and sends all of them; `both` (default) runs each.
+    .venv/bin/python experiments/benchmarks/node_latency.py [--seconds 10] [--runs 3]
+        [--middleware both] [--cases path,all,all-no-markers]
 """
 
 from __future__ import annotations
@@ -41,14 +40,19 @@ from ros2_helpers import LOOPBACK_URI  # noqa: E402
 from fpe_jax.io.config import params_to_config, write_config  # noqa: E402
 from fpe_jax.io.writers import write_xy_csv  # noqa: E402
 from fpe_jax.model._params import presets  # noqa: E402
-from fpe_jax.node._core import time_dict  # noqa: E402
+from fpe_jax.node import time_dict  # noqa: E402
 from fpe_jax.runner._runner import RunnerPath  # noqa: E402
 from fpe_jax.sim._sim import simulate  # noqa: E402
 
 RATE_HZ = 40.0
 H = 10
-NODE_ARGS: list[str] = []  # more `fpe node` flags (main's --no-markers)
-LISTEN_ALL = False  # whether a sink process subscribes to every output but the paths
+CASES = {  # who listens: (a sink process subscribes to every output but the paths, node flags)
+    "path": (False, []),
+    "all": (True, []),
+    "all-no-markers": (True, ["--no-markers"]),
+}
+NODE_ARGS: list[str] = []  # the current case's `fpe node` flags
+LISTEN_ALL = False  # whether the current case's sink subscribes to every output but the paths
 COV = [[[0.01 * (k + 1), 0.002], [0.002, 0.004 * (k + 1)]] for k in range(H)]
 
 
@@ -117,8 +121,8 @@ def _play(frames, flavour: str, publish, sent: dict, lock) -> None:
 
 
 def _sink(flavour: str, others: dict, env: dict) -> subprocess.Popen | None:
-    """With --listen all: a process subscribed to every output but the paths (it decodes them
-    on ROS 2, takes them undecoded on ROS 1), until SIGINT; None with --listen path."""
+    """Listening `all`: a process subscribed to every output but the paths (it takes them
+    undecoded), until SIGINT; None listening `path`."""
     if not LISTEN_ALL:
         return None
     spec = json.dumps({"flavour": flavour, "topics": others})
@@ -144,7 +148,7 @@ def _stop(sink: subprocess.Popen | None) -> int:
 
 
 def run_sink(spec: str) -> None:
-    """The --listen all subscriber process: counts what it receives, prints it at SIGINT."""
+    """The listening-`all` subscriber process: counts what it receives, prints it at SIGINT."""
     import signal
 
     spec = json.loads(spec)
@@ -168,14 +172,41 @@ def run_sink(spec: str) -> None:
         for sub in subs:
             sub.unregister()
         r1.rospy.signal_shutdown("done")
-    else:
-        from fpe_jax.node._dds import DdsTransport
+    else:  # as on ROS 1 the samples are taken undecoded: a consumer's cost is not the node's
+        from cyclonedds._clayer import ddspy_take
+        from cyclonedds.core import (
+            InstanceState,
+            Policy,
+            Qos,
+            ReadCondition,
+            SampleState,
+            ViewState,
+            WaitSet,
+        )
+        from cyclonedds.domain import DomainParticipant
+        from cyclonedds.sub import DataReader
+        from cyclonedds.topic import Topic
+        from cyclonedds.util import duration
+
+        from fpe_jax.node._dds import IdlCodec, dds_topic_name, type_hash_user_data
         from fpe_jax.node._types import typestore
 
-        with DdsTransport(typestore("ros2"), node_name="fpe_bench_sink") as sink:
-            for t, type_name in spec["topics"].items():
-                sink.subscribe(t, type_name, counter(t))
-            sink.spin(stop)
+        store = typestore("ros2")
+        codec, dp = IdlCodec(store), DomainParticipant(int(os.environ["ROS_DOMAIN_ID"]))
+        waitset, readers = WaitSet(dp), {}
+        mask = SampleState.Any | ViewState.Any | InstanceState.Any
+        for t, type_name in spec["topics"].items():
+            qos = Qos(Policy.Reliability.Reliable(duration(milliseconds=100)),
+                      Policy.Durability.Volatile, Policy.History.KeepLast(10),
+                      Policy.Userdata(type_hash_user_data(store, type_name)))  # fmt: skip
+            topic = Topic(dp, dds_topic_name(t), codec.idl_class(type_name))
+            readers[t] = DataReader(dp, topic, qos=qos)
+            waitset.attach(ReadCondition(readers[t], mask))
+        while not stop.is_set():
+            waitset.wait(duration(milliseconds=50))
+            for t, reader in readers.items():
+                while taken := ddspy_take(reader._ref, mask, 64):
+                    counts[t] += sum(info.valid_data for _, info in taken)
     print(json.dumps(counts), flush=True)
 
 
@@ -303,27 +334,25 @@ def run_ros2(n_opp: int, seconds: float, tmp: Path, env: dict) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--middleware", choices=["ros1", "ros2", "both"], default="both")
     ap.add_argument("--runs", type=int, default=3, help="runs of each case; medians reported")
     ap.add_argument(
-        "--listen",
-        choices=["path", "all", "both"],
-        default="both",
-        help="who subscribes: to the paths only, to every output, or each in turn",
+        "--cases",
+        default=",".join(CASES),
+        help=f"who listens, comma-separated among {', '.join(CASES)} (default: all three)",
     )
-    ap.add_argument(
-        "--no-markers", action="store_true", help="run the node with --no-markers (what they cost)"
-    )
-    ap.add_argument("--sink", help=argparse.SUPPRESS)  # the --listen all subscriber process
+    ap.add_argument("--sink", help=argparse.SUPPRESS)  # the listening-`all` subscriber process
     args = ap.parse_args()
     if args.sink:
         run_sink(args.sink)
         return
-    NODE_ARGS.extend(["--no-markers"] if args.no_markers else [])
+    cases = args.cases.split(",")
+    if not cases or any(c not in CASES for c in cases):
+        ap.error(f"--cases {args.cases}: expected names among {', '.join(CASES)}")
     warnings.simplefilter("ignore", DeprecationWarning)
-    listens = ["path", "all"] if args.listen == "both" else [args.listen]
     load_start = os.getloadavg()
+    start = time.monotonic()
     rows = []
     with tempfile.TemporaryDirectory() as d:
         if args.middleware in ("ros1", "both"):
@@ -333,12 +362,12 @@ def main() -> None:
                 from fpe_jax.node import _ros1 as r1
 
                 r1.rospy.init_node("fpe_bench_player", anonymous=True, disable_signals=True)
-                for listen in listens:
-                    _listen(listen)
+                for case in cases:
+                    _case(case)
                     for n_opp in (1, 4):
                         for _ in range(args.runs):
                             row = run_ros1(n_opp, args.seconds, Path(d), env, r1)
-                            rows.append(("ros1", listen, row))
+                            rows.append(("ros1", case, row))
                             print(json.dumps(rows[-1]), flush=True)
                 r1.rospy.signal_shutdown("done")
                 os.environ.clear()
@@ -347,32 +376,34 @@ def main() -> None:
             # Cyclone DDS on loopback, in a domain of this run alone
             os.environ["CYCLONEDDS_URI"] = LOOPBACK_URI
             os.environ["ROS_DOMAIN_ID"] = str(1 + os.getpid() % 200)
-            for listen in listens:
-                _listen(listen)
+            for case in cases:
+                _case(case)
                 for n_opp in (1, 4):
                     for _ in range(args.runs):
                         row = run_ros2(n_opp, args.seconds, Path(d), dict(os.environ))
-                        rows.append(("ros2", listen, row))
+                        rows.append(("ros2", case, row))
                         print(json.dumps(rows[-1]), flush=True)
     load_end = os.getloadavg()
+    command = (
+        f"`.venv/bin/python experiments/benchmarks/node_latency.py --seconds {args.seconds:g} "
+        f"--runs {args.runs} --middleware {args.middleware} --cases {','.join(cases)}`"
+    )
     lines = [
         "# `fpe node` latency (loopback)",
         "",
-        f"Command: `.venv/bin/python experiments/benchmarks/node_latency.py --seconds "
-        f"{args.seconds:g} --runs {args.runs} --middleware {args.middleware} "
-        f"--listen {args.listen}{' --no-markers' * args.no_markers}`; {RATE_HZ:g} Hz "
+        f"Command: {command} ({(time.monotonic() - start) / 60:.0f} minutes); {RATE_HZ:g} Hz "
         "observations of a simulated drive, default preset with a per-step covariance (all "
-        f"outputs on, the markers of each opponent at most every 0.1 s"
-        f"{', here off' * args.no_markers}). Own update: runner update + covariance per "
-        "opponent, inside the node. End to end: publishing an observation to receiving its "
-        "nav_msgs/Path in the publishing process (ROS 1: roscore on 127.0.0.1; ROS 2: Cyclone "
-        "DDS on the loopback interface). Listening `path`: only the publishing process "
-        "subscribes (to the paths), and the node builds no output nobody subscribes to; `all`: "
-        "a second process subscribes to every other output too (markers, per-step "
-        "covariances, predicted obstacles, trajectory), so the node builds and sends them all. "
-        "Node CPU: the node process's CPU time (user + system, all threads) while the drive "
-        "plays, per input message (one observation of each opponent); it depends little on "
-        "what else the machine runs, where the latencies' tails do. "
+        "outputs on, the markers of each opponent at most every 0.1 s). Own update: runner "
+        "update + covariance per opponent, inside the node. End to end: publishing an "
+        "observation to receiving its nav_msgs/Path in the publishing process (ROS 1: roscore "
+        "on 127.0.0.1; ROS 2: Cyclone DDS on the loopback interface). Listening `path`: only "
+        "the publishing process subscribes (to the paths), and the node builds no output nobody "
+        "subscribes to; `all`: a second process subscribes to every other output too (markers, "
+        "per-step covariances, predicted obstacles, trajectory), so the node builds and sends "
+        "them all; `all-no-markers`: the same, the node run with --no-markers. Node CPU: the "
+        "node process's CPU time (user + system, all threads) while the drive plays, per input "
+        "message (one observation of each opponent); it depends little on what else the "
+        "machine runs, where the latencies' tails do. "
         f"Each value: the median over {args.runs} runs.",
         "",
         "| middleware | listening | opponents | observations | paths received (fewest) "
@@ -380,12 +411,13 @@ def main() -> None:
         "| own update p50 / p99 [ms] | end to end p50 / p99 [ms] |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    cases = sorted({(mw, listen, r["opponents"]) for mw, listen, r in rows})
-    for mw, listen, n_opp in cases:
-        runs = [r for m, li, r in rows if (m, li, r["opponents"]) == (mw, listen, n_opp)]
+    keys = sorted({(mw, case, r["opponents"]) for mw, case, r in rows},
+                  key=lambda k: (k[0], cases.index(k[1]), k[2]))  # fmt: skip
+    for mw, case, n_opp in keys:
+        runs = [r for m, c, r in rows if (m, c, r["opponents"]) == (mw, case, n_opp)]
         r = {k: float(np.median([x[k] for x in runs])) for k in runs[0]}
         lines.append(
-            f"| {mw} | {listen} | {n_opp} | {runs[0]['observations']} | "
+            f"| {mw} | {case} | {n_opp} | {runs[0]['observations']} | "
             f"{min(x['predictions_received'] for x in runs)} | "
             f"{min(x['others_received'] for x in runs)} | {r['node_cpu_ms']:.2f} | "
             f"{r['update_p50_ms']:.3f} / {r['update_p99_ms']:.3f} | "
@@ -399,13 +431,13 @@ def main() -> None:
         + ", ".join(f"{v:.2f}" for v in load_end)
         + " (2 cores).",
     ]
-    out = HERE / ("node_latency_no_markers.md" if args.no_markers else "node_latency.md")
-    out.write_text("\n".join(lines) + "\n")
+    (HERE / "node_latency.md").write_text("\n".join(lines) + "\n")
 
 
-def _listen(mode: str) -> None:
+def _case(name: str) -> None:
     global LISTEN_ALL
-    LISTEN_ALL = mode == "all"
+    LISTEN_ALL, flags = CASES[name]
+    NODE_ARGS[:] = flags
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ JAX-free and free of cyclonedds and genpy: the rules here are the wire formats.
 
 import numbers
 import operator
+import re
 import struct
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -576,3 +577,126 @@ class CdrCodec:
         if view[:2] != b"\x00\x01":
             raise _Unchecked  # not CDR_LE: for the caller's general decoder
         return self.reader(type_name)(view[4:], 0)[0]
+
+
+# ---- templates: the bytes of messages that differ only in a few numbers ----------------------
+
+
+def _get(msg: Any, path: tuple) -> Any:
+    for key in path:
+        msg = msg[key]
+    return msg
+
+
+_PROBE_DTYPES = {"d": np.dtype("<f8"), "I": np.dtype("<u4"), "i": np.dtype("<i4")}
+_STRING_CODE = re.compile(r"[1-9][0-9]*s")
+
+
+def _probe_values(rng: np.random.Generator, code: str, n: int) -> tuple[list, list[bytes]]:
+    """n distinct values of a leaf code, whose bytes are unlikely anywhere else in a message:
+    (the values for the message dict, their bytes as packed)."""
+    if code in _PROBE_DTYPES:
+        vals = rng.uniform(1.0, 2.0, n) if code == "d" else rng.integers(2**24, 2**31, n)
+        vals = vals.astype(_PROBE_DTYPES[code])
+        return vals.tolist(), [v.tobytes() for v in vals]
+    if not _STRING_CODE.fullmatch(code):
+        raise ValueError(f"struct code {code!r} is not d, I, i or <length>s")
+    letters = rng.integers(ord("a"), ord("z") + 1, (n, int(code[:-1]))).astype(np.uint8)
+    raw = [row.tobytes() for row in letters]
+    return [r.decode() for r in raw], raw
+
+
+class Template:
+    """Messages of one type that differ only in some leaves (stamps, coordinates, strings of a
+    fixed length): the message is encoded once by the type's writer, and each new one is those
+    bytes with the leaves written in by one `struct.Struct.pack` (the bytes between them passed
+    as they are). Works for any wire format whose fixed-size primitives are their little-endian
+    bytes and whose strings are their UTF-8 bytes after a length (CDR, ROS 1), as long as the
+    leaves keep the message's length (never sequence lengths).
+
+    Args:
+        encode: msg dict -> its bytes (the transport's writer).
+        msg: the message with every other field as it is to be sent.
+        groups: {group name: (struct code, [leaf path, ...])}: code "d" (float64), "I"
+            (uint32), "i" (int32) or "<n>s" (a string of n UTF-8 bytes, filled with bytes); a
+            path is the keys and list indices from the message down to one field, e.g.
+            ("header", "stamp", "sec"); `fill` takes each group's values in path order.
+
+    Each leaf is found by encoding the message with every leaf set to a distinct probe value and
+    locating its bytes; the template is then checked to reproduce both encodings byte for byte,
+    so a leaf it cannot place raises ValueError here instead of sending wrong bytes later.
+    """
+
+    def __init__(self, encode: Callable[[Mapping], bytes], msg: Mapping,
+                 groups: Mapping[str, tuple[str, list[tuple]]]):  # fmt: skip
+        rng = np.random.default_rng(0)
+        probe, probes, patterns = _copy(msg), {}, {}
+        for name, (code, paths) in groups.items():
+            try:
+                probes[name], patterns[name] = _probe_values(rng, code, len(paths))
+            except ValueError as e:
+                raise ValueError(f"Template: group {name!r}: {e}") from None
+            for path, v in zip(paths, probes[name], strict=True):
+                _set(probe, path, v)
+        base_bytes, probe_bytes = bytes(encode(msg)), bytes(encode(probe))
+        if len(base_bytes) != len(probe_bytes):
+            raise ValueError("Template: a leaf changes the message's length")
+        leaves = []  # (offset, code, group, index in the group)
+        for name, (code, paths) in groups.items():
+            for k, (path, pattern) in enumerate(zip(paths, patterns[name])):
+                at = probe_bytes.find(pattern)
+                if at < 0 or probe_bytes.find(pattern, at + 1) >= 0:
+                    raise ValueError(f"Template: cannot place the leaf {path} of group {name!r}")
+                leaves.append((at, code, name, k))
+        leaves.sort()
+        fmt, args, pos = ["<"], [], 0
+        self._slots: dict[str, list[int]] = {name: [0] * len(g[1]) for name, g in groups.items()}
+        # a string group's byte length: struct would pad or cut other lengths silently
+        self._lengths = {n: int(g[0][:-1]) for n, g in groups.items() if g[0].endswith("s")}
+        for at, code, name, k in leaves:
+            if at < pos:
+                raise ValueError(f"Template: leaves of group {name!r} overlap")
+            if at > pos:
+                fmt.append(f"{at - pos}s")
+                args.append(base_bytes[pos:at])
+            fmt.append(code)
+            self._slots[name][k] = len(args)
+            args.append(0)
+            pos = at + struct.calcsize(code)
+        if pos < len(base_bytes):
+            fmt.append(f"{len(base_bytes) - pos}s")
+            args.append(base_bytes[pos:])
+        self._struct = struct.Struct("".join(fmt))
+        self._args = args
+        filled = self.fill(**{n: [p if n in self._lengths else v for v, p in
+                                  zip(probes[n], patterns[n])] for n in groups})  # fmt: skip
+        base = {n: [_get(msg, p) for p in paths] for n, (_, paths) in groups.items()}
+        base = {n: [v.encode() for v in b] if n in self._lengths else b for n, b in base.items()}
+        if filled != probe_bytes or self.fill(**base) != base_bytes:
+            raise ValueError("Template: the leaves do not account for the message's bytes")
+
+    def fill(self, **values: Any) -> bytes:
+        """One message's bytes: each group's values (Python numbers; a string group's bytes)
+        in path order; raises struct.error for a number its field cannot hold, ValueError for
+        a string of another length."""
+        args = self._args.copy()
+        for name, slots in self._slots.items():
+            for slot, v in zip(slots, values[name], strict=True):
+                args[slot] = v
+        for name, n in self._lengths.items():
+            if any(len(v) != n for v in values[name]):
+                raise ValueError(f"Template: group {name!r} takes strings of {n} bytes")
+        return self._struct.pack(*args)
+
+
+def _copy(msg: Any) -> Any:
+    """A copy of nested dicts and lists (leaves shared)."""
+    if isinstance(msg, Mapping):
+        return {k: _copy(v) for k, v in msg.items()}
+    if isinstance(msg, list | tuple):
+        return [_copy(v) for v in msg]
+    return msg
+
+
+def _set(msg: Any, path: tuple, value: Any) -> None:
+    _get(msg, path[:-1])[path[-1]] = value

@@ -127,7 +127,8 @@ def add_parser(subparsers, **kw) -> argparse.ArgumentParser:
         type=float,
         default=1.0,
         metavar="S",
-        help="publish the OpponentTrajectory every S seconds (1.0)",
+        help="look at the OpponentTrajectory every S seconds (1.0): sent when the line changed "
+        "or a subscriber joined since the last one sent",
     )
     p.add_argument("--node-name", default="future_pose_estimator", help="ROS node name")
     p.add_argument("--domain-id", type=int, help="ROS 2 domain id (default: ROS_DOMAIN_ID or 0)")

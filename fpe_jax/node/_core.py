@@ -1,8 +1,9 @@
 """The middleware-neutral live node: input messages in, one `Runner` per opponent, outputs out.
 
-The core sees messages only as nested dicts (see `Transport`); ROS 1 and ROS 2 differ in the
+The core reads messages as nested dicts (see `Transport`); ROS 1 and ROS 2 differ in the
 header (`seq`, `secs`/`nsecs` against `sec`/`nanosec`), which `stamp_ns` reads and `header`
-writes per flavour.
+writes per flavour. It writes its per-prediction outputs as the transport's bytes, filled into
+templates of each layout (`fpe_jax.node._wire`).
 
 Inputs (one kind per node):
 - `pose`: geometry_msgs/PoseStamped or nav_msgs/Odometry of the opponent in the map frame;
@@ -14,7 +15,7 @@ Inputs (one kind per node):
 Outputs per valid prediction (each one optional, see `OUTPUTS`): visualization_msgs/MarkerArray
 (points, line, 1-sigma ellipses), nav_msgs/Path, one geometry_msgs/PoseWithCovarianceStamped per
 step, f110_msgs/ObstacleArray of the predicted state and f110_msgs/OpponentTrajectory of a line
-model's learned line.
+model's learned line (when it changed, or for a new subscriber).
 
 Time: every output header carries the stamp of the observation the prediction was made from; step
 k's pose is stamped with that stamp + k * dt_s (as `fpe predict`'s `stamp + horizon_s`). The
@@ -44,12 +45,9 @@ from fpe_jax.io import ros_msgs as rm
 from fpe_jax.io.apriltag import parse_tag_to_base, place_tag, tag_frame_name, tag_mount
 from fpe_jax.io.tf import STATIC_SUFFIX, Rigid, TfBuffer
 from fpe_jax.node._types import OUTPUTS
+from fpe_jax.node._wire import Wire, header
 from fpe_jax.runner._runner import Runner
 
-MARKER_LINE_LIST = 5
-MARKER_LINE_STRIP = rm.MARKER_LINE_STRIP
-MARKER_SPHERE_LIST = rm.MARKER_SPHERE_LIST
-ELLIPSE_POINTS = 16  # segments of each 1-sigma ellipse
 TF_KEEP_S = 10.0  # the live TF buffer keeps this much of each dynamic edge
 MAX_PENDING = 64  # detections waiting for their TF
 
@@ -61,7 +59,10 @@ TF_TYPE = "tf2_msgs/msg/TFMessage"
 
 @runtime_checkable
 class Transport(Protocol):
-    """A middleware (ROS 1, ROS 2): messages as nested dicts; see docs/on-the-car.md."""
+    """A middleware (ROS 1, ROS 2): messages as nested dicts; see docs/on-the-car.md.
+
+    `advertise` returns publish(msg), msg a dict or bytes that `encode` made (or a `Template`
+    filled from them): the node writes its outputs as bytes."""
 
     flavour: str
 
@@ -69,7 +70,9 @@ class Transport(Protocol):
         self, topic: str, type_name: str | None, callback: Callable[[dict, str, int], None]
     ) -> None: ...
 
-    def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]: ...
+    def advertise(self, topic: str, type_name: str) -> Callable[[dict | bytes], None]: ...
+
+    def encode(self, type_name: str, msg: dict) -> bytes: ...
 
     def subscriber_count(self, topic: str) -> int: ...
 
@@ -117,20 +120,6 @@ def stamp_ns(t: dict) -> int:
     if "sec" in t:
         return int(t["sec"]) * 1_000_000_000 + int(t["nanosec"])
     return int(t["secs"]) * 1_000_000_000 + int(t["nsecs"])
-
-
-def time_dict(flavour: str, ns: int) -> dict:
-    """Time (or Duration) fields of `ns` nanoseconds in the flavour's spelling."""
-    sec, nsec = divmod(int(ns), 1_000_000_000)
-    return {"secs": sec, "nsecs": nsec} if flavour == "ros1" else {"sec": sec, "nanosec": nsec}
-
-
-def header(flavour: str, ns: int, frame_id: str) -> dict:
-    return {"stamp": time_dict(flavour, ns), "frame_id": frame_id}
-
-
-def _pose(x: float, y: float, yaw: float) -> dict:
-    return {"position": {"x": x, "y": y, "z": 0.0}, "orientation": rm.yaw_to_quaternion(yaw)}
 
 
 def _finite(*values) -> bool:
@@ -200,9 +189,13 @@ class Node:
         self._lock = threading.Lock()
         self._pub: dict[str, Callable[[dict], None]] = {}
         self._last_trajectory_ns = -(10**30)
+        self._trajectory_sent: tuple | None = None  # the line last sent, and to how many
+        self._trajectory_subs = 0
         self._last_markers_ns: dict[str, int] = {}  # monotonic time of each car's last markers
         self.n_published = 0
         self.update_ns: list[int] = []  # own time of each update (for the latency benchmark)
+        self.wire = Wire(transport.encode, self.flavour, options.map_frame, self.horizon,
+                         self.dt_s, self._obstacle_var())  # fmt: skip
 
     # -- setup
 
@@ -224,6 +217,7 @@ class Node:
             raise ValueError(f"NodeOptions.input: {o.input!r} is not pose, tags or obstacles")
         if self.scene is not None:
             self.scene.track(np.asarray(self.path._table[:, :2]))
+        self.wire.prepare(self.cov_track_m2 is not None)
         self._publish_trajectory(time.monotonic_ns())
 
     # -- warnings
@@ -431,30 +425,25 @@ class Node:
         if publish:
             self._publish([out])
         if self.scene is not None:
-            steps = ns + np.round(np.arange(1, self.horizon + 1) * self.dt_s * 1e9).astype(np.int64)
+            steps = ns + self.wire.step_ns
             zero = np.zeros((self.horizon, 2, 2))
             self.scene.prediction(car, ns, poses, zero if cov is None else cov, steps, True)
         return out
 
     def _covariance(self, poses: np.ndarray, s_m: float):
         """(map-frame covariance (H, 2, 2) [m^2] or None, arc lengths (H,) [m] of the steps):
-        the config's per-step track-frame covariance turned by the path heading at each step."""
-        along, s = [], s_m
-        for x, y, _ in poses.tolist():
-            s = self.path.project_window(x, y, s)
-            along.append(s)
+        the config's per-step track-frame covariance turned by the path heading at each step,
+        each step's arc length searched in the window around the previous one's."""
+        path = self.path
+        along = path.project_chain(poses[:, :2], s_m)
         if self.cov_track_m2 is None:
             return None, along
-        h = np.array([self.path.heading_at(s) for s in along])
+        h = np.array([path.heading_at(s) for s in along])
         c, sn = np.cos(h), np.sin(h)
         rot = np.stack([np.stack([c, -sn], -1), np.stack([sn, c], -1)], -2)
         return rot @ self.cov_track_m2 @ np.swapaxes(rot, -1, -2), along
 
     # -- outputs
-
-    def step_ns(self, ns: int) -> list[int]:
-        """Stamps [ns] of the H predicted steps of an observation at `ns`."""
-        return [ns + round(k * self.dt_s * 1e9) for k in range(1, self.horizon + 1)]
 
     def _topic(self, name: str, car: str) -> str | None:
         """Per-opponent topics of the per-car outputs when several opponents are tracked:
@@ -470,7 +459,7 @@ class Node:
             self._pub[key] = self.transport.advertise(sub, OUTPUTS[name][1])
         return self._pub[key]
 
-    def _live(self, name: str, car: str | None = None) -> Callable[[dict], None] | None:
+    def _live(self, name: str, car: str | None = None) -> Callable[[Any], None] | None:
         """The publisher of output `name` (of a per-car output: the car's own topic when several
         opponents are tracked), or None when the output is off or nobody subscribes to its
         topic: a message nobody receives is neither built nor encoded."""
@@ -487,20 +476,14 @@ class Node:
         self._publish_views(outs)
 
     def _publish_paths(self, outs: list) -> None:
-        f, frame = self.flavour, self.opt.map_frame
         for car, ns, poses, _, _ in outs:
             pub = self._live("path", car)
-            if pub is None:
-                continue
-            steps = zip(self.step_ns(ns), poses.tolist())
-            pub({"header": header(f, ns, frame),
-                 "poses": [{"header": header(f, t, frame), "pose": _pose(x, y, yaw)}
-                           for t, (x, y, yaw) in steps]})  # fmt: skip
+            if pub is not None:
+                pub(self.wire.path(ns, poses))
 
     def _publish_views(self, outs: list) -> None:
         """The outputs after the paths: the predicted ObstacleArray, the markers, the
-        covariances and (every trajectory_every_s) the trajectory."""
-        f, frame = self.flavour, self.opt.map_frame
+        covariances and (every trajectory_every_s, when it changed) the trajectory."""
         if self._live("obstacles") is not None:
             self._pub["obstacles"](self._obstacle_array(outs[0][1], outs))
         if self._live("markers") is not None:
@@ -509,11 +492,8 @@ class Node:
             pub = None if cov is None else self._live("covariance", car)
             if pub is None:
                 continue
-            for t, (x, y, yaw), c in zip(self.step_ns(ns), poses.tolist(), cov.tolist()):
-                full = [0.0] * 36
-                full[0], full[1], full[6], full[7] = c[0][0], c[0][1], c[1][0], c[1][1]
-                pub({"header": header(f, t, frame),
-                     "pose": {"pose": _pose(x, y, yaw), "covariance": full}})  # fmt: skip
+            for data in self.wire.covariances(ns, poses, cov):
+                pub(data)
         self.n_published += len(outs)
         self._publish_trajectory(time.monotonic_ns())
 
@@ -528,58 +508,31 @@ class Node:
         if now_ns - last.get(car, -(10**30)) < self.opt.markers_every_s * 1e9:
             return
         last[car] = now_ns
-        self._pub["markers"]({"markers": self._markers(car, ns, poses, cov)})
+        self._pub["markers"](self.wire.markers(car, ns, poses, cov))
 
-    def _marker(self, car, ns, ident, kind, points, rgba, width=0.08) -> dict:
-        r, g, b, a = rgba
-        return {
-            "header": header(self.flavour, ns, self.opt.map_frame),
-            "ns": f"future_pose/{car}",
-            "id": ident,
-            "type": kind,
-            "action": 0,
-            "pose": _pose(0.0, 0.0, 0.0),
-            "scale": {"x": width, "y": width, "z": width},
-            "color": {"r": r, "g": g, "b": b, "a": a},
-            # a track that stops being predicted disappears instead of freezing
-            "lifetime": time_dict(self.flavour, 500_000_000),
-            "points": [{"x": x, "y": y, "z": 0.0} for x, y in points],
-        }
-
-    def _markers(self, car, ns, poses, cov) -> list[dict]:
-        pts = poses[:, :2].tolist()
-        out = [
-            self._marker(car, ns, 0, MARKER_SPHERE_LIST, pts, (0.0, 1.0, 0.0, 1.0)),
-            self._marker(car, ns, 1, MARKER_LINE_STRIP, pts, (0.0, 1.0, 0.0, 0.6), 0.03),
-        ]
-        if cov is not None:
-            rings = ellipse_points(poses[:, :2], cov)  # (H, n + 1, 2)
-            seg = np.stack([rings[:, :-1], rings[:, 1:]], axis=2).reshape(-1, 2).tolist()
-            out.append(self._marker(car, ns, 2, MARKER_LINE_LIST, seg, (0.0, 0.6, 1.0, 0.8), 0.02))
-        return out
-
-    def _obstacle_array(self, ns: int, outs) -> dict:
+    def _obstacle_array(self, ns: int, outs) -> bytes:
         """f110_msgs/ObstacleArray of the predicted state at the first step (stamp + dt_s)."""
-        obstacles = []
-        for car, _, poses, _, along in outs:
-            d = [self._offset(x, y, s) for (x, y, _), s in zip(poses.tolist(), along)]
-            o = {
-                "id": int(car),
-                "s_start": along[0] - 0.25, "s_end": along[0] + 0.25,
-                "d_right": d[0] - 0.15, "d_left": d[0] + 0.15,
-                "s_center": along[0], "d_center": d[0], "size": 0.5,
-                "vs": (along[1] - along[0]) / self.dt_s, "vd": (d[1] - d[0]) / self.dt_s,
-                "is_static": False, "is_visible": True,
-            }  # fmt: skip
-            if self.flavour == "ros1":
-                var = (np.zeros(2) if self.cov_track_m2 is None
-                       else np.diag(self.cov_track_m2[0]))  # fmt: skip
-                var1 = np.zeros(2) if self.cov_track_m2 is None else np.diag(self.cov_track_m2[1])
-                vvar = (var + var1) / self.dt_s**2  # two steps' errors taken as independent
-                o |= {"s_var": float(var[0]), "d_var": float(var[1]),
-                      "vs_var": float(vvar[0]), "vd_var": float(vvar[1])}  # fmt: skip
-            obstacles.append(o)
-        return {"header": header(self.flavour, ns, self.opt.map_frame), "obstacles": obstacles}
+        values = []
+        for _, _, poses, _, along in outs:
+            (x0, y0, _), (x1, y1, _) = poses[:2].tolist()
+            s0, s1 = along[0], along[1]
+            d0, d1 = self._offset(x0, y0, s0), self._offset(x1, y1, s1)
+            values.append([s0 - 0.25, s0 + 0.25, d0 - 0.15, d0 + 0.15, s0, d0,
+                           (s1 - s0) / self.dt_s, (d1 - d0) / self.dt_s])  # fmt: skip
+        return self.wire.obstacles(ns, [int(o[0]) for o in outs], values)
+
+    def _obstacle_var(self) -> dict | None:
+        """The ROS 1 ObstacleArray's variances (None on ROS 2, whose definition has none): the
+        first step's along / cross-track ones, the speeds' from steps 1 and 2 taken as
+        independent."""
+        if self.flavour != "ros1":
+            return None
+        if self.cov_track_m2 is None:
+            return {"s_var": 0.0, "d_var": 0.0, "vs_var": 0.0, "vd_var": 0.0}
+        var, var1 = np.diag(self.cov_track_m2[0]), np.diag(self.cov_track_m2[1])
+        vvar = (var + var1) / self.dt_s**2
+        return {"s_var": float(var[0]), "d_var": float(var[1]),
+                "vs_var": float(vvar[0]), "vd_var": float(vvar[1])}  # fmt: skip
 
     def _offset(self, x: float, y: float, s_m: float) -> float:
         cx, cy = self.path.point_at(s_m)
@@ -587,20 +540,34 @@ class Node:
         return (y - cy) * math.cos(h) - (x - cx) * math.sin(h)
 
     def _publish_trajectory(self, now_ns: int) -> None:
-        """The line model's learned line and speed profile, every trajectory_every_s."""
+        """The line model's learned line and speed profile: looked at every trajectory_every_s,
+        sent when it changed since the last one sent or a subscriber joined since (a fixed
+        config's line goes out once per new subscriber)."""
         if now_ns - self._last_trajectory_ns < self.opt.trajectory_every_s * 1e9:
             return
-        if self._live("trajectory") is None:
-            return
         self._last_trajectory_ns = now_ns
-        self._pub["trajectory"](self.trajectory_message())
+        if "trajectory" not in self._pub:
+            return
+        n_subs = self.transport.subscriber_count(self.opt.outputs["trajectory"])
+        p = self._trajectory_params()
+        line = (tuple(p["line_offset_m"]), tuple(p["line_speed_mps"]))
+        if n_subs == 0 or (line == self._trajectory_sent and n_subs <= self._trajectory_subs):
+            self._trajectory_subs = n_subs  # one that left: the next to join gets it again
+            return
+        self._pub["trajectory"](self.trajectory_message(params=p))
+        self._trajectory_sent, self._trajectory_subs = line, n_subs
 
-    def trajectory_message(self, stamp: int = 0) -> dict:
-        """f110_msgs/OpponentTrajectory of the config's line (with adapt: the line learned by
-        the opponent seen most): one OppWpnt per line point."""
-        p = self.config["params"]
+    def _trajectory_params(self) -> dict:
+        """The params whose line the trajectory shows: the config's, with adapt the learned
+        ones of the opponent seen most."""
         if self.opt.adapt and self.runners:
-            p = max(self.runners.values(), key=lambda r: r.samples).state_config()["params"]
+            return max(self.runners.values(), key=lambda r: r.samples).state_config()["params"]
+        return self.config["params"]
+
+    def trajectory_message(self, stamp: int = 0, params: dict | None = None) -> dict:
+        """f110_msgs/OpponentTrajectory of the config's line (with adapt: the line learned by
+        the opponent seen most; or `params`'): one OppWpnt per line point."""
+        p = self._trajectory_params() if params is None else params
         offset, speed = p["line_offset_m"], p["line_speed_mps"]
         n = len(offset)
         length = self.path.length_m
@@ -626,16 +593,6 @@ def frenet_to_map(path, s_m: float, d_m: float) -> tuple[float, float]:
     cx, cy = path.point_at(s_m)
     h = path.heading_at(s_m)
     return cx - d_m * math.sin(h), cy + d_m * math.cos(h)
-
-
-def ellipse_points(center_m: np.ndarray, cov_m2: np.ndarray, n: int = ELLIPSE_POINTS):
-    """(..., n + 1, 2) closed rings x [m], y [m] on the 1-sigma ellipses of (..., 2, 2)
-    covariances [m^2] around (..., 2) centres."""
-    vals, vecs = np.linalg.eigh(cov_m2)
-    a = np.linspace(0.0, 2.0 * np.pi, n + 1)
-    axes = vecs * np.sqrt(np.maximum(vals, 0.0))[..., None, :]  # columns: the scaled axes
-    ring = np.einsum("...ij,jk->...ki", axes, np.stack([np.cos(a), np.sin(a)]))
-    return ring + center_m[..., None, :]
 
 
 def _stderr(line: str) -> None:

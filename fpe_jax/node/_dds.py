@@ -465,9 +465,15 @@ class DdsTransport:
                 self._add_reader(topic, type_name, callback)
             self._wake.set(True)  # spin() reads discovery and resolves the type
 
-    def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]:
-        """Return publish(msg_dict) for `topic`: a reliable, volatile, keep-last 10 writer
-        (TF: keep-last 100, transient local on `*_static`).
+    def encode(self, type_name: str, msg: Mapping) -> bytes:
+        """The CDR bytes (with the encapsulation header) `advertise`'s publish sends for a
+        message dict; raises ValueError for one that does not fit the type."""
+        return self.codec.encode(type_name, msg)
+
+    def advertise(self, topic: str, type_name: str) -> Callable[[Any], None]:
+        """Return publish(msg) for `topic`: a reliable, volatile, keep-last 10 writer
+        (TF: keep-last 100, transient local on `*_static`). msg: a dict, or the bytes of one
+        made by `encode` (sent as they are).
         publish raises ValueError for a message that does not fit the type (unknown field,
         wrong kind of value, out of range)."""
         topic = _ros_topic(topic)
@@ -496,10 +502,10 @@ class DdsTransport:
         encode = self.codec.encode
         ref = writer._ref
 
-        def publish(msg: dict) -> None:
+        def publish(msg: Any) -> None:
             # the CDR bytes straight to the C writer (DataWriter.write would build an IDL
             # sample and serialize it in Python first); padded as DataWriter.write pads them
-            data = encode(type_name, msg)
+            data = msg if msg.__class__ is bytes else encode(type_name, msg)
             ret = ddspy_write(ref, data + bytes(-len(data) & 3))
             if ret < 0:
                 raise DDSException(ret, f"writing a sample on ROS 2 topic {topic}")

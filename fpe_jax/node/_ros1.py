@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import functools
 import importlib
+import io
 import struct
 import sys
 import threading
@@ -38,6 +39,11 @@ except ImportError as e:  # pragma: no cover - depends on the machine
         "Debian's ROS 1 packages: apt-get install python3-rospy python3-genpy ros-core "
         "python3-geometry-msgs python3-nav-msgs python3-visualization-msgs python3-tf2-msgs",
     ) from None
+
+# messages each output connection holds for rospy's writer thread: a prediction's per-step
+# covariances come as a burst of H (10) messages, which a queue of 10 would shed whenever the
+# writer thread waits for the CPU through one input period; publishing never blocks either way
+OUTPUT_QUEUE = 100
 
 _CLASSES: dict[str, type] = {}
 _LOCK = threading.Lock()
@@ -136,6 +142,14 @@ def _writer() -> Ros1Writer:
     return Ros1Writer(typestore("ros1"))
 
 
+@functools.cache
+def _generated(full_type: str, cls: type) -> bool:
+    """Whether the generated writer of `full_type` ("pkg/msg/Type") writes `cls`'s messages:
+    the type store holds the type with the class's md5."""
+    store = typestore("ros1")
+    return full_type in store.fielddefs and store.generate_msgdef(full_type, 1)[1] == cls._md5sum
+
+
 class _Seq:
     """The header rospy stamps its sequence number into before serializing a message."""
 
@@ -224,25 +238,32 @@ class Ros1Transport:
             )
         self._subs.append(sub)
 
-    def advertise(self, topic: str, type_name: str) -> Callable[[dict], None]:
-        """publish(msg_dict) for `topic`: the message serialized by the type's generated writer
-        (`fpe_jax.node._cdr.Ros1Writer`) when the type store's definition is the class's (same
-        md5), else, and for a message that writer does not take, by genpy from `from_dict`."""
-        cls = message_class(type_name)
-        pub = rospy.Publisher(topic, cls, queue_size=10, tcp_nodelay=True)
-        self._pubs[topic] = pub
+    def encode(self, type_name: str, msg: dict) -> bytes:
+        """The ROS 1 bytes `advertise`'s publish sends for a message dict (header seq 0: rospy
+        writes its own): by the type's generated writer (`fpe_jax.node._cdr.Ros1Writer`) when
+        the type store's definition is the class's (same md5), else, and for a message that
+        writer does not take, by genpy from `from_dict` (ValueError naming a field it refuses)."""
         full = ros1_name(type_name).replace("/", "/msg/", 1)
-        store = typestore("ros1")
-        if full not in store.fielddefs or store.generate_msgdef(full, 1)[1] != cls._md5sum:
-            return lambda d: pub.publish(from_dict(cls, d))
-        encode, raw = _writer().encode, _raw_class(cls)
-
-        def publish(d: dict) -> None:
+        cls = message_class(type_name)
+        if _generated(full, cls):
             try:
-                data = encode(full, d)
+                return _writer().encode(full, msg)
             except Exception:  # genpy's conversion takes it or says what is wrong
-                pub.publish(from_dict(cls, d))
-                return
+                pass
+        buff = io.BytesIO()
+        from_dict(cls, msg).serialize(buff)
+        return buff.getvalue()
+
+    def advertise(self, topic: str, type_name: str) -> Callable[[dict | bytes], None]:
+        """publish(msg) for `topic`: msg a dict, or the bytes of one made by `encode`, sent as
+        they are (rospy stamps its sequence number into the header)."""
+        cls = message_class(type_name)
+        pub = rospy.Publisher(topic, cls, queue_size=OUTPUT_QUEUE, tcp_nodelay=True)
+        self._pubs[topic] = pub
+        raw = _raw_class(cls)
+
+        def publish(msg: dict | bytes) -> None:
+            data = msg if msg.__class__ is bytes else self.encode(type_name, msg)
             pub.publish(raw.of(data))
 
         return publish

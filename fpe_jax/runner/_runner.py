@@ -116,6 +116,9 @@ def _median(values: list[float]) -> float:
     return (v[(n - 1) // 2] + v[n // 2]) * 0.5
 
 
+GUESS_ITERS = 4
+
+
 class RunnerPath:
     """The resampled track (same points as fpe_jax.geometry.Track) with its geometry on floats.
 
@@ -257,6 +260,53 @@ class RunnerPath:
             return s
         half = 0.5 * self.length_m
         return s_hint_m + ((s - s_hint_m + half) % self.length_m - half)
+
+    def project_chain(self, xy_m: np.ndarray, s_start_m: float) -> list[float]:
+        """Arc lengths [m] of consecutive points (N, 2) [m], each `project_window` of the point
+        around the previous one's arc length (the first around s_start_m [m]): the same values
+        as that loop, at about half its cost for N = 10.
+
+        The windows are guessed (from `project_local`, a few float operations a point) and the
+        points searched in them all at once; from the first point whose window is not the one
+        the loop would search (its hint's segment differs), the points are searched again
+        around the arc lengths just found, until every window is the loop's.
+        """
+        xs, ys = xy_m[:, 0], xy_m[:, 1]
+        guess, s = [], s_start_m
+        px, py = self.point_at(s_start_m)
+        for x, y in zip(xs.tolist(), ys.tolist()):
+            guess.append(s)
+            s = self.project_local(x, y, s + math.hypot(x - px, y - py))
+            px, py = x, y
+        out, s, half = [], s_start_m, 0.5 * self.length_m
+        while len(out) < len(guess):
+            first = len(out)
+            base = np.floor(np.array(guess[first:]) / self.ds_m).astype(np.int64)
+            found = self._search_rows(xs[first:], ys[first:], base)
+            for b, raw in zip(base.tolist(), found):
+                if math.floor(s / self.ds_m) != b:  # not the loop's window: search again
+                    guess[len(out) :] = [s, *found[len(out) - first : -1]]
+                    break
+                s = s + ((raw - s + half) % self.length_m - half) if self.closed else raw
+                out.append(s)
+        return out
+
+    def _search_rows(self, xs: np.ndarray, ys: np.ndarray, base: np.ndarray) -> list[float]:
+        """`_nearest` of each point (N,) [m] in the window of segments from its base segment
+        (N,) on (as `project_window` places it), all at once; arc lengths [m] before the seam
+        rule."""
+        idx = base[:, None] + self._window
+        idx = idx % self._m if self.closed else np.clip(idx, 0, self._m - 2)
+        ax, ay, abx, aby, ab2 = self._seg[:, idx]  # (N, W) each
+        x, y = xs[:, None], ys[:, None]
+        t = ((x - ax) * abx + (y - ay) * aby) / ab2
+        np.maximum(t, 0.0, out=t)
+        np.minimum(t, 1.0, out=t)
+        dx = ax + t * abx - x
+        dy = ay + t * aby - y
+        k = np.argmin(dx * dx + dy * dy, axis=1)  # the first minimum of each row
+        rows = np.arange(len(k))
+        return ((idx[rows, k] + t[rows, k]) * self.ds_m).tolist()
 
 
 class _ArrayPath(RunnerPath):

@@ -10,12 +10,18 @@ import pytest
 from fpe_jax.io.config import params_to_config
 from fpe_jax.model._history import drive_valid
 from fpe_jax.model._params import presets
+from fpe_jax.node._cdr import CdrCodec
 from fpe_jax.node._core import Node, NodeOptions
+from fpe_jax.node._types import typestore
 from fpe_jax.runner._runner import Runner
 from fpe_jax.sim._sim import simulate
 
+CODEC = CdrCodec(typestore("ros2"))
+
 
 class FakeTransport:
+    """ROS 2 in memory: what the node publishes, as the dicts its CDR bytes decode to."""
+
     flavour = "ros2"
 
     def __init__(self):
@@ -24,9 +30,16 @@ class FakeTransport:
     def subscribe(self, topic, type_name, callback):
         self.subs[topic] = callback
 
+    def encode(self, type_name, msg):
+        return CODEC.encode(type_name, msg)
+
     def advertise(self, topic, type_name):
         self.out[topic] = []
-        return self.out[topic].append
+
+        def publish(msg):
+            self.out[topic].append(CODEC.decode(type_name, msg) if isinstance(msg, bytes) else msg)
+
+        return publish
 
     def subscriber_count(self, topic):
         return 1 if topic in self.out else 0
@@ -112,9 +125,9 @@ def test_outputs_nobody_subscribes_to_are_not_built():
     nodes = [Node(t, cfg, res.centerline_xy_m, opts) for t in (every, some)]
     for node in nodes:
         node.start()
-    built, markers = [], nodes[1]._markers
-    nodes[1]._markers = lambda *a: built.append(1) or markers(*a)
-    assert nodes[0]._markers != nodes[1]._markers
+    built, markers = [], nodes[1].wire.markers
+    nodes[1].wire.markers = lambda *a: built.append(1) or markers(*a)
+    assert nodes[0].wire.markers != nodes[1].wire.markers
     half = len(d.t_s) // 2
     for k, ts in enumerate(d.t_s):
         if k == half:
@@ -436,3 +449,56 @@ def test_node_settings_out_of_range_are_refused_at_start(tmp_path, flags):
     args = parser.parse_args([*base, "--waypoints", str(tmp_path / "wp.csv"), *flags])
     with pytest.raises(InputError, match=flags[0]):
         _cli.options_from_args(args, FakeTransport())
+
+
+def test_trajectory_goes_out_when_it_changes_or_a_subscriber_joins():
+    """The OpponentTrajectory is looked at every --trajectory-every (here every message): a
+    fixed line goes out once, again when a subscriber joins (not when one leaves), and again
+    when the line changes."""
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.model._params import Params, Settings
+
+    res = simulate("oval", duration_s=5.0, seed=6)
+    d, n = res.drive, 24
+    params = Params.create(
+        Settings(model="line"), weights=1.0, line_offset_m=0.1 * np.sin(np.arange(n) * 0.4),
+        line_speed_mps=np.full(n, 4.5), line_coverage=np.ones(n),
+    )  # fmt: skip
+    line = {"waypoints_sha256": waypoints_sha256(res.centerline_xy_m), "waypoints": "wp.csv"}
+    cfg = params_to_config(params, line=line)
+
+    class Counted(FakeTransport):
+        subscribers = 1
+
+        def subscriber_count(self, topic):
+            return self.subscribers
+
+    t = Counted()
+    opts = NodeOptions(input="pose", topic="/opp", trajectory_every_s=0.0)
+    node = Node(t, cfg, res.centerline_xy_m, opts)
+    node.start()
+    sent = t.out["/opponent_trajectory"]
+
+    def feed(rows):
+        for k in rows:
+            ns = 10**9 + round(float(d.t_s[k]) * 1e9)
+            x, y = (float(v) for v in d.xy_m[k])
+            t.subs["/opp"](pose_msg(ns, x, y), "geometry_msgs/msg/PoseStamped", k)
+
+    feed(range(0, 20))
+    assert len(sent) == 1  # at start, then unchanged
+    t.subscribers = 2
+    feed(range(20, 25))
+    assert len(sent) == 2  # a subscriber joined
+    t.subscribers = 1
+    feed(range(25, 30))
+    t.subscribers = 2
+    feed(range(30, 35))
+    assert len(sent) == 3  # one left, one joined: the newcomer gets it
+    node.config["params"]["line_offset_m"] = list(-0.2 * np.ones(n))
+    feed(range(35, 40))
+    assert len(sent) == 4  # the line changed
+    assert [w["d_m"] for w in sent[-1]["oppwpnts"]] == [-0.2] * n
+    np.testing.assert_allclose(
+        [w["d_m"] for w in sent[0]["oppwpnts"]], 0.1 * np.sin(np.arange(n) * 0.4)
+    )

@@ -25,7 +25,7 @@ from node_helpers import (
     stop_node,
     wait_for,
 )
-from ros1_helpers import need_ros1, roscore
+from ros1_helpers import need_ros1, node_connections, roscore
 
 from fpe_jax.io.logs import open_log
 from fpe_jax.runner._runner import Runner, load_waypoints_xy
@@ -87,16 +87,22 @@ class Collector:
 
 
 def wait_connected(pubs, subs, proc, timeout=60.0):
+    """Until this process's publishers `pubs` hold a connection to the node, and the node holds
+    one to each subscriber of `subs` by its own account: the node builds no output it sees no
+    subscriber for, and may see one later than the subscriber sees the node."""
     deadline = time.monotonic() + timeout
+    outputs = {(s.resolved_name, "o") for s in subs}
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise AssertionError(f"the node exited: {proc.communicate()[1]}")
-        if all(p.get_num_connections() > 0 for p in pubs) and all(
-            s.get_num_connections() > 0 for s in subs
+        if (
+            all(p.get_num_connections() > 0 for p in pubs)
+            and all(s.get_num_connections() > 0 for s in subs)
+            and outputs <= node_connections()
         ):
             return
         time.sleep(0.1)
-    raise AssertionError("the node did not connect")
+    raise AssertionError(f"the node did not connect: it holds {sorted(node_connections())}")
 
 
 def ns_of(t) -> int:
@@ -318,7 +324,8 @@ def test_messages_from_dicts_equal_genpys_own():
 def test_generated_ros1_bytes_equal_genpys():
     """The generated ROS 1 writers (no roscore needed): the zero message of every type of the
     ROS 1 store, and every message the node publishes for two opponents, serialize to the
-    bytes genpy writes for the same dict; a value the checks refuse is refused."""
+    bytes genpy writes for the same dict (the node's bytes are genpy's of the message genpy
+    reads from them); a value the checks refuse is refused."""
     import io
 
     need_ros1()
@@ -355,6 +362,9 @@ def test_generated_ros1_bytes_equal_genpys():
 
         def subscribe(self, topic, type_name, callback):
             self.callback = callback
+
+        def encode(self, type_name, msg):
+            return writer.encode(type_name, msg)
 
         def advertise(self, topic, type_name):
             return lambda msg: self.out.append((type_name, msg))
@@ -401,6 +411,9 @@ def test_generated_ros1_bytes_equal_genpys():
     kinds = {type_name for type_name, _ in t.out}
     assert len(kinds) == 5, kinds  # markers, path, covariance, obstacles, trajectory
     for type_name, msg in t.out:
+        if isinstance(msg, bytes):  # the node's own bytes are genpy's of the message they hold
+            data, msg = msg, r1.to_dict(r1.message_class(type_name)().deserialize(msg))
+            assert genpy_bytes(type_name, msg) == data, type_name
         assert writer.encode(type_name, msg) == genpy_bytes(type_name, msg), type_name
     with pytest.raises(Exception):  # noqa: B017 - any: genpy's conversion then decides
         writer.encode("nav_msgs/msg/Path", {"header": {"stamp": {"secs": -1}}})
