@@ -284,8 +284,11 @@ def test_progress_plain_lines_updating_line_and_quiet():
 
 
 def test_predict_shows_progress_unless_quiet(tmp_path, drive_dir):
-    # without the cache, compiling lasts > 1 s (warm, the whole command may not)
-    r = fpe(*predict_args(drive_dir, tmp_path / "a.csv"), env={"FPE_NO_CACHE": "1"})
+    # without the cache and with XLA's own optimisation (not the suite's debug build, see
+    # conftest), compiling lasts > 1 s (warm, the whole command may not)
+    r = fpe(
+        *predict_args(drive_dir, tmp_path / "a.csv"), env={"FPE_NO_CACHE": "1", "XLA_FLAGS": ""}
+    )
     assert r.returncode == 0, r.stderr
     phases = [ln for ln in r.stderr.splitlines() if ln.startswith("[")]
     assert len(phases) >= 2 and phases[-1].endswith("done")
