@@ -21,7 +21,7 @@ else:
 # The suite compiles a few thousand programs and runs each on little data, so XLA's compiler is
 # most of its time. Its programs (and the commands it starts) compile as a debug build would:
 # without LLVM's optimisation passes and with the loop emitters the stored executables already
-# use, which makes the largest (the fit's loss and gradient) compile 3x faster. Every test
+# use, so the largest (the fit's loss and gradient) compile several times faster. Every test
 # passes either way; FPE_TEST_XLA_OPTIMIZE=1 runs the suite with XLA's own defaults, and the
 # benchmarks and experiments always compile as a user's command does.
 if os.environ.get("FPE_TEST_XLA_OPTIMIZE") != "1":

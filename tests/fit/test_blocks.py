@@ -160,20 +160,24 @@ print(json.dumps(out))
 """
 
 
-def test_a_fit_over_two_forced_cpu_devices_equals_the_one_device_fit(tmp_path):
-    """In a process with two forced host devices, the row blocks split over both (the program
-    adds the devices' partial sums: an all-reduce) give the loss and gradient of one device to
-    1e-12 relative and the same fit (loss to 1e-10 relative, values to 1e-6)."""
+def _run_on_two_devices(script: str, tmp_path) -> dict:
+    """The JSON last printed by `script` run in a process with two forced CPU devices (the
+    suite's XLA flags kept) and a cache folder of its own."""
     env = {
         **os.environ,
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2",
         "FPE_CACHE_DIR": str(tmp_path / "cache"),
     }
-    proc = subprocess.run(
-        [sys.executable, "-c", TWO_DEVICES], capture_output=True, text=True, env=env
-    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_a_fit_over_two_forced_cpu_devices_equals_the_one_device_fit(tmp_path):
+    """In a process with two forced host devices, the row blocks split over both (the program
+    adds the devices' partial sums: an all-reduce) give the loss and gradient of one device to
+    1e-12 relative and the same fit (loss to 1e-10 relative, values to 1e-6)."""
+    out = _run_on_two_devices(TWO_DEVICES, tmp_path)
     assert out["devices"] == 2 and out["all_reduce"]
     assert out["loss_2"] == pytest.approx(out["loss_1"], rel=1e-12)
     g1, g2 = np.array(out["grad_1"]), np.array(out["grad_2"])
@@ -229,16 +233,7 @@ def test_the_line_models_loss_over_two_forced_cpu_devices_equals_one_devices(tmp
     scans' carries start from constants and take in each device's own rows, which
     `jax.shard_map` accepts only when the constants vary by device as the rows do. Loss and
     gradient equal one device's to 1e-12 relative (the order of the sum)."""
-    env = {
-        **os.environ,
-        "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2",
-        "FPE_CACHE_DIR": str(tmp_path / "cache"),
-    }
-    proc = subprocess.run(
-        [sys.executable, "-c", LINE_TWO_DEVICES], capture_output=True, text=True, env=env
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out = _run_on_two_devices(LINE_TWO_DEVICES, tmp_path)
     assert out["devices"] == 2
     assert out["loss_2"] == pytest.approx(out["loss_1"], rel=1e-12)
     g1, g2 = np.array(out["grad_1"]), np.array(out["grad_2"])
