@@ -35,8 +35,30 @@ if os.environ.get("FPE_TEST_XLA_OPTIMIZE") != "1":
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
+import ast  # noqa: E402
+
 import jax  # noqa: E402
 import pytest  # noqa: E402
+from jaxtyping import _import_hook  # noqa: E402
+
+
+# The run-time checks (`--jaxtyping-packages` in pyproject.toml) decorate every function of
+# fpe_jax as its module loads, and so every function nested in another: a nested function is
+# defined anew on each call of its outer one, and each definition builds, compiles and decorates
+# a checking wrapper (jaxtyping's exec plus beartype's), which made the I/O tests three times
+# slower (tests/io/test_apriltag.py 94 -> 35 s). Module-level functions, classes and methods,
+# which carry the annotations users rely on, stay checked on every call; nested helpers do not.
+def _check_outer_functions_only(transformer, node):
+    if any(isinstance(p, ast.FunctionDef | ast.AsyncFunctionDef) for p in transformer._parents):
+        transformer._parents.append(node)
+        transformer.generic_visit(node)
+        transformer._parents.pop()
+        return node
+    return _check_every_function(transformer, node)
+
+
+_check_every_function = _import_hook.JaxtypingTransformer.visit_FunctionDef
+_import_hook.JaxtypingTransformer.visit_FunctionDef = _check_outer_functions_only
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
