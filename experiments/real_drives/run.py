@@ -473,7 +473,7 @@ def markdown(
         + _pooled(rows, "uncalibrated")
         + ". Variance scale at the end of each drive, along / across at 1 s and at 3 s: "
         + ", ".join(
-            f"{s.name} {a[0]:.1f} / {a[1]:.1f}, {b[0]:.1f} / {b[1]:.1f}"
+            f"{s.name} {a[0]:.2g} / {a[1]:.2g}, {b[0]:.2g} / {b[1]:.2g}"
             for s, r in rows
             for a, b in [r["adapt_scale"]]
         )
