@@ -37,7 +37,7 @@ prediction itself uses) is spread onto the profile's two nearest points with lin
   realised against the runner's later filtered estimate of where the car was, and each step's
   along- and cross-track variance scaled by the running mean of its normalised squared error.
   Off by default: it adds the calibrated ellipses to the saved state (`uncertainty`, which is
-  null without it) and a projection of each recorded prediction onto the track per update.
+  null without it) and its own work to each update (experiments/benchmarks/adapt_calibration.md).
 
 `state_config()` is the learned state as an ordinary line-model config (`fpe predict --config`,
 `fpe evaluate`, `fpe export` read it). tests/runner/test_adapt.py computes the same profile in
@@ -325,14 +325,16 @@ class AdaptiveRunner(Runner):
 
     def _calibrate(self, stamp_s: float, s_m: float, d_m: float, poses: np.ndarray) -> None:
         """Realise earlier predictions' errors against the filtered position (arc length s_m,
-        offset d_m [m]), then record this prediction with the path heading at each step."""
+        offset d_m [m]), then record this prediction with the path heading at each step (at
+        the rollout's own arc length there, which a projection of the predicted position finds
+        again)."""
         path = self.path
         cx, cy = path.point_at(s_m)
         h = path.heading_at(s_m)
         self.calibration.observe(stamp_s, cx - d_m * math.sin(h), cy + d_m * math.cos(h))
-        if self.valid:
-            along = path.project_chain(poses[:, :2], self._s_m)
-            self.calibration.record(stamp_s, poses[:, :2], [path.heading_at(s) for s in along])
+        if self.valid:  # the path heading at each step's arc length in the rollout
+            heading = [path.heading_at(s) for s in self._step_s_m]
+            self.calibration.record(stamp_s, poses[:, :2], heading)
 
     def covariance(self) -> np.ndarray | None:
         """(H, 2, 2) the calibrated along-/cross-track covariance [m^2] of the predictions
