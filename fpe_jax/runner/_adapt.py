@@ -565,8 +565,13 @@ class AdaptiveRunner(Runner):
 
 
 def predict_drive_adaptive(
-    drive, waypoints_xy_m, config: Mapping[str, Any] | None = None, **kw
-) -> tuple[AdaptiveRunner, np.ndarray]:
+    drive,
+    waypoints_xy_m,
+    config: Mapping[str, Any] | None = None,
+    *,
+    with_covariance: bool = False,
+    **kw,
+) -> tuple:
     """Every observation of a drive through a fresh `AdaptiveRunner`, in stream order.
 
     The drive and waypoints are moved to a local frame first (`fpe_jax.drive.local_frame`), as
@@ -576,17 +581,31 @@ def predict_drive_adaptive(
         drive: a `fpe_jax.drive.Drive`.
         waypoints_xy_m: (K, 2) waypoints [m] in the drive's frame.
         config: a checked config dict to start from, or None; kw: as `AdaptiveRunner` takes.
+        with_covariance: also return each prediction's covariance as calibrated then (needs
+            calibrate=True).
 
     Returns:
         (the runner after the drive, with what it learned (its waypoints in the local frame,
         which `state_config` hashes alike: `waypoints_sha256` is frame-free),
-        (N, H, 3) predictions x [m], y [m], yaw [rad] in the drive's frame).
+        (N, H, 3) predictions x [m], y [m], yaw [rad] in the drive's frame), and with
+        with_covariance (N, H, 2, 2) their map-frame covariance [m^2]: the calibrated
+        along-/cross-track one turned by the path heading at each step.
     """
     from fpe_jax.drive import local_frame
 
     local, wp, _, origin = local_frame(drive, waypoints_xy_m)
     runner = AdaptiveRunner(config, wp, **kw)
+    if with_covariance and runner.calibration is None:
+        raise ValueError("predict_drive_adaptive: with_covariance needs calibrate=True")
     rows = zip(local.t_s.tolist(), local.xy_m.tolist(), local.yaw_rad.tolist())
-    poses = np.stack([runner.update(t, x, y, a) for t, (x, y), a in rows])
+    poses, cov = [], []
+    for t, (x, y), a in rows:
+        poses.append(runner.update(t, x, y, a))
+        if with_covariance:
+            h = np.array([runner.path.heading_at(s) for s in runner._step_s_m])
+            c, s = np.cos(h), np.sin(h)
+            rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+            cov.append(rot @ runner.covariance() @ np.swapaxes(rot, -1, -2))
+    poses = np.stack(poses)
     poses[..., :2] += origin
-    return runner, poses
+    return (runner, poses, np.stack(cov)) if with_covariance else (runner, poses)

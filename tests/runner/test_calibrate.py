@@ -277,3 +277,66 @@ assert r.calibration.errors > 100, r.calibration.errors
         timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    from fpe_jax import io
+    from fpe_jax.sim._sim import write_simulation
+
+    root = tmp_path_factory.mktemp("calibrate_cli")
+    write_simulation(simulate("oval", duration_s=20.0, seed=1), root / "a")
+    wp = io.load_waypoints(root / "a" / "waypoints.csv").xy_m
+    write_config(root / "tuned.json", _config_with_ellipses(wp))
+    return root
+
+
+def test_fpe_predict_adapt_calibrate_ellipses_writes_them_and_saves_them(logs, tmp_path):
+    from fpe_jax import cli, io
+    from fpe_jax.runner._adapt import predict_drive_adaptive
+
+    log, wp = str(logs / "a" / "drive.mcap"), str(logs / "a" / "waypoints.csv")
+    out, state = tmp_path / "p.csv", tmp_path / "state.json"
+    argv = ["predict", log, "--waypoints", wp, "--adapt", "--config", str(logs / "tuned.json")]
+    argv += ["--calibrate-ellipses", "--out", str(out), "--save-state", str(state)]
+    assert cli.main(argv) == 0
+    rows = np.genfromtxt(out, delimiter=",", names=True)
+    cfg = read_config(logs / "tuned.json")
+    drive = io.load_drive(log)
+    runner, poses, cov = predict_drive_adaptive(
+        drive, io.load_waypoints(wp).xy_m, cfg, calibrate=True, with_covariance=True
+    )
+    np.testing.assert_allclose(rows["x"].reshape(-1, 10), poses[..., 0], atol=1e-8)
+    for name, (a, b) in {"cov_xx_m2": (0, 0), "cov_xy_m2": (0, 1), "cov_yy_m2": (1, 1)}.items():
+        np.testing.assert_allclose(rows[name].reshape(-1, 10), cov[..., a, b], rtol=1e-8)
+    # the map-frame ellipses are the calibrated track-frame ones turned: same determinant
+    np.testing.assert_allclose(np.linalg.det(cov[-1]), np.linalg.det(runner.covariance()))
+    saved = read_config(state)
+    np.testing.assert_allclose(saved["uncertainty"]["cov_m2"], runner.covariance(), rtol=1e-12)
+    assert saved["provenance"]["adapted"]["calibration"]["errors"] == runner.calibration.errors
+    # without the flag the predictions are the same, and no ellipses are written or saved
+    plain = tmp_path / "plain.csv"
+    argv = ["predict", log, "--waypoints", wp, "--adapt", "--config", str(logs / "tuned.json")]
+    assert cli.main([*argv, "--out", str(plain)]) == 0
+    rows_plain = np.genfromtxt(plain, delimiter=",", names=True)
+    assert "cov_xx_m2" not in rows_plain.dtype.names
+    np.testing.assert_array_equal(rows_plain["x"], rows["x"])
+
+
+@pytest.mark.parametrize(
+    "extra, words",
+    [
+        (["--calibrate-ellipses"], "--calibrate-ellipses: given without --adapt"),
+        (["--adapt", "--calibrate-ellipses"], "given without a config with ellipses"),
+    ],
+)
+def test_fpe_predict_calibrate_ellipses_refuses_bad_combinations(
+    logs, tmp_path, capsys, extra, words
+):
+    from fpe_jax import cli
+
+    argv = ["predict", str(logs / "a" / "drive.mcap"), "--waypoints"]
+    argv += [str(logs / "a" / "waypoints.csv"), "--out", str(tmp_path / "p.csv")]
+    assert cli.main([*argv, *extra, "--quiet"]) == 2
+    assert words in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
