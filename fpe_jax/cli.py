@@ -120,6 +120,13 @@ def _add_adapt_flags(p: argparse.ArgumentParser, save: bool) -> None:
             metavar="OUT.json",
             help="with --adapt: write what it learned as a config (default: none)",
         )
+        p.add_argument(
+            "--calibrate-ellipses",
+            action="store_true",
+            help="with --adapt and a --config with ellipses: size them on the runner's own "
+            "errors as it goes; writes each prediction's covariance, and --save-state saves "
+            "them (default: off)",
+        )
 
 
 def _settings_from_args(args) -> dict:
@@ -676,7 +683,7 @@ def cmd_presets(args) -> int:
 def cmd_predict(args) -> int:
     from fpe_jax import pipeline
 
-    if args.adapt or args.save_state or args.delay is not None:
+    if args.adapt or args.save_state or args.delay is not None or args.calibrate_ellipses:
         return _predict_adaptive(args)
     with _progress(args) as say:
         res = pipeline.predict_log(
@@ -699,6 +706,7 @@ def _predict_adaptive(args) -> int:
 
     if not args.adapt:
         flag = "--save-state" if args.save_state else "--delay"
+        flag = "--calibrate-ellipses" if args.calibrate_ellipses else flag
         raise InputError(flag, "given without --adapt", f"--adapt {flag} ...")
     if args.preset:
         raise InputError("--preset", "given with --adapt", "--config, or neither")
@@ -710,6 +718,7 @@ def _predict_adaptive(args) -> int:
         delay_s=args.delay,
         out=args.out,
         save_state=args.save_state,
+        calibrate=args.calibrate_ellipses,
         force=args.force,
         log_options=_drive_options(args),
         allow_off_track=args.allow_off_track,

@@ -302,6 +302,8 @@ class AdaptivePredictions:
         (map frame), yaw [rad]; dt_s: the prediction step [s].
         runner: the `adapt.AdaptiveRunner` after the drive (what it learned: `state_config`).
         drive: the drive as read.
+        cov_m2: (N, H, 2, 2) map-frame covariance [m^2] of each prediction as calibrated then
+            (with calibrate), else None.
     """
 
     stamps_s: np.ndarray
@@ -309,6 +311,7 @@ class AdaptivePredictions:
     dt_s: float
     runner: Any
     drive: Any
+    cov_m2: np.ndarray | None = None
 
 
 def predict_log_adaptive(
@@ -320,6 +323,7 @@ def predict_log_adaptive(
     delay_s: float | None = None,
     out=None,
     save_state=None,
+    calibrate: bool = False,
     force: bool = False,
     log_options: dict | None = None,
     allow_off_track: bool = False,
@@ -328,7 +332,9 @@ def predict_log_adaptive(
     """`fpe predict --adapt`: the learning runner (`adapt.AdaptiveRunner`, no JAX) over every
     observation of a drive log in stream order, starting from `config` or, without one, from the
     waypoints alone (with the sensor's `delay_s`). With `out` (.csv or .mcap) the predictions
-    are written, with `save_state` what it learned, as a config."""
+    are written, with `save_state` what it learned, as a config. With `calibrate` the config's
+    ellipses are calibrated on the runner's own errors as it goes (`AdaptiveRunner`'s
+    calibrate): each prediction's covariance is written and saved with the state."""
     from fpe_jax import io
     from fpe_jax.geometry._path import build_path, check_on_track
     from fpe_jax.io.config import check_waypoints, read_config, write_config
@@ -343,6 +349,10 @@ def predict_log_adaptive(
     if config is not None:
         cfg = read_config(config)
         check_waypoints(cfg, config, wp, source)
+    if calibrate and (cfg is None or cfg.get("uncertainty") is None):
+        raise InputError(
+            "--calibrate-ellipses", "given without a config with ellipses", "--config TUNED.json"
+        )
     given = {k: v for k, v in (settings or {}).values() if v is not None}
     drive = load_log(log, log_options, warn)
     path = build_path(wp)
@@ -350,13 +360,19 @@ def predict_log_adaptive(
     check_on_track(
         drive.xy_m, xy, heading, source=source, drive=_log_name(log), allow=allow_off_track
     )
-    runner, poses = predict_drive_adaptive(drive, wp, cfg, settings=given or None, delay_s=delay_s)
+    kw = {"calibrate": True, "with_covariance": True} if calibrate else {}
+    runner, poses, *cov = predict_drive_adaptive(
+        drive, wp, cfg, settings=given or None, delay_s=delay_s, **kw
+    )
+    cov = cov[0] if cov else None
     if out is not None:
-        io.write_predictions(out, drive.t_s, poses, runner.dt_s, drive=drive, force=force)
+        io.write_predictions(
+            out, drive.t_s, poses, runner.dt_s, drive=drive, cov_m2=cov, force=force
+        )
     if save_state is not None:
         prov = {"drives": [_log_name(log)], "started_from": str(config or "waypoints")}
         write_config(save_state, runner.state_config(prov), force=force)
-    return AdaptivePredictions(np.asarray(drive.t_s), poses, runner.dt_s, runner, drive)
+    return AdaptivePredictions(np.asarray(drive.t_s), poses, runner.dt_s, runner, drive, cov)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -6,7 +6,11 @@ git mirror of its repository (`git show COMMIT:PATH`; nothing is copied into thi
 trajectory becomes a drive of detections through `fpe_jax.sim.observe` (the simulator's capture
 timing, range-dependent noise, outliers, dropouts and 0.3 s of delay); the predictors get the
 source's track as waypoints. The fit sees the first 60 % of the drive's duration and is scored on
-the last 40 %, at 1 s and 3 s ahead (one fit with a 3 s horizon), against every baseline.
+the last 40 %, at 1 s and 3 s ahead (one fit with a 3 s horizon), against every baseline, and
+against the fitted config run through the adapting runner (`fpe_jax.runner.AdaptiveRunner`,
+as `fpe predict --adapt --config` runs it) over the held-out part from its first detection,
+learning the line and speed profile as it goes and calibrating its ellipses on its own
+realised errors.
 
 Run:  .venv/bin/python experiments/real_drives/run.py [--mirror DIR]
       (DIR, or $FPE_MIRROR, holds OWNER+NAME/repo git directories; default /work/.mirror)
@@ -220,6 +224,34 @@ def make_case(src: Source, poses: dict, seed: int):
     )
 
 
+def adaptive_heldout(case, config: dict, rows: np.ndarray) -> dict:
+    """The fitted config through the adapting runner over the case's test drive in stream
+    order (from its first detection, learning as it goes, its ellipses calibrated online:
+    `AdaptiveRunner(calibrate=True)`), at the prediction rows `rows` (M,).
+
+    Returns {"pred_xy_m": (M, H, 2) [m], "cov_m2": (M, H, 2, 2) the calibrated track-frame
+    ellipses each prediction came with [m^2], "heading_rad": (M, H) the path heading at each
+    predicted position (the ellipses' frame), "runner": the runner after the drive}."""
+    from fpe_jax.drive import local_frame
+    from fpe_jax.runner._adapt import AdaptiveRunner
+
+    local, wp, _, origin = local_frame(case.test_drive, case.waypoints_xy_m)
+    runner = AdaptiveRunner(config, wp, calibrate=True, source=case.name)
+    pred, cov, heading = [], [], []
+    path = runner.path
+    for t, (x, y), yaw in zip(local.t_s.tolist(), local.xy_m.tolist(), local.yaw_rad.tolist()):
+        p = runner.update(t, x, y, yaw)
+        pred.append(p[:, :2] + origin)
+        cov.append(runner.covariance())
+        heading.append([path.heading_at(s) for s in path.project_chain(p[:, :2], runner._s_m)])
+    return {
+        "pred_xy_m": np.asarray(pred)[rows],
+        "cov_m2": np.asarray(cov)[rows],
+        "heading_rad": np.asarray(heading)[rows],
+        "runner": runner,
+    }
+
+
 def fold_uncertainty(case, fit_kw: dict) -> dict:
     """The ellipses' fitted values (`fpe_jax.evaluate.fit_uncertainty`'s per-prediction terms)
     from residuals out of sample in everything the fit learns: the fit drive cut in CV_FOLDS
@@ -301,6 +333,27 @@ def run_case(
             n: float(np.median(np.linalg.norm(p[ok, k - 1] - held.target_xy_m[ok, k - 1], axis=1)))
             for n, p in held.pred_xy_m.items()
         }
+    from fpe_jax.evaluate._metrics import coverage, track_frame_residuals
+    from fpe_jax.geometry._path import waypoints_sha256
+    from fpe_jax.io.config import params_to_config
+
+    config = params_to_config(
+        res.params,
+        uncertainty=res.uncertainty,
+        line={"waypoints_sha256": waypoints_sha256(case.waypoints_xy_m)},
+    )
+    adapt = adaptive_heldout(case, config, held.rows)
+    res_track = track_frame_residuals(adapt["pred_xy_m"], held.target_xy_m, adapt["heading_rad"])
+    base = np.asarray(res.uncertainty["cov_m2"])
+    cov_adapt = {
+        "calibrated": coverage(res_track, held.mask, adapt["cov_m2"]),
+        "uncalibrated": coverage(res_track, held.mask, base),
+    }
+    fde_adapt = {}
+    for label, k in STEPS.items():
+        ok = held.mask[:, k - 1]
+        err = np.linalg.norm(adapt["pred_xy_m"][ok, k - 1] - held.target_xy_m[ok, k - 1], axis=1)
+        fde_adapt[label] = float(np.median(err))
     rep = res.report["fitted"]
     if calibrate == "folds":
         from fpe_jax.evaluate._evaluate import evaluate, make_datasets
@@ -312,6 +365,10 @@ def run_case(
     return dict(
         speed_mps=speed,
         fde=fde,
+        fde_adapt=fde_adapt,
+        cov_adapt={k: (v["coverage_1sigma"], v["coverage_2sigma"]) for k, v in cov_adapt.items()},
+        adapt_changes=adapt["runner"].changes,
+        adapt_scale=adapt["runner"].calibration.scale[[STEPS["1 s"] - 1, -1]].tolist(),
         cov1=rep.get("coverage_1sigma", float("nan")),
         cov2=rep.get("coverage_2sigma", float("nan")),
         n_targets=rep["n_targets"],
@@ -367,26 +424,33 @@ def markdown(
         lines += ["", f"## Median FDE at {label} [m]", ""]
         lines.append(
             "| drive | " + " | ".join(names) + " | best baseline | ratio | on track "
-            "(no flag) | median speed fit / test m/s | fit s |"
+            "(no flag) | median speed fit / test m/s | fit s | adapting | adapting ratio |"
         )
-        lines.append("|---" * (len(names) + 6) + "|")
-        ratios = []
+        lines.append("|---" * (len(names) + 8) + "|")
+        ratios, ratios_adapt = [], []
         for src, r in rows:
             f = r["fde"][label]
             best = min((n for n in f if n != "fitted"), key=f.get)
             ratio = f["fitted"] / f[best]
             ratios.append(ratio)
+            adapting = r["fde_adapt"][label]
+            ratios_adapt.append(adapting / f[best])
             cells = " | ".join(f"{f[n]:.3f}" for n in names)
             lines.append(
                 f"| {src.name} | {cells} | {best} | {ratio:.2f} | "
                 f"{r['on_track'][:3]} | {r['speed_mps'][0]:.2f} / {r['speed_mps'][1]:.2f} | "
-                f"{r['fit_s']:.0f} |"
+                f"{r['fit_s']:.0f} | {adapting:.3f} | {ratios_adapt[-1]:.2f} |"
             )
         worse = sum(x >= 1 for x in ratios)
+        worse_adapt = sum(x >= 1 for x in ratios_adapt)
         lines += [
             "",
             f"Median over drives of the ratio: {np.median(ratios):.2f}; drives where a "
             f"baseline is at least as good as the fit: {worse} of {len(ratios)}.",
+            "",
+            f"Adapting (the fitted config through `AdaptiveRunner` over the held-out part; ratio "
+            f"to the same best baseline): median ratio {np.median(ratios_adapt):.2f}; drives "
+            f"where a baseline is at least as good: {worse_adapt} of {len(ratios_adapt)}.",
         ]
     n = np.array([r["n_targets"] for _, r in rows], float)
     c1 = float(np.sum(n * [r["cov1"] for _, r in rows]) / n.sum())
@@ -400,6 +464,23 @@ def markdown(
         + ", ".join(f"{s.name} {r['cov1']:.0%}/{r['cov2']:.0%}" for s, r in rows)
         + ".",
         "",
+        "Adapting runner (the fitted config's per-step ellipses `uncertainty.cov_m2`, along and "
+        "across the track, calibrated online on the runner's own realised errors: "
+        "`AdaptiveRunner(calibrate=True)`, `fpe_jax.runner._calibrate`; each prediction scored "
+        "with the ellipses it came with, over the same targets): pooled "
+        + _pooled(rows, "calibrated")
+        + "; the same predictions with the config's per-step ellipses uncalibrated: "
+        + _pooled(rows, "uncalibrated")
+        + ". Variance scale at the end of each drive, along / across at 1 s and at 3 s: "
+        + ", ".join(
+            f"{s.name} {a[0]:.2g} / {a[1]:.2g}, {b[0]:.2g} / {b[1]:.2g}"
+            for s, r in rows
+            for a, b in [r["adapt_scale"]]
+        )
+        + ". The change detector fired "
+        + ", ".join(f"{r['adapt_changes']}" for _, r in rows)
+        + " times.",
+        "",
         f"Peak resident memory of the whole run (every fit, in one process): {peak_mib:.0f} MiB; "
         "each fit's peak is at most this.",
     ]
@@ -407,6 +488,16 @@ def markdown(
         lines += ["", f"![held-out median FDE per drive]({png})"]
     lines += ["", "## Notes", "", *(f"- {n}" for n in NOTES)]
     return "\n".join(lines) + "\n"
+
+
+def _pooled(rows, which: str) -> str:
+    """Pooled (weighted by targets) and per-drive coverage of the adapting runner's ellipses."""
+    n = np.array([r["n_targets"] for _, r in rows], float)
+    c = np.array([r["cov_adapt"][which] for _, r in rows])
+    c1, c2 = (float(np.sum(n * c[:, k]) / n.sum()) for k in (0, 1))
+    per = ", ".join(f"{s.name} {r['cov_adapt'][which][0]:.0%}/{r['cov_adapt'][which][1]:.0%}"
+                    for s, r in rows)  # fmt: skip
+    return f"1 sigma {c1:.1%}, 2 sigma {c2:.1%} (per drive {per})"
 
 
 def add_source_args(ap: argparse.ArgumentParser) -> None:
@@ -471,6 +562,7 @@ def main(argv=None) -> int:
         print(f"{src.name}: fitting ({len(case.fit_drive.t_s)} detections)", flush=True)
         rows.append((src, run_case(case, args.estimator, free, args.calibrate)))
         print(f"  {rows[-1][1]['fde']}", flush=True)
+        print(f"  adapting {rows[-1][1]['fde_adapt']} {rows[-1][1]['cov_adapt']}", flush=True)
     if not rows:
         print("no source present: nothing written")
         return 0
@@ -525,11 +617,13 @@ def _plot(rows, out: Path) -> str:
 
     fig, axes = plt.subplots(1, len(STEPS), figsize=(6 * len(STEPS), 4))
     for ax, label in zip(axes, STEPS):
-        names = list(rows[0][1]["fde"][label])
+        names = [*rows[0][1]["fde"][label], "adapting"]
         x = np.arange(len(rows))
         w = 0.8 / len(names)
         for i, n in enumerate(names):
-            ax.bar(x + i * w, [r["fde"][label][n] for _, r in rows], w, label=n)
+            vals = [r["fde_adapt" if n == "adapting" else "fde"][label] for _, r in rows]
+            vals = vals if n == "adapting" else [v[n] for v in vals]
+            ax.bar(x + i * w, vals, w, label=n)
         ax.set_xticks(
             x + 0.4 - w / 2,
             [s.name.replace("F1TENTH ", "") for s, _ in rows],

@@ -70,6 +70,12 @@ def add_parser(subparsers, **kw) -> argparse.ArgumentParser:
         metavar="S",
         help="with --adapt and no config: your sensor's detection delay [s] (default: 0)",
     )
+    p.add_argument(
+        "--calibrate-ellipses",
+        action="store_true",
+        help="with --adapt and a config with ellipses: size each opponent's on its own errors "
+        "as it goes (default: off)",
+    )
     g = p.add_argument_group("input (one of; default: the AprilTag detections)")
     g.add_argument(
         "--pose-topic", metavar="T", help="PoseStamped or Odometry in the map frame (default: none)"
@@ -230,6 +236,12 @@ def options_from_args(args, transport):
         raise InputError("fpe node", "no config given", "--config, --preset or --params-file")
     if args.delay is not None and (not args.adapt or cfg is not None):
         raise InputError("--delay", "given with a config or without --adapt", "--adapt --delay S")
+    if args.calibrate_ellipses and (not args.adapt or cfg is None or not cfg.get("uncertainty")):
+        raise InputError(
+            "--calibrate-ellipses",
+            "given without --adapt or a config with ellipses",
+            "--adapt --config TUNED.json --calibrate-ellipses",
+        )
     if not waypoints:
         raise InputError("fpe node", "no waypoints given", "--waypoints FILE (or ~waypoints)")
     xy = load_waypoints_xy(waypoints)
@@ -267,6 +279,7 @@ def options_from_args(args, transport):
         outputs=outputs,
         adapt=args.adapt,
         delay_s=args.delay,
+        calibrate=args.calibrate_ellipses,
         markers_every_s=args.markers_every,
         trajectory_every_s=args.trajectory_every,
     )

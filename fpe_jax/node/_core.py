@@ -106,6 +106,9 @@ class NodeOptions:
     trajectory_every_s: float = 1.0
     adapt: bool = False  # each opponent's runner learns its line and pace (fpe_jax.runner)
     delay_s: float | None = None  # with adapt and no config: the sensor's detection delay [s]
+    # with adapt and a config with ellipses: each opponent's ellipses calibrated on its own
+    # realised errors (`fpe_jax.runner.AdaptiveRunner`'s calibrate)
+    calibrate: bool = False
     markers_every_s: float = 0.1
     outputs: dict[str, str | None] = field(
         default_factory=lambda: {k: v[0] for k, v in OUTPUTS.items()}
@@ -159,7 +162,9 @@ class Node:
             start = config
 
             def new_runner() -> Runner:
-                return AdaptiveRunner(start, waypoints_xy_m, delay_s=options.delay_s)
+                return AdaptiveRunner(
+                    start, waypoints_xy_m, delay_s=options.delay_s, calibrate=options.calibrate
+                )
 
             self.template = new_runner()
             config = self.template.state_config()
@@ -415,7 +420,7 @@ class Node:
                 "expected poses in the map frame of --waypoints)"
             )
         s_m = runner._s_m if runner._s_m is not None else self.path.project(x, y)
-        cov, along = self._covariance(poses, s_m)
+        cov, along = self._covariance(poses, s_m, runner)
         self.update_ns.append(time.perf_counter_ns() - t0)
         if self.scene is not None:
             self.scene.observation(car, ns, x, y, yaw)
@@ -430,18 +435,20 @@ class Node:
             self.scene.prediction(car, ns, poses, zero if cov is None else cov, steps, True)
         return out
 
-    def _covariance(self, poses: np.ndarray, s_m: float):
+    def _covariance(self, poses: np.ndarray, s_m: float, runner: Runner):
         """(map-frame covariance (H, 2, 2) [m^2] or None, arc lengths (H,) [m] of the steps):
-        the config's per-step track-frame covariance turned by the path heading at each step,
-        each step's arc length searched in the window around the previous one's."""
+        the config's per-step track-frame covariance (with calibrate, the car's runner's
+        calibrated one) turned by the path heading at each step, each step's arc length
+        searched in the window around the previous one's."""
         path = self.path
         along = path.project_chain(poses[:, :2], s_m)
-        if self.cov_track_m2 is None:
+        cov_track = runner.covariance() if self.opt.calibrate else self.cov_track_m2
+        if cov_track is None:
             return None, along
         h = np.array([path.heading_at(s) for s in along])
         c, sn = np.cos(h), np.sin(h)
         rot = np.stack([np.stack([c, -sn], -1), np.stack([sn, c], -1)], -2)
-        return rot @ self.cov_track_m2 @ np.swapaxes(rot, -1, -2), along
+        return rot @ cov_track @ np.swapaxes(rot, -1, -2), along
 
     # -- outputs
 

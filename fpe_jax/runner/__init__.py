@@ -1,5 +1,6 @@
 """The JAX-free on-car runner: a NumPy mirror of the model (`Runner`, `_runner`) and
-in-race learning (`AdaptiveRunner`, `_adapt`). Importing this package, and using it, imports no
+in-race learning (`AdaptiveRunner`, `_adapt`) with its ellipses calibrated online
+(`EllipseCalibration`, `_calibrate`). Importing this package, and using it, imports no
 JAX (tests/runner/test_adapt.py and tests/runner/test_runner.py check it in a process where
 JAX is blocked).
 `python -m fpe_jax.runner WAYPOINTS` prints the runner's step-time benchmark.
@@ -11,6 +12,7 @@ import importlib
 _LAZY = {
     "AdaptiveRunner": "_adapt",
     "BLEND_MODES": "_runner",
+    "EllipseCalibration": "_calibrate",
     "FloatN": "_runner",
     "GoalScan": "_runner",
     "MODELS": "_runner",

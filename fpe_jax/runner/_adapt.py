@@ -32,6 +32,12 @@ prediction itself uses) is spread onto the profile's two nearest points with lin
 - Delay, time constants and filter noise stay as the starting config has them (or
   `DEFAULT_PARAMS` without one): they are properties of the ego car's sensor and of the
   opponent's driving that a lap of detections does not identify.
+- With `calibrate=True` the starting config's ellipses follow the drive
+  (`fpe_jax.runner._calibrate.EllipseCalibration`): each recorded prediction's error is
+  realised against the runner's later filtered estimate of where the car was, and each step's
+  along- and cross-track variance scaled by the running mean of its normalised squared error.
+  Off by default: it adds the calibrated ellipses to the saved state (`uncertainty`, which is
+  null without it) and its own work to each update (experiments/benchmarks/adapt_calibration.md).
 
 `state_config()` is the learned state as an ordinary line-model config (`fpe predict --config`,
 `fpe evaluate`, `fpe export` read it). tests/runner/test_adapt.py computes the same profile in
@@ -54,6 +60,7 @@ import numpy as np
 from fpe_jax.errors import InputError
 from fpe_jax.geometry._path import build_path, waypoints_sha256
 from fpe_jax.io.config import check_waypoints, read_config
+from fpe_jax.runner._calibrate import CALIBRATION_DECAY, PRIOR_SAMPLES, EllipseCalibration
 from fpe_jax.runner._runner import Runner, load_waypoints_xy
 from fpe_jax.spec import LINE_KEYS, SCHEMA_VERSION, check_config
 
@@ -182,7 +189,8 @@ class AdaptiveRunner(Runner):
 
     Attributes (besides Runner's): samples: the number of samples learned from; laps: the laps
     the car has driven since the start (on a loop); changes: how often the change detector has
-    found the car driving unlike its previous passes; changed: whether it does now.
+    found the car driving unlike its previous passes; changed: whether it does now;
+    calibration: the `EllipseCalibration` of the config's ellipses (None unless calibrate).
     """
 
     def __init__(
@@ -196,6 +204,9 @@ class AdaptiveRunner(Runner):
         change_decay: float = CHANGE_DECAY,
         detect_changes: bool = True,
         min_samples: float = MIN_SAMPLES,
+        calibrate: bool = False,
+        calibration_decay: float = CALIBRATION_DECAY,
+        calibration_prior_samples: float = PRIOR_SAMPLES,
         source: str = "config",
     ):
         """Args:
@@ -210,6 +221,9 @@ class AdaptiveRunner(Runner):
         detect_changes: False: no change detector (the previous passes always weigh
             lap_decay, the road ahead is read as learned).
         min_samples: kernel-weighted samples at a point for full coverage (> 0).
+        calibrate: calibrate the config's ellipses (`uncertainty.cov_m2`, which it must
+            have) on the runner's own realised errors (`EllipseCalibration`, with
+            calibration_decay and calibration_prior_samples as its decay and prior_samples).
         """
         if not 0.0 < lap_decay <= 1.0:
             raise InputError("lap_decay", f"{lap_decay!r}", "a number in (0, 1]")
@@ -251,6 +265,23 @@ class AdaptiveRunner(Runner):
         self._changed_s = -math.inf  # stamp [s] at which the change now found was found
         self._s_unwrapped: float | None = None
         self._frame = None
+        self.calibration: EllipseCalibration | None = None
+        if calibrate:
+            unc = cfg.get("uncertainty")
+            if unc is None:
+                raise InputError(
+                    source,
+                    "has no uncertainty to calibrate",
+                    "a config with ellipses (`fpe fit` writes them)",
+                )
+            self.calibration = EllipseCalibration(
+                unc["cov_m2"],
+                self.dt_s,
+                self._delay_s,
+                decay=calibration_decay,
+                prior_samples=calibration_prior_samples,
+                source=source,
+            )
 
     @classmethod
     def from_files(cls, config_path, waypoints_path, **kw) -> AdaptiveRunner:
@@ -269,6 +300,8 @@ class AdaptiveRunner(Runner):
         if hasattr(self, "_last_s"):  # Runner.__init__ resets before the state exists
             self._last_s[:] = -math.inf
             self._residual, self._residual_at, self.changed = [0.0, 0.0], None, False
+        if getattr(self, "calibration", None) is not None:
+            self.calibration.reset()
 
     def _track_frame(self, s_hint_m: float):
         self._frame = super()._track_frame(s_hint_m)
@@ -276,7 +309,9 @@ class AdaptiveRunner(Runner):
 
     def update(self, stamp_s: float, x_m: float, y_m: float, yaw_rad: float | None = None):
         """Predict from the observation (as `Runner.update`), then learn from its filtered
-        track-frame estimate (a repeated row, no new detection, teaches nothing)."""
+        track-frame estimate (a repeated row, no new detection, teaches nothing). With the
+        calibration, that estimate also realises the errors of earlier predictions, and the
+        new prediction is recorded (when the history is valid)."""
         n_before = self._history[-1] if self._history else None
         self._frame = None
         poses = super().update(stamp_s, x_m, y_m, yaw_rad)
@@ -284,7 +319,27 @@ class AdaptiveRunner(Runner):
         if fresh and self._frame is not None:
             s_m, sdot_mps, d_m, age_s = self._frame
             self.learn(float(stamp_s), s_m, d_m, sdot_mps, age_s)
+            if self.calibration is not None:
+                self._calibrate(float(stamp_s), s_m, d_m, poses)
         return poses
+
+    def _calibrate(self, stamp_s: float, s_m: float, d_m: float, poses: np.ndarray) -> None:
+        """Realise earlier predictions' errors against the filtered position (arc length s_m,
+        offset d_m [m]), then record this prediction with the path heading at each step (at
+        the rollout's own arc length there, which a projection of the predicted position finds
+        again)."""
+        path = self.path
+        cx, cy = path.point_at(s_m)
+        h = path.heading_at(s_m)
+        self.calibration.observe(stamp_s, cx - d_m * math.sin(h), cy + d_m * math.cos(h))
+        if self.valid:  # the path heading at each step's arc length in the rollout
+            heading = [path.heading_at(s) for s in self._step_s_m]
+            self.calibration.record(stamp_s, poses[:, :2], heading)
+
+    def covariance(self) -> np.ndarray | None:
+        """(H, 2, 2) the calibrated along-/cross-track covariance [m^2] of the predictions
+        now (None without the calibration)."""
+        return None if self.calibration is None else self.calibration.covariance()
 
     # ---- learning -----------------------------------------------------------------------------
 
@@ -486,7 +541,14 @@ class AdaptiveRunner(Runner):
         cfg = copy.deepcopy(self._cfg)
         cfg["params"].update({k: [float(x) for x in v] for k, v in zip(LINE_KEYS, self._profile)})
         cfg["line"] = {**cfg.get("line", {}), "waypoints_sha256": self._waypoints_sha256}
-        cfg["uncertainty"] = None  # the starting config's ellipses describe another profile
+        # the starting config's ellipses describe another profile; calibrated ones this one
+        cfg["uncertainty"] = None
+        extra = {}
+        if self.calibration is not None:
+            cov = self.calibration.covariance()
+            cfg["uncertainty"] = {"frame": "track", "axes": ["along_m", "cross_m"]}
+            cfg["uncertainty"]["cov_m2"] = cov.tolist()
+            extra["calibration"] = self.calibration.state()
         cfg["provenance"] = {
             **dict(provenance or {}),
             "adapted": {
@@ -496,14 +558,20 @@ class AdaptiveRunner(Runner):
                 "change_decay": self.change_decay,
                 "changes": self.changes,
                 "at": datetime.now(UTC).isoformat(timespec="seconds"),
+                **extra,
             },
         }
         return check_config(cfg, "adapted state")
 
 
 def predict_drive_adaptive(
-    drive, waypoints_xy_m, config: Mapping[str, Any] | None = None, **kw
-) -> tuple[AdaptiveRunner, np.ndarray]:
+    drive,
+    waypoints_xy_m,
+    config: Mapping[str, Any] | None = None,
+    *,
+    with_covariance: bool = False,
+    **kw,
+) -> tuple:
     """Every observation of a drive through a fresh `AdaptiveRunner`, in stream order.
 
     The drive and waypoints are moved to a local frame first (`fpe_jax.drive.local_frame`), as
@@ -513,17 +581,31 @@ def predict_drive_adaptive(
         drive: a `fpe_jax.drive.Drive`.
         waypoints_xy_m: (K, 2) waypoints [m] in the drive's frame.
         config: a checked config dict to start from, or None; kw: as `AdaptiveRunner` takes.
+        with_covariance: also return each prediction's covariance as calibrated then (needs
+            calibrate=True).
 
     Returns:
         (the runner after the drive, with what it learned (its waypoints in the local frame,
         which `state_config` hashes alike: `waypoints_sha256` is frame-free),
-        (N, H, 3) predictions x [m], y [m], yaw [rad] in the drive's frame).
+        (N, H, 3) predictions x [m], y [m], yaw [rad] in the drive's frame), and with
+        with_covariance (N, H, 2, 2) their map-frame covariance [m^2]: the calibrated
+        along-/cross-track one turned by the path heading at each step.
     """
     from fpe_jax.drive import local_frame
 
     local, wp, _, origin = local_frame(drive, waypoints_xy_m)
     runner = AdaptiveRunner(config, wp, **kw)
+    if with_covariance and runner.calibration is None:
+        raise ValueError("predict_drive_adaptive: with_covariance needs calibrate=True")
     rows = zip(local.t_s.tolist(), local.xy_m.tolist(), local.yaw_rad.tolist())
-    poses = np.stack([runner.update(t, x, y, a) for t, (x, y), a in rows])
+    poses, cov = [], []
+    for t, (x, y), a in rows:
+        poses.append(runner.update(t, x, y, a))
+        if with_covariance:
+            h = np.array([runner.path.heading_at(s) for s in runner._step_s_m])
+            c, s = np.cos(h), np.sin(h)
+            rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+            cov.append(rot @ runner.covariance() @ np.swapaxes(rot, -1, -2))
+    poses = np.stack(poses)
     poses[..., :2] += origin
-    return runner, poses
+    return (runner, poses, np.stack(cov)) if with_covariance else (runner, poses)

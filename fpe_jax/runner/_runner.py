@@ -747,6 +747,7 @@ class Runner:
             else:
                 e0 = d0 - l0
                 d_all.append(line + (e0 + (rate + e0 / tau) * t) * math.exp(-t / tau))
+        self._step_s_m = s_all[1:]  # each step's arc length [m]: the frame of its ellipse
         rows, s_prev, d_prev = [], s0, d0
         for k, (s, d) in enumerate(zip(s_all, d_all)):
             h = path.heading_at(s)

@@ -316,6 +316,43 @@ def test_adapting_node_predicts_as_the_adapting_runner_and_publishes_what_it_lea
     np.testing.assert_allclose(got, learned, atol=1e-12, rtol=0)
 
 
+def test_calibrating_node_publishes_each_opponents_calibrated_ellipses():
+    """`fpe node --adapt --config C --calibrate-ellipses`: each published covariance is the car's
+    AdaptiveRunner(calibrate=True)'s track-frame ellipses turned by the path heading at each
+    step, as a reference runner fed the same observations has them; they grow off the config's
+    as the errors are realised."""
+    from fpe_jax.runner._adapt import AdaptiveRunner, start_config
+
+    res = simulate("oval", duration_s=20.0, seed=2)
+    d, wp = res.drive, res.centerline_xy_m
+    cfg = start_config(None, wp, delay_s=0.1)
+    base = [[[0.0004 * (k + 1), 0.0], [0.0, 0.0001 * (k + 1)]] for k in range(10)]
+    cfg["uncertainty"] = {"frame": "track", "cov_m2": base}
+    t = FakeTransport()
+    opts = NodeOptions(input="pose", topic="/opp", adapt=True, calibrate=True)
+    node = Node(t, cfg, wp, opts)
+    node.start()
+    ref, want = AdaptiveRunner(cfg, wp, calibrate=True), []
+    t0 = 10**18
+    for ts, (x, y) in zip(d.t_s, d.xy_m):
+        ns = t0 + round(float(ts) * 1e9)
+        t.subs["/opp"](pose_msg(ns, float(x), float(y)), "geometry_msgs/msg/PoseStamped", 0)
+        poses = ref.update((ns - t0) * 1e-9, float(x), float(y), None)
+        if ref.valid:
+            h = [ref.path.heading_at(s) for s in ref.path.project_chain(poses[:, :2], ref._s_m)]
+            c, sn = np.cos(h), np.sin(h)
+            rot = np.stack([np.stack([c, -sn], -1), np.stack([sn, c], -1)], -2)
+            want.append(rot @ ref.covariance() @ np.swapaxes(rot, -1, -2))
+    got = [m["pose"]["covariance"] for m in t.out["/future_pose/covariance"]]
+    got = np.array([[[c[0], c[1]], [c[6], c[7]]] for c in got]).reshape(-1, 10, 2, 2)
+    assert len(got) == len(want) > 0
+    np.testing.assert_allclose(got, np.array(want), rtol=1e-9, atol=1e-15)
+    assert ref.calibration.errors > 100
+    assert node.runners["0"].calibration.errors == ref.calibration.errors
+    # the made-up ellipses were too small for this drive: the last ones are larger
+    assert np.trace(got[-1][9]) > 2 * np.trace(np.array(base[9]))
+
+
 def _pose_paths(cfg, waypoints_xy_m, stamps_ns, xy_m):
     """Feed PoseStamped messages to a node: (its published paths, its warnings)."""
     t, warnings = FakeTransport(), []
@@ -502,3 +539,37 @@ def test_trajectory_goes_out_when_it_changes_or_a_subscriber_joins():
     np.testing.assert_allclose(
         [w["d_m"] for w in sent[0]["oppwpnts"]], 0.1 * np.sin(np.arange(n) * 0.4)
     )
+
+
+def test_calibrate_ellipses_needs_adapt_and_a_config_with_ellipses(tmp_path):
+    import argparse
+
+    from fpe_jax.errors import InputError
+    from fpe_jax.io.config import write_config
+    from fpe_jax.node._cli import add_parser, options_from_args
+    from fpe_jax.runner._adapt import start_config
+    from fpe_jax.runner._runner import load_waypoints_xy
+    from fpe_jax.sim._sim import write_simulation
+
+    write_simulation(simulate("oval", duration_s=3.0, seed=2), tmp_path / "a")
+    wp = str(tmp_path / "a" / "waypoints.csv")
+
+    cfg = start_config(None, load_waypoints_xy(wp))
+    write_config(tmp_path / "plain.json", cfg)
+    unc = {"frame": "track", "cov_m2": [np.eye(2).tolist()] * 10}
+    write_config(tmp_path / "ellipses.json", cfg | {"uncertainty": unc})
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+
+    def options(*flags):
+        args = parser.parse_args(
+            ["node", "--ros2", "--waypoints", wp, "--calibrate-ellipses", *flags]
+        )
+        return options_from_args(args, None)[2]
+
+    for flags in [["--adapt"], ["--config", str(tmp_path / "ellipses.json")],
+                  ["--adapt", "--config", str(tmp_path / "plain.json")]]:  # fmt: skip
+        with pytest.raises(InputError, match="--calibrate-ellipses: given without --adapt or"):
+            options(*flags)
+    opts = options("--adapt", "--config", str(tmp_path / "ellipses.json"))
+    assert opts.adapt and opts.calibrate
