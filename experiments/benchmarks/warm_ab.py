@@ -1,6 +1,10 @@
 """Warm command times of two or more checkouts, interleaved: `make bench`'s `fpe predict`,
-`fpe evaluate` (60 s drive, a config fitted on it) and `fpe fit` (1-minute drive), each run
-in a fresh process with a compilation cache the checkout filled before.
+`fpe evaluate`, `fpe plot` (60 s drive, a config fitted on it) and `fpe fit` (1-minute drive),
+each run in a fresh process with a compilation cache the checkout filled before.
+
+Each checkout's package is compiled to bytecode first (`compileall`), as an installed wheel
+has it: where PYTHONDONTWRITEBYTECODE is set, an editable install would otherwise compile
+every module it imports again in every command.
 
 On a shared machine a load that drifts over minutes moves runs made minutes apart, so the
 checkouts take turns (A B A B ... for each command) and each one's median is reported, with the
@@ -41,6 +45,11 @@ except TypeError:  # a checkout whose parser is always whole
     parser = cli._build_parser()
 parser.parse_args(argv)
 print(t1 - t0, time.process_time() - t1)
+"""
+COMPILE_CODE = """
+import compileall, importlib.util, sys
+folder = importlib.util.find_spec("fpe_jax").submodule_search_locations[0]
+sys.exit(0 if compileall.compile_dir(folder, quiet=1) else 1)
 """
 IMPORTS_CODE = """
 import importlib, sys, time
@@ -88,6 +97,7 @@ def time_commands(venvs: dict[str, Path], names: list[str], runs: int, tmp: Path
     commands = {
         "predict": ["predict", *log, "--config", str(config), "--out", "{out}/p.csv", "--force"],
         "evaluate": ["evaluate", *log, "--config", str(config)],
+        "plot": ["plot", *log, "--config", str(config), "--out", "{out}/p.png", "--force"],
         "fit": ["fit", *log, "--out", "{out}/c.json", "--force"],
     }
     times: dict[tuple[str, str], list[tuple[float, float]]] = {}
@@ -118,7 +128,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("checkouts", nargs="+", metavar="LABEL=VENV")
     ap.add_argument("--runs", type=int, default=9, help="warm runs per command and checkout")
-    ap.add_argument("--commands", default="predict,evaluate,fit", help="comma list")
+    ap.add_argument("--commands", default="predict,evaluate,plot,fit", help="comma list")
     ap.add_argument("--parser", action="store_true", help="also time the CLI's start")
     ap.add_argument("--imports", metavar="MOD,...", help="also time importing these modules")
     args = ap.parse_args()
@@ -133,7 +143,20 @@ def main() -> None:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def compile_bytecode(venv: Path, cwd: Path) -> None:
+    """Compile the `fpe_jax` package that `venv` imports to bytecode (`__pycache__` beside its
+    sources, which git ignores)."""
+    subprocess.run(
+        [str(venv / "bin" / "python"), "-c", COMPILE_CODE],
+        check=True,
+        capture_output=True,
+        cwd=cwd,  # `python -c` imports from its folder first: not from a checkout
+    )
+
+
 def measure(args, venvs: dict[str, Path], tmp: Path) -> None:
+    for venv in venvs.values():
+        compile_bytecode(venv, tmp)
     names = [n for n in args.commands.split(",") if n]
     if names:
         time_commands(venvs, names, args.runs, tmp)
