@@ -49,17 +49,48 @@ def _pyplot_figures(monkeypatch):
     monkeypatch.setattr(plots, "tight_layout", lambda fig, rect=None: fig.tight_layout(rect=rect))
 
 
-@pytest.mark.parametrize("names", [("fitted",), ("fitted", "seed")])
-def test_trajectory_figure_has_the_pixels_of_the_pyplot_figure(monkeypatch, names):
+def _figures():
+    """name -> a function drawing one of `plots`' figures on made-up data (every layout path)."""
     waypoints, drive, held = _drive_and_heldout()
     held.pred_xy_m["seed"] = held.target_xy_m * (19.8 / 20.0)
-    kw = dict(names=names, title="circle", half_width_m=1.5)
-    ours = plots.trajectory_figure(waypoints, drive, held, **kw)
+    kw = dict(title="circle", half_width_m=1.5)
+    per_step = {
+        "fitted": {"per_step_m": 0.1 * np.arange(1, 11)},
+        "seed": {"per_step_m": [1.0] * 10},
+    }
+    n = 30
+    line = SimpleNamespace(
+        physical=lambda: {
+            "line_offset_m": np.sin(np.arange(n)),
+            "line_speed_mps": 5 + np.cos(np.arange(n)),
+            "line_coverage": (np.arange(n) % 7 > 1).astype(float),
+        }
+    )
+    return {
+        "trajectory, one predictor": lambda: plots.trajectory_figure(
+            waypoints, drive, held, names=("fitted",), **kw
+        ),
+        "trajectory, two predictors": lambda: plots.trajectory_figure(
+            waypoints, drive, held, names=("fitted", "seed"), **kw
+        ),
+        "error vs horizon, one case": lambda: plots.error_vs_horizon_figure(
+            {"a": per_step}, dt_s=0.1, title="one"
+        ),
+        "error vs horizon, three cases": lambda: plots.error_vs_horizon_figure(
+            {"a": per_step, "b": per_step, "c": per_step}, dt_s=0.1, title="three", ncols=2
+        ),
+        "line": lambda: plots.line_figure(line, 120.0, True, title="line"),
+    }
+
+
+@pytest.mark.parametrize("name", list(_figures()))
+def test_a_figure_has_the_pixels_of_the_pyplot_figure(monkeypatch, name):
+    ours = _figures()[name]()
     assert ours.canvas.manager is None and ours.get_layout_engine() is None
     png = _png(ours)
     with monkeypatch.context() as m:
         _pyplot_figures(m)
-        theirs = plots.trajectory_figure(waypoints, drive, held, **kw)
+        theirs = _figures()[name]()
         assert theirs.canvas.manager is not None  # the reference is pyplot's
         assert _png(theirs) == png
         plt.close(theirs)
