@@ -1060,10 +1060,10 @@ def entry() -> None:
     destructors of JAX's runtime and of the loaded executables, a pause after every command).
     Every file a command writes is closed when it returns; the streams are flushed here. A
     Ctrl-C that lands while `main` is already finishing ends the process quietly with 130."""
-    # Importing JAX, equinox and matplotlib makes ~150,000 objects that live until the process
-    # ends; the collector's young passes every 700 new objects, and the full passes they lead
-    # to, scanned them again and again and freed nothing: a tenth of a warm command's time.
-    # Passes every 50,000 new objects still bound what cyclic garbage can hold.
+    # Importing JAX, equinox and matplotlib makes a great many objects that live until the
+    # process ends; the collector's young passes every 700 new objects, and the full passes they
+    # lead to, scanned them again and again and freed nothing (experiments/benchmarks/results.md,
+    # History). Passes every 50,000 new objects still bound what cyclic garbage can hold.
     if not set(sys.argv[1:2]) & set(STREAM_COMMANDS):  # the first word names the command
         gc.set_threshold(GC_YOUNG_THRESHOLD, *gc.get_threshold()[1:])
     try:

@@ -48,7 +48,7 @@ def color(name: str) -> str:
 
 def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], **kwargs):
     """`pyplot.subplots` without pyplot: a Figure drawn by Agg and its axes. pyplot's figure
-    manager and state (and the ~0.05 s its import costs a command) serve no purpose when every
+    manager and state, and the time its import adds to `fpe plot`, serve no purpose when every
     figure goes to a file."""
     fig = Figure(figsize=figsize)
     FigureCanvasAgg(fig)
