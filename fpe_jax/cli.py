@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import gc
 import math
 import os
 import queue
@@ -1057,11 +1058,23 @@ def _ignore_interrupts(main_thread: bool) -> None:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+GC_YOUNG_THRESHOLD = 50_000  # objects allocated (net) between the collector's young passes
+# commands that answer a stream for as long as it lasts: the interpreter's frequent, short
+# passes keep their per-update pauses short
+STREAM_COMMANDS = ("run", "node")
+
+
 def entry() -> None:
     """The `fpe` console script: `main`, then the process ends without Python's teardown (the
     destructors of JAX's runtime and of the loaded executables, a pause after every command).
     Every file a command writes is closed when it returns; the streams are flushed here. A
     Ctrl-C that lands while `main` is already finishing ends the process quietly with 130."""
+    # Importing JAX, equinox and matplotlib makes a great many objects that live until the
+    # process ends; the collector's young passes every 700 new objects, and the full passes they
+    # lead to, scanned them again and again and freed nothing (experiments/benchmarks/results.md,
+    # History). Passes every 50,000 new objects still bound what cyclic garbage can hold.
+    if not set(sys.argv[1:2]) & set(STREAM_COMMANDS):  # the first word names the command
+        gc.set_threshold(GC_YOUNG_THRESHOLD, *gc.get_threshold()[1:])
     try:
         rc = main()
     except KeyboardInterrupt:

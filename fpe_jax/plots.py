@@ -12,9 +12,11 @@ from pathlib import Path
 
 import matplotlib
 
-matplotlib.use("Agg")  # files only: no display on CI machines or cars
-import matplotlib.pyplot as plt  # noqa: E402
+matplotlib.use("Agg")  # files only: no display on CI machines or cars (and the experiments' pyplot)
 import numpy as np  # noqa: E402
+from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.layout_engine import TightLayoutEngine  # noqa: E402
 
 # One colour per predictor, the same in every figure.
 COLORS = {
@@ -44,6 +46,22 @@ def color(name: str) -> str:
     return COLORS.get(name, "tab:green")  # a config: drawn like the fitted one
 
 
+def subplots(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], **kwargs):
+    """`pyplot.subplots` without pyplot: a Figure drawn by Agg and its axes. pyplot's figure
+    manager and state, and the time its import adds to `fpe plot`, serve no purpose when every
+    figure goes to a file."""
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(nrows, ncols, **kwargs)
+
+
+def tight_layout(fig, rect: tuple[float, float, float, float] | None = None) -> None:
+    """`Figure.tight_layout` once, leaving the figure without a layout engine: the method leaves
+    a placeholder engine behind, for which `savefig` lays the whole figure out again (a full
+    draw without pixels) only to do nothing with it."""
+    TightLayoutEngine(rect=rect).execute(fig)
+
+
 def save(fig, path: str | Path, dpi: int = 110, *, force: bool = True) -> Path:
     """Write a figure (format from the suffix) atomically and free it; returns the path.
 
@@ -56,7 +74,10 @@ def save(fig, path: str | Path, dpi: int = 110, *, force: bool = True) -> Path:
         with atomic_output(path, force) as tmp, open(tmp, "xb") as f:
             fig.savefig(f, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
     finally:
-        plt.close(fig)
+        if fig.canvas.manager is not None:  # made by pyplot (the experiments'): let it go
+            import matplotlib.pyplot as plt
+
+            plt.close(fig)
     return path
 
 
@@ -279,10 +300,10 @@ def trajectory_figure(
     zoom_every = max(len(seg) // n_zoom, 1)
     zoom_idx = seg[(seg - corner) % zoom_every == 0]
     if len(names) == 1:  # one predictor: whole drive and zoom side by side
-        fig, axes = plt.subplots(1, 2, figsize=(14, 7.6), squeeze=False)
+        fig, axes = subplots(1, 2, figsize=(14, 7.6), squeeze=False)
         axes = axes.T  # axes[0, 0] whole, axes[1, 0] zoom
     else:
-        fig, axes = plt.subplots(2, len(names), figsize=(6.2 * len(names), 12.4), squeeze=False)
+        fig, axes = subplots(2, len(names), figsize=(6.2 * len(names), 12.4), squeeze=False)
     panels = (
         (every_index(n, every), False, f"whole drive: one prediction per {every}"),
         (zoom_idx, True, f"zoom: one prediction per {zoom_every}"),
@@ -305,7 +326,7 @@ def trajectory_figure(
     fig.legend(handles.values(), handles.keys(), loc="lower center", ncol=ncol, fontsize=9)
     fig.suptitle(title)
     legend_in = 0.3 * -(-len(handles) // ncol) + 0.25  # rows of ~0.3 inch, plus margins
-    fig.tight_layout(rect=(0, legend_in / fig.get_figheight(), 1, 1))
+    tight_layout(fig, rect=(0, legend_in / fig.get_figheight(), 1, 1))
     return fig
 
 
@@ -322,7 +343,7 @@ def error_vs_horizon_figure(
     k = len(reports)
     ncols = min(ncols, k)
     nrows = int(np.ceil(k / ncols))
-    fig, axes = plt.subplots(nrows, ncols, figsize=(4.6 * ncols, 3.8 * nrows + 0.8), squeeze=False)
+    fig, axes = subplots(nrows, ncols, figsize=(4.6 * ncols, 3.8 * nrows + 0.8), squeeze=False)
     for ax, (case, rep) in zip(axes.flat, reports.items()):
         for name in names or list(rep):
             per = np.asarray(rep[name]["per_step_m"])
@@ -341,16 +362,16 @@ def error_vs_horizon_figure(
     if k > 1:  # one legend for all panels (same predictors, same colours)
         handles, labels = axes.flat[0].get_legend_handles_labels()
         fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=9)
-        fig.tight_layout(rect=(0, 0.05 + 0.03 / nrows, 1, 1))
+        tight_layout(fig, rect=(0, 0.05 + 0.03 / nrows, 1, 1))
     else:
-        fig.tight_layout()
+        tight_layout(fig)
     return fig
 
 
 def weights_figure(params_by_label: Mapping[str, object], *, title: str, latency_s=None):
     """Fitted per-step blend weights (1 = linear, 0 = pure pursuit) against the seed's 0.7^i,
     with each fit's lookahead, delay and speed model in its legend entry."""
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig, ax = subplots(figsize=(8, 5))
     first = next(iter(params_by_label.values()))
     h = first.settings.horizon
     t = first.settings.dt_s * np.arange(1, h + 1)
@@ -370,7 +391,7 @@ def weights_figure(params_by_label: Mapping[str, object], *, title: str, latency
     ax.set_title(title, fontsize=11)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7.5, loc="upper right")
-    fig.tight_layout()
+    tight_layout(fig)
     return fig
 
 
@@ -413,7 +434,7 @@ def line_figure(params, length_m: float, closed: bool, *, title: str):
         np.asarray(v[k]) for k in ("line_offset_m", "line_speed_mps", "line_coverage")
     )
     s = np.arange(len(off)) * (length_m / (len(off) if closed else len(off) - 1))
-    fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    fig, axes = subplots(2, 1, figsize=(9, 6), sharex=True)
     for ax, y, label in ((axes[0], off, "line offset m (left +)"), (axes[1], speed, "speed m/s")):
         ax.plot(s, y, color=color("fitted"))
         uncovered = dict(where=cov <= 0, color="0.85", transform=ax.get_xaxis_transform())
@@ -423,5 +444,5 @@ def line_figure(params, length_m: float, closed: bool, *, title: str):
     axes[0].legend(loc="upper right", fontsize=8)
     axes[1].set_xlabel("arc length along the centerline [m]")
     fig.suptitle(title)
-    fig.tight_layout()
+    tight_layout(fig)
     return fig

@@ -4,6 +4,8 @@ example of the command."""
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
 
 import pytest
 
@@ -61,3 +63,26 @@ def test_the_parser_of_one_command_parses_as_the_whole():
 @pytest.mark.parametrize("word", ["nosuch", "--help", "-h", "--quiet"])
 def test_a_word_that_names_no_command_gets_the_whole_parser(word):
     assert _only(word).keys() == _subparsers().keys()
+
+
+@pytest.mark.parametrize("command", ["predict", "plot", "run", "node"])
+def test_the_fpe_process_runs_the_collectors_young_passes_less_often(command):
+    """`entry` (the `fpe` script) raises the young generation's threshold before `main` imports
+    JAX and matplotlib, except for the commands that answer a stream as long as it lasts;
+    importing the module (as the library's callers do) changes nothing."""
+    from fpe_jax import cli
+
+    code = (
+        "import gc, fpe_jax.cli as c\n"
+        "before = gc.get_threshold()\n"
+        "c.main = lambda: print(*before, *gc.get_threshold()) or 0\n"
+        "c.entry()\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, command], capture_output=True, text=True, check=True
+    )
+    values = [int(v) for v in out.stdout.split()]
+    before, during = values[:3], values[3:]
+    assert before[0] < cli.GC_YOUNG_THRESHOLD
+    raised = [cli.GC_YOUNG_THRESHOLD, *before[1:]]
+    assert during == (before if command in cli.STREAM_COMMANDS else raised)

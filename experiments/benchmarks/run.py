@@ -656,10 +656,25 @@ def _fpe_times_s(argv: list[str], cache_dir: Path) -> tuple[float, float]:
     return wall, cpu
 
 
+def compile_bytecode() -> None:
+    """Compile the `fpe_jax` package this Python imports to bytecode, as an installed wheel
+    has it: where PYTHONDONTWRITEBYTECODE is set (this project's machines), an editable install
+    would otherwise compile every module it imports again in every command, which no user's
+    installed copy does."""
+    import compileall
+    import importlib.util
+
+    folder = importlib.util.find_spec("fpe_jax").submodule_search_locations[0]
+    if not compileall.compile_dir(folder, quiet=1):
+        raise RuntimeError(f"compileall {folder} failed")
+
+
 def bench_commands(runs: int, fit_minutes) -> dict:
     """`fpe predict|evaluate|plot` on a 60 s drive and `fpe fit` on simulated drives: medians of
     `runs` cold runs (each with an empty compilation cache) and of `runs` warm ones (a cache that
-    one earlier run filled); plus the JAX-free commands."""
+    one earlier run filled); plus the JAX-free commands. The package is compiled to bytecode
+    first (`compile_bytecode`)."""
+    compile_bytecode()
     tmp = Path(tempfile.mkdtemp(prefix="fpe-bench-cmd-"))
     fpe = str(Path(sys.executable).parent / "fpe")
 
@@ -715,7 +730,12 @@ def bench_commands(runs: int, fit_minutes) -> dict:
             "warm_runs_s": walls,
         }
         print(f"  fpe {name}: {rows[name]['warm_s']:.2f} s", flush=True)
-    return {"runs": runs, "commands": rows, "drive": "fpe simulate (oval, default sensor)"}
+    return {
+        "runs": runs,
+        "commands": rows,
+        "drive": "fpe simulate (oval, default sensor)",
+        "bytecode": "compiled before the runs",
+    }
 
 
 def commands_markdown(cmd: dict, fit: dict, summary: dict) -> list[str]:
@@ -727,6 +747,15 @@ def commands_markdown(cmd: dict, fit: dict, summary: dict) -> list[str]:
         "an empty compilation cache, warm = a cache filled by one earlier run. predict, "
         "evaluate and plot: a 60 s simulated drive with a fitted config. CPU: user + system "
         "time of the command's process (all threads): its own work, whatever the load." + load,
+    ]
+    if "bytecode" in cmd:
+        lines[-1] += (
+            " The package's modules are compiled to bytecode before the runs (`compileall`), "
+            "as an installed wheel has them; this machine sets PYTHONDONTWRITEBYTECODE, so "
+            "without that step every command compiled the modules it imports again, as in "
+            "the runs before this step was added (History)."
+        )
+    lines += [
         "",
         "| command | cold [s] | warm [s] | warm CPU [s] | warm target [s] |",
         "| --- | ---: | ---: | ---: | ---: |",

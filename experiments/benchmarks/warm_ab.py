@@ -1,6 +1,14 @@
 """Warm command times of two or more checkouts, interleaved: `make bench`'s `fpe predict`,
-`fpe evaluate` (60 s drive, a config fitted on it) and `fpe fit` (1-minute drive), each run
-in a fresh process with a compilation cache the checkout filled before.
+`fpe evaluate`, `fpe plot` (60 s drive, a config fitted on it) and `fpe fit` (1-minute drive),
+each run in a fresh process with a compilation cache the checkout filled before.
+
+Each checkout's package is compiled to bytecode before each of its runs (`compileall`: a
+no-op once done), as an installed wheel has it: where PYTHONDONTWRITEBYTECODE is set, an
+editable install would otherwise compile every module it imports again in every command.
+`--from-source LABEL,...` runs those checkouts without it (their package's `__pycache__`
+removed before each run, with PYTHONDONTWRITEBYTECODE=1); one environment may be named twice:
+
+    python experiments/benchmarks/warm_ab.py PYC=.venv SRC=.venv --from-source SRC
 
 On a shared machine a load that drifts over minutes moves runs made minutes apart, so the
 checkouts take turns (A B A B ... for each command) and each one's median is reported, with the
@@ -42,6 +50,15 @@ except TypeError:  # a checkout whose parser is always whole
 parser.parse_args(argv)
 print(t1 - t0, time.process_time() - t1)
 """
+FOLDER_CODE = """
+import importlib.util
+folder = importlib.util.find_spec("fpe_jax").submodule_search_locations[0]
+print(folder)
+"""
+COMPILE_CODE = """
+import compileall, sys
+sys.exit(0 if compileall.compile_dir(folder, quiet=1) else 1)
+"""
 IMPORTS_CODE = """
 import importlib, sys, time
 import numpy
@@ -52,9 +69,18 @@ print(time.process_time() - t0)
 """
 
 
-def run_fpe(venv: Path, argv: list[str], cache: Path) -> tuple[float, float]:
-    """(wall [s], CPU [s]) of `fpe argv --quiet` in a fresh process with the cache folder."""
+def run_fpe(
+    venv: Path, argv: list[str], cache: Path, source: Path | None = None
+) -> tuple[float, float]:
+    """(wall [s], CPU [s]) of `fpe argv --quiet` in a fresh process with the cache folder; with
+    `source` (the package's folder) without the package's bytecode, else with it."""
     env = {**os.environ, "FPE_CACHE_DIR": str(cache)}
+    if source is None:
+        compile_bytecode(venv)
+    else:
+        for folder in list(source.rglob("__pycache__")):
+            shutil.rmtree(folder)
+        env["PYTHONDONTWRITEBYTECODE"] = "1"
     env.pop("FPE_NO_CACHE", None)
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -68,8 +94,11 @@ def run_fpe(venv: Path, argv: list[str], cache: Path) -> tuple[float, float]:
     return wall, after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
 
 
-def time_commands(venvs: dict[str, Path], names: list[str], runs: int, tmp: Path) -> None:
-    """Print the median warm wall and CPU times of the commands `names` of each checkout."""
+def time_commands(
+    venvs: dict[str, Path], names: list[str], runs: int, tmp: Path, sources: dict[str, Path]
+) -> None:
+    """Print the median warm wall and CPU times of the commands `names` of each checkout (those
+    in `sources`, label -> package folder, without bytecode)."""
     first = next(iter(venvs.values()))
     drive = tmp / "drive"
     fpe = str(first / "bin" / "fpe")
@@ -88,6 +117,7 @@ def time_commands(venvs: dict[str, Path], names: list[str], runs: int, tmp: Path
     commands = {
         "predict": ["predict", *log, "--config", str(config), "--out", "{out}/p.csv", "--force"],
         "evaluate": ["evaluate", *log, "--config", str(config)],
+        "plot": ["plot", *log, "--config", str(config), "--out", "{out}/p.png", "--force"],
         "fit": ["fit", *log, "--out", "{out}/c.json", "--force"],
     }
     times: dict[tuple[str, str], list[tuple[float, float]]] = {}
@@ -97,10 +127,12 @@ def time_commands(venvs: dict[str, Path], names: list[str], runs: int, tmp: Path
             out = tmp / f"out-{label}"
             out.mkdir(exist_ok=True)
             argvs[label] = [a.replace("{out}", str(out)) for a in commands[name]]
-            run_fpe(venv, argvs[label], tmp / f"cache-{label}-{name}")  # fills the cache
+            cache = tmp / f"cache-{label}-{name}"
+            run_fpe(venv, argvs[label], cache, sources.get(label))  # fills the cache
         for _ in range(runs):
             for label, venv in venvs.items():
-                t = run_fpe(venv, argvs[label], tmp / f"cache-{label}-{name}")
+                cache = tmp / f"cache-{label}-{name}"
+                t = run_fpe(venv, argvs[label], cache, sources.get(label))
                 times.setdefault((name, label), []).append(t)
     print(f"load average {os.getloadavg()[0]:.1f}; medians of {runs} interleaved runs")
     print("| command | checkout | wall [s] | CPU [s] | wall runs [s] |")
@@ -118,9 +150,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("checkouts", nargs="+", metavar="LABEL=VENV")
     ap.add_argument("--runs", type=int, default=9, help="warm runs per command and checkout")
-    ap.add_argument("--commands", default="predict,evaluate,fit", help="comma list")
+    ap.add_argument("--commands", default="predict,evaluate,plot,fit", help="comma list")
     ap.add_argument("--parser", action="store_true", help="also time the CLI's start")
     ap.add_argument("--imports", metavar="MOD,...", help="also time importing these modules")
+    ap.add_argument(
+        "--from-source",
+        default="",
+        metavar="LABEL,...",
+        help="time these checkouts' commands without their package's bytecode",
+    )
     args = ap.parse_args()
     venvs = {}
     for item in args.checkouts:
@@ -133,10 +171,40 @@ def main() -> None:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def package_folder(venv: Path) -> Path:
+    """The folder of the `fpe_jax` package that `venv` imports."""
+    proc = subprocess.run(
+        [str(venv / "bin" / "python"), "-c", FOLDER_CODE],
+        check=True,
+        capture_output=True,
+        text=True,
+        cwd=tempfile.gettempdir(),  # `python -c` imports from its folder first: not a checkout's
+    )
+    return Path(proc.stdout.strip())
+
+
+def compile_bytecode(venv: Path) -> None:
+    """Compile the `fpe_jax` package that `venv` imports to bytecode (`__pycache__` beside its
+    sources, which git ignores)."""
+    subprocess.run(
+        [str(venv / "bin" / "python"), "-c", FOLDER_CODE + COMPILE_CODE],
+        check=True,
+        capture_output=True,
+        cwd=tempfile.gettempdir(),
+    )
+
+
 def measure(args, venvs: dict[str, Path], tmp: Path) -> None:
+    labels = [x for x in args.from_source.split(",") if x]
+    if unknown := set(labels) - set(venvs):
+        raise SystemExit(f"--from-source: no checkout labelled {', '.join(sorted(unknown))}")
+    sources = {label: package_folder(venvs[label]) for label in labels}
+    for label, venv in venvs.items():
+        if label not in sources:
+            compile_bytecode(venv)
     names = [n for n in args.commands.split(",") if n]
     if names:
-        time_commands(venvs, names, args.runs, tmp)
+        time_commands(venvs, names, args.runs, tmp, sources)
     if args.parser:
         starts: dict[str, list[tuple[float, float]]] = {}
         for _ in range(max(args.runs, 11)):
