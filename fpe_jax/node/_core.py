@@ -267,7 +267,7 @@ class Node:
         self._check_frame(hdr["frame_id"], "pose")
         pose = msg["pose"]["pose"] if type_name.endswith("Odometry") else msg["pose"]
         p, q = pose["position"], pose["orientation"]
-        yaw = float(rm.quaternion_to_yaw(q["x"], q["y"], q["z"], q["w"]))
+        yaw = rm.quaternion_yaw(float(q["x"]), float(q["y"]), float(q["z"]), float(q["w"]))
         self._observe("0", stamp_ns(hdr["stamp"]), float(p["x"]), float(p["y"]), yaw, receive_ns)
 
     def _on_tf(self, topic: str, msg: dict, type_name: str, receive_ns: int) -> None:
