@@ -229,7 +229,7 @@ class RunnerPath:
         (Track._project_segments)."""
         lo = int(idx[0])
         seg = self._seg[:, lo : lo + len(idx)] if contiguous else self._seg.take(idx, axis=1)
-        t, d2 = _segment_distances(seg, np.array([[x_m], [y_m]]))
+        t, d2 = _segment_distances(seg, x_m, y_m)
         k = int(np.argmin(d2))  # the first minimum, as jnp.argmin
         if heading_rad is not None:
             tangent = self._table[idx, 4:6]
@@ -301,7 +301,9 @@ class RunnerPath:
             px, py = x, y
         idx = np.array(base)[:, None] + self._chain_window
         idx = idx % self._m if closed else np.clip(idx, 0, self._m - 2)
-        t, d2 = _segment_distances(self._seg[:, idx], xy_m.T[:, :, None])  # (N, W + 2 margin)
+        t, d2 = _segment_distances(
+            self._seg[:, idx], xy_m[:, :1], xy_m[:, 1:2]
+        )  # (N, W + 2 margin)
         m, w = CHAIN_MARGIN, len(self._window)
         guessed = np.argmin(d2[:, m : m + w], axis=1).tolist()  # the first minimum of each row
         out, s, half, length = [], s_start_m, 0.5 * self.length_m, self.length_m
@@ -320,23 +322,18 @@ class RunnerPath:
         return out
 
 
-def _segment_distances(seg: np.ndarray, p_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _segment_distances(seg: np.ndarray, x_m, y_m) -> tuple[np.ndarray, np.ndarray]:
     """(t, squared distance [m^2]) of the closest point a + t (b - a), t in [0, 1], of segments
     to points: seg (5, ...) rows a_x, a_y, (b - a)_x, (b - a)_y, |b - a|^2 as `RunnerPath._seg`;
-    p_m (2, ...) x, y [m] broadcasting against seg's rows. The arithmetic of
-    Track._project_segments, both coordinates in one NumPy call each (a window is tens of
-    segments: the calls, not the numbers, are the cost)."""
-    a, ab = seg[:2], seg[2:4]
-    along = (p_m - a) * ab
-    t = along[0] + along[1]
-    t /= seg[4]
+    x_m, y_m [m] floats or arrays broadcasting against seg's rows. The arithmetic of
+    Track._project_segments."""
+    ax, ay, abx, aby, ab2 = seg
+    t = ((x_m - ax) * abx + (y_m - ay) * aby) / ab2
     np.maximum(t, 0.0, out=t)
     np.minimum(t, 1.0, out=t)
-    d = ab * t
-    d += a
-    d -= p_m
-    d *= d
-    return t, d[0] + d[1]
+    dx = ax + t * abx - x_m
+    dy = ay + t * aby - y_m
+    return t, dx * dx + dy * dy
 
 
 class _ArrayPath(RunnerPath):
