@@ -301,9 +301,8 @@ class RunnerPath:
             px, py = x, y
         idx = np.array(base)[:, None] + self._chain_window
         idx = idx % self._m if closed else np.clip(idx, 0, self._m - 2)
-        t, d2 = _segment_distances(
-            self._seg[:, idx], xy_m[:, :1], xy_m[:, 1:2]
-        )  # (N, W + 2 margin)
+        rows = self._seg[:, idx]  # (5, N, W + 2 margin)
+        t, d2 = _segment_distances(rows, xy_m[:, :1], xy_m[:, 1:2])
         m, w = CHAIN_MARGIN, len(self._window)
         guessed = np.argmin(d2[:, m : m + w], axis=1).tolist()  # the first minimum of each row
         out, s, half, length = [], s_start_m, 0.5 * self.length_m, self.length_m
