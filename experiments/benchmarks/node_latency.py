@@ -9,10 +9,10 @@ p50 and p99 of each over `--seconds` of a simulated drive, for each case of who 
 `path` (only this process, to the paths: the node builds no other output), `all` (a second
 process subscribes to every other output too: markers, per-step covariances, predicted
 obstacles, trajectory) and `all-no-markers` (the same with the node run with --no-markers).
-Writes node_latency.md beside this file.
+Writes node_latency.md beside this file (or --out).
 
     .venv/bin/python experiments/benchmarks/node_latency.py [--seconds 10] [--runs 3]
-        [--middleware both] [--cases path,all,all-no-markers]
+        [--middleware both] [--cases path,all,all-no-markers] [--out FILE]
 """
 
 from __future__ import annotations
@@ -342,6 +342,8 @@ def main() -> None:
         default=",".join(CASES),
         help=f"who listens, comma-separated among {', '.join(CASES)} (default: all three)",
     )
+    ap.add_argument("--out", type=Path, default=HERE / "node_latency.md",
+                    help="the table file (default: node_latency.md here)")  # fmt: skip
     ap.add_argument("--sink", help=argparse.SUPPRESS)  # the listening-`all` subscriber process
     args = ap.parse_args()
     if args.sink:
@@ -431,7 +433,7 @@ def main() -> None:
         + ", ".join(f"{v:.2f}" for v in load_end)
         + " (2 cores).",
     ]
-    (HERE / "node_latency.md").write_text("\n".join(lines) + "\n")
+    args.out.write_text("\n".join(lines) + "\n")
 
 
 def _case(name: str) -> None:

@@ -17,6 +17,7 @@ Also here: the stamp and quaternion conversions every reader and writer shares.
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -210,3 +211,11 @@ def quaternion_to_yaw(x, y, z, w) -> np.ndarray:
     x, y, z, w = (np.asarray(a, dtype=np.float64) for a in (x, y, z, w))
     yaw = np.arctan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)
     return np.where(x * x + y * y + z * z + w * w < 1e-12, np.nan, yaw)
+
+
+def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
+    """`quaternion_to_yaw` of one quaternion's numbers, on floats (a live node converts one
+    message at a time: NumPy's calls on single numbers cost far more than the arithmetic)."""
+    if x * x + y * y + z * z + w * w < 1e-12:
+        return math.nan
+    return math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z)

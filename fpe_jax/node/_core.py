@@ -181,6 +181,8 @@ class Node:
         self.horizon = self.template.horizon
         unc = config.get("uncertainty")
         self.cov_track_m2 = None if unc is None else np.asarray(unc["cov_m2"], dtype=np.float64)
+        # each step's track-frame covariance as (xx, xy, yx, yy) floats, for `_covariance`
+        self._cov_rows = None if unc is None else self.cov_track_m2.reshape(-1, 4).tolist()
         self.runners: dict[str, Runner] = {}
         self.last_seen_ns: dict[str, int] = {}  # receive time (monotonic) of each track
         self.t0_ns: int | None = None  # stamps enter the runners as seconds after this one
@@ -270,8 +272,8 @@ class Node:
         self._check_frame(hdr["frame_id"], "pose")
         pose = msg["pose"]["pose"] if type_name.endswith("Odometry") else msg["pose"]
         p, q = pose["position"], pose["orientation"]
-        yaw = float(rm.quaternion_to_yaw(q["x"], q["y"], q["z"], q["w"]))
-        self._observe("0", stamp_ns(hdr["stamp"]), float(p["x"]), float(p["y"]), yaw, receive_ns)
+        yaw = rm.quaternion_yaw(float(q["x"]), float(q["y"]), float(q["z"]), float(q["w"]))
+        self._predict("0", stamp_ns(hdr["stamp"]), float(p["x"]), float(p["y"]), yaw, receive_ns)
 
     def _on_tf(self, topic: str, msg: dict, type_name: str, receive_ns: int) -> None:
         static = topic.rstrip("/").endswith(STATIC_SUFFIX)
@@ -342,7 +344,7 @@ class Node:
                 stamps = np.array([ns], dtype=np.int64)
                 map_car = place_tag(self.tf, self.opt.map_frame, camera, stamps, cam_tag, tag_car)
                 x, y = (float(v) for v in map_car.t_m[0, :2])
-                self._observe("0", ns, x, y, float(map_car.yaw_rad()[0]), receive_ns)
+                self._predict("0", ns, x, y, float(map_car.yaw_rad()[0]), receive_ns)
             except (BadMessage, InputError) as e:
                 self.warn(topic, f"TF: {e.problem}" if isinstance(e, InputError) else str(e))
         self.pending = keep
@@ -359,7 +361,7 @@ class Node:
             self.warn(topic, f"{len(moving)} moving obstacles, only the first "
                       f"{self.opt.max_tracks} (--max-tracks) are tracked")  # fmt: skip
             moving = moving[: self.opt.max_tracks]
-        updated = []
+        predicted = []
         for o in moving:
             car, s, d = str(int(o["id"])), float(o["s_center"]), float(o["d_center"])
             if not _finite(s, d):
@@ -367,20 +369,20 @@ class Node:
                 continue
             x, y = self._frenet_to_map(s, d)
             try:
-                out = self._observe(car, ns, x, y, math.nan, receive_ns, publish=False)
+                pred = self._observe(car, ns, x, y, math.nan, receive_ns)
             except (BadMessage, InputError) as e:
                 self.warn(topic, f"obstacle {car}: {getattr(e, 'problem', e)}")
                 continue
-            if out is not None:
-                self._publish_paths([out])  # each car's path as soon as it is known
-                updated.append(out)
+            if pred is not None:
+                self._publish_paths([pred])  # each car's path as soon as it is known
+                predicted.append(pred)
         stale = [c for c, t in self.last_seen_ns.items()
                  if receive_ns - t > self.opt.drop_after_s * 1e9]  # fmt: skip
         for c in stale:
             del self.runners[c], self.last_seen_ns[c]
             self._last_markers_ns.pop(c, None)
-        if updated:
-            self._publish_views(updated)
+        if predicted:  # the covariances once every path is out
+            self._publish_views([self._with_covariance(p) for p in predicted])
 
     def _frenet_to_map(self, s_m: float, d_m: float) -> tuple[float, float]:
         return frenet_to_map(self.path, s_m, d_m)
@@ -398,10 +400,18 @@ class Node:
                     self._publisher(name, car)
         return r
 
-    def _observe(self, car: str, ns: int, x: float, y: float, yaw: float, receive_ns: int,
-                 publish: bool = True):  # fmt: skip
-        """Feed one observation to the car's runner and publish its prediction when valid.
-        Returns (car, stamp_ns, poses (H, 3), cov (H, 2, 2) or None, s_m) or None (invalid)."""
+    def _predict(self, car: str, ns: int, x: float, y: float, yaw: float, receive_ns: int):
+        """One opponent's observation in, its outputs out: the path as soon as the runner has
+        predicted, then the covariance and the other outputs."""
+        pred = self._observe(car, ns, x, y, yaw, receive_ns)
+        if pred is not None:
+            self._publish_paths([pred])
+            self._publish_views([self._with_covariance(pred)])
+
+    def _observe(self, car: str, ns: int, x: float, y: float, yaw: float, receive_ns: int):
+        """Feed one observation to the car's runner. Returns the prediction (car, stamp_ns,
+        poses (H, 3), s_m: the arc length its steps are searched from, own time so far [ns]), or
+        None when it is not valid (too little history); `_with_covariance` completes it."""
         if not _finite(x, y):
             raise BadMessage(f"non-finite position ({x}, {y})")
         t0 = time.perf_counter_ns()
@@ -420,35 +430,48 @@ class Node:
                 "expected poses in the map frame of --waypoints)"
             )
         s_m = runner._s_m if runner._s_m is not None else self.path.project(x, y)
-        cov, along = self._covariance(poses, s_m, runner)
-        self.update_ns.append(time.perf_counter_ns() - t0)
+        took_ns = time.perf_counter_ns() - t0
         if self.scene is not None:
             self.scene.observation(car, ns, x, y, yaw)
-        if not runner.valid:
+        if not runner.valid:  # nothing is published: no covariance either
+            self.update_ns.append(took_ns)
             return None
-        out = (car, ns, poses, cov, along)
-        if publish:
-            self._publish([out])
+        return car, ns, poses, s_m, took_ns
+
+    def _with_covariance(self, pred: tuple) -> tuple:
+        """A valid prediction of `_observe` as (car, stamp_ns, poses (H, 3), cov (H, 2, 2) or
+        None, arc lengths (H,)): its covariance, computed once its path is out; its own update
+        time (the runner's update and this) recorded."""
+        car, ns, poses, s_m, took_ns = pred
+        t0 = time.perf_counter_ns()
+        cov, along = self._covariance(poses, s_m, self.runners[car])
+        self.update_ns.append(took_ns + time.perf_counter_ns() - t0)
         if self.scene is not None:
             steps = ns + self.wire.step_ns
             zero = np.zeros((self.horizon, 2, 2))
             self.scene.prediction(car, ns, poses, zero if cov is None else cov, steps, True)
-        return out
+        return car, ns, poses, cov, along
 
     def _covariance(self, poses: np.ndarray, s_m: float, runner: Runner):
         """(map-frame covariance (H, 2, 2) [m^2] or None, arc lengths (H,) [m] of the steps):
-        the config's per-step track-frame covariance (with calibrate, the car's runner's
-        calibrated one) turned by the path heading at each step, each step's arc length
-        searched in the window around the previous one's."""
+        the config's per-step track-frame covariance C (with calibrate, the car's runner's
+        calibrated one) turned by the path heading h at each step (R C R^T, R the rotation by
+        h; on floats: ten 2x2 products cost less in Python than NumPy's calls), each step's arc
+        length searched in the window around the previous one's."""
         path = self.path
         along = path.project_chain(poses[:, :2], s_m)
-        cov_track = runner.covariance() if self.opt.calibrate else self.cov_track_m2
-        if cov_track is None:
+        if self._cov_rows is None:
             return None, along
-        h = np.array([path.heading_at(s) for s in along])
-        c, sn = np.cos(h), np.sin(h)
-        rot = np.stack([np.stack([c, -sn], -1), np.stack([sn, c], -1)], -2)
-        return rot @ cov_track @ np.swapaxes(rot, -1, -2), along
+        rows = runner.covariance().reshape(-1, 4).tolist() if self.opt.calibrate else self._cov_rows
+        cov = []
+        for s, (a, b, c, d) in zip(along, rows):
+            h = path.heading_at(s)
+            co, si = math.cos(h), math.sin(h)
+            ra, rb, rc, rd = co * a - si * c, co * b - si * d, si * a + co * c, si * b + co * d
+            cov.append(
+                [[ra * co - rb * si, ra * si + rb * co], [rc * co - rd * si, rc * si + rd * co]]
+            )
+        return np.array(cov), along
 
     # -- outputs
 
@@ -476,14 +499,9 @@ class Node:
         pub = self._pub[name] if topic is None else self._publisher(name, car)
         return pub if self.transport.subscriber_count(topic or self.opt.outputs[name]) else None
 
-    def _publish(self, outs: list) -> None:
-        """Publish the predictions of one input message: the paths first (what a planner waits
-        for), then the rest (`_publish_views`)."""
-        self._publish_paths(outs)
-        self._publish_views(outs)
-
-    def _publish_paths(self, outs: list) -> None:
-        for car, ns, poses, _, _ in outs:
+    def _publish_paths(self, preds: list) -> None:
+        """The paths (what a planner waits for) of predictions, before anything else."""
+        for car, ns, poses, *_ in preds:
             pub = self._live("path", car)
             if pub is not None:
                 pub(self.wire.path(ns, poses))

@@ -26,6 +26,7 @@ a process where importing JAX fails.
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import math
 import time
@@ -80,10 +81,19 @@ _TWO_PI = 2 * math.pi
 FloatN = float | np.ndarray  # one car's value, or the (N,) values of N cars (`_Arrays`)
 
 
+_HALF_INV_PI = 0.5 / math.pi
+
+
 def _wrap(a: FloatN, floor=math.floor) -> FloatN:
     """Angle [rad] wrapped to [-pi, pi) with the same arithmetic as fpe_jax.geometry.wrap_angle
     (`floor=np.floor` for arrays)."""
-    return a - _TWO_PI * floor((a + _PI) * (0.5 / _PI))
+    return a - _TWO_PI * floor((a + _PI) * _HALF_INV_PI)
+
+
+@functools.cache
+def _pairs(n: int) -> tuple[tuple[int, int], ...]:
+    """The index pairs (i, j), i < j < n, of a window of n observations (Theil-Sen slopes)."""
+    return tuple((i, j) for j in range(n) for i in range(j))
 
 
 class _Floats:
@@ -117,6 +127,7 @@ def _median(values: list[float]) -> float:
 
 
 GUESS_ITERS = 4
+CHAIN_MARGIN = 2  # segments `RunnerPath.project_chain` searches beyond each guessed window
 
 
 class RunnerPath:
@@ -153,10 +164,13 @@ class RunnerPath:
         self._heading = p["heading_rad"].tolist()
         self.xy_m: np.ndarray = xy  # (M, 2) the resampled points [m] and their headings [rad]
         self.heading_rad: np.ndarray = p["heading_rad"]
-        self._all_segments = np.arange(m if self.closed else m - 1)
+        self._all_segments = range(m if self.closed else m - 1)
         n_back = int(np.ceil(WINDOW_BEHIND_M / self.ds_m))
         n_ahead = int(np.ceil(WINDOW_AHEAD_M / self.ds_m))
         self._window = np.arange(-n_back, n_ahead + 1)
+        self._window_lo, self._window_hi = -n_back, n_ahead  # its first and last offsets
+        self._last_window: tuple = (None, 0.0)  # ((x, y, hint's segment), its search's result)
+        self._chain_window = np.arange(-n_back - CHAIN_MARGIN, n_ahead + CHAIN_MARGIN + 1)
 
     def locate(self, s_m: float) -> tuple[int, float]:
         """Segment index i and fraction f in [0, 1] for arc length s [m] (Track._locate)."""
@@ -207,21 +221,15 @@ class RunnerPath:
         return s
 
     def _nearest(
-        self, x_m: float, y_m: float, idx: np.ndarray, contiguous: bool, heading_rad=None
+        self, x_m: float, y_m: float, idx: np.ndarray | range, contiguous: bool, heading_rad=None
     ) -> float:
         """Arc length [m] of the closest point to (x, y) on the segments starting at idx (n,);
-        `contiguous` (idx = lo, lo + 1, ...) reads them as a view instead of gathering. With a
+        `contiguous` (idx a range) reads them as a view instead of gathering. With a
         heading [rad], the branch rule of `fpe_jax.geometry.BRANCH_COS`
         (Track._project_segments)."""
         lo = int(idx[0])
         seg = self._seg[:, lo : lo + len(idx)] if contiguous else self._seg.take(idx, axis=1)
-        ax, ay, abx, aby, ab2 = seg
-        t = ((x_m - ax) * abx + (y_m - ay) * aby) / ab2
-        np.maximum(t, 0.0, out=t)
-        np.minimum(t, 1.0, out=t)
-        dx = ax + t * abx - x_m
-        dy = ay + t * aby - y_m
-        d2 = dx * dx + dy * dy
+        t, d2 = _segment_distances(seg, x_m, y_m)
         k = int(np.argmin(d2))  # the first minimum, as jnp.argmin
         if heading_rad is not None:
             tangent = self._table[idx, 4:6]
@@ -247,15 +255,25 @@ class RunnerPath:
 
     def project_window(self, x_m: float, y_m: float, s_hint_m: float) -> float:
         """Arc length [m] of the closest point within [s_hint - 2 m, s_hint + 4 m], continuous
-        with the hint across the seam of a loop (it counts laps), as Track.project_window."""
-        idx = self._window + math.floor(s_hint_m / self.ds_m)
-        last = self._m - 1 if self.closed else self._m - 2
-        if 0 <= idx[0] and idx[-1] <= last:
-            s = self._nearest(x_m, y_m, idx, True)
-        else:  # across the seam (wrap) or past an end (clamp), exactly as the JAX indices do
-            s = self._nearest(
-                x_m, y_m, idx % self._m if self.closed else np.clip(idx, 0, last), False
-            )
+        with the hint across the seam of a loop (it counts laps), as Track.project_window.
+
+        The search's result depends on the hint's segment alone (the window), so the last
+        search is kept: a second one of the same point in the same window (the off-track check
+        after `Runner.update`) costs nothing."""
+        b = math.floor(s_hint_m / self.ds_m)
+        key = (x_m, y_m, b)
+        last_key, s = self._last_window
+        if key != last_key:
+            lo, hi = b + self._window_lo, b + self._window_hi
+            last = self._m - 1 if self.closed else self._m - 2
+            if 0 <= lo and hi <= last:
+                s = self._nearest(x_m, y_m, range(lo, hi + 1), True)
+            else:  # across the seam (wrap) or past an end (clamp), exactly as the JAX indices do
+                idx = self._window + b
+                s = self._nearest(
+                    x_m, y_m, idx % self._m if self.closed else np.clip(idx, 0, last), False
+                )
+            self._last_window = (key, s)
         if not self.closed:
             return s
         half = 0.5 * self.length_m
@@ -264,49 +282,57 @@ class RunnerPath:
     def project_chain(self, xy_m: np.ndarray, s_start_m: float) -> list[float]:
         """Arc lengths [m] of consecutive points (N, 2) [m], each `project_window` of the point
         around the previous one's arc length (the first around s_start_m [m]): the same values
-        as that loop, at about half its cost for N = 10.
+        as that loop, to the last bit, at a fraction of its cost for N = 10.
 
         The windows are guessed (from `project_local`, a few float operations a point) and the
-        points searched in them all at once; from the first point whose window is not the one
-        the loop would search (its hint's segment differs), the points are searched again
-        around the arc lengths just found, until every window is the loop's.
+        points searched at once in their guessed windows widened by CHAIN_MARGIN segments on
+        each side; then, point after point, the minimum is taken over the loop's own window
+        (the hint's segment is the previous arc length's), which lies inside the widened one
+        unless the guess was more than CHAIN_MARGIN segments off (then that point is searched
+        alone, as the loop does).
         """
-        xs, ys = xy_m[:, 0], xy_m[:, 1]
-        guess, s = [], s_start_m
+        ds, closed = self.ds_m, self.closed
+        xs, ys = xy_m[:, 0].tolist(), xy_m[:, 1].tolist()
+        base, s = [], s_start_m
         px, py = self.point_at(s_start_m)
-        for x, y in zip(xs.tolist(), ys.tolist()):
-            guess.append(s)
+        for x, y in zip(xs, ys):
+            base.append(math.floor(s / ds))
             s = self.project_local(x, y, s + math.hypot(x - px, y - py))
             px, py = x, y
-        out, s, half = [], s_start_m, 0.5 * self.length_m
-        while len(out) < len(guess):
-            first = len(out)
-            base = np.floor(np.array(guess[first:]) / self.ds_m).astype(np.int64)
-            found = self._search_rows(xs[first:], ys[first:], base)
-            for b, raw in zip(base.tolist(), found):
-                if math.floor(s / self.ds_m) != b:  # not the loop's window: search again
-                    guess[len(out) :] = [s, *found[len(out) - first : -1]]
-                    break
-                s = s + ((raw - s + half) % self.length_m - half) if self.closed else raw
-                out.append(s)
+        idx = np.array(base)[:, None] + self._chain_window
+        idx = idx % self._m if closed else np.clip(idx, 0, self._m - 2)
+        rows = self._seg[:, idx]  # (5, N, W + 2 margin)
+        t, d2 = _segment_distances(rows, xy_m[:, :1], xy_m[:, 1:2])
+        m, w = CHAIN_MARGIN, len(self._window)
+        guessed = np.argmin(d2[:, m : m + w], axis=1).tolist()  # the first minimum of each row
+        out, s, half, length = [], s_start_m, 0.5 * self.length_m, self.length_m
+        for k, (b, j) in enumerate(zip(base, guessed)):
+            off = math.floor(s / ds) - b + m  # where the loop's window starts in the row
+            if off != m:
+                if not 0 <= off <= 2 * m:  # the guess was too far off: the loop's own search
+                    s = self.project_window(xs[k], ys[k], s)
+                    out.append(s)
+                    continue
+                j = int(np.argmin(d2[k, off : off + w]))
+            c = off + j
+            raw = (int(idx[k, c]) + float(t[k, c])) * ds
+            s = s + ((raw - s + half) % length - half) if closed else raw
+            out.append(s)
         return out
 
-    def _search_rows(self, xs: np.ndarray, ys: np.ndarray, base: np.ndarray) -> list[float]:
-        """`_nearest` of each point (N,) [m] in the window of segments from its base segment
-        (N,) on (as `project_window` places it), all at once; arc lengths [m] before the seam
-        rule."""
-        idx = base[:, None] + self._window
-        idx = idx % self._m if self.closed else np.clip(idx, 0, self._m - 2)
-        ax, ay, abx, aby, ab2 = self._seg[:, idx]  # (N, W) each
-        x, y = xs[:, None], ys[:, None]
-        t = ((x - ax) * abx + (y - ay) * aby) / ab2
-        np.maximum(t, 0.0, out=t)
-        np.minimum(t, 1.0, out=t)
-        dx = ax + t * abx - x
-        dy = ay + t * aby - y
-        k = np.argmin(dx * dx + dy * dy, axis=1)  # the first minimum of each row
-        rows = np.arange(len(k))
-        return ((idx[rows, k] + t[rows, k]) * self.ds_m).tolist()
+
+def _segment_distances(seg: np.ndarray, x_m, y_m) -> tuple[np.ndarray, np.ndarray]:
+    """(t, squared distance [m^2]) of the closest point a + t (b - a), t in [0, 1], of segments
+    to points: seg (5, ...) rows a_x, a_y, (b - a)_x, (b - a)_y, |b - a|^2 as `RunnerPath._seg`;
+    x_m, y_m [m] floats or arrays broadcasting against seg's rows. The arithmetic of
+    Track._project_segments."""
+    ax, ay, abx, aby, ab2 = seg
+    t = ((x_m - ax) * abx + (y_m - ay) * aby) / ab2
+    np.maximum(t, 0.0, out=t)
+    np.minimum(t, 1.0, out=t)
+    dx = ax + t * abx - x_m
+    dy = ay + t * aby - y_m
+    return t, dx * dx + dy * dy
 
 
 class _ArrayPath(RunnerPath):
@@ -575,9 +601,8 @@ class Runner:
         t_new = self._history[-1][0]
         obs = [o for o in self._history if t_new - o[0] <= MAX_SPAN_S]
         n = len(obs)
-        ts, xs, ys, yaws = ([o[c] for o in obs] for c in range(4))
-        pairs = [(i, j, ts[j] - ts[i]) for j in range(n) for i in range(j)]
-        pairs = [p for p in pairs if p[2] >= MIN_PAIR_DT_S]
+        ts, xs, ys, yaws = zip(*obs)
+        pairs = [(i, j, dt) for i, j in _pairs(n) if (dt := ts[j] - ts[i]) >= MIN_PAIR_DT_S]
         vx = _median([(xs[j] - xs[i]) / dt for i, j, dt in pairs])
         vy = _median([(ys[j] - ys[i]) / dt for i, j, dt in pairs])
 
@@ -591,7 +616,16 @@ class Runner:
 
         has_yaw = [math.isfinite(a) for a in yaws]
         ref = yaws[-1] if has_yaw[-1] else course
-        if sum(has_yaw) >= 2:
+        if all(has_yaw) and n >= 2:  # the common case of a source with orientation
+            # _wrap written out: ~45 pairs, each a function call less
+            floor = math.floor
+            rate = _median(
+                [(d - _TWO_PI * floor((d + _PI) * _HALF_INV_PI)) / dt
+                 for i, j, dt in pairs for d in (yaws[j] - yaws[i],)]
+            )  # fmt: skip
+            off = [_wrap(a + rate * h - ref) for a, h in zip(yaws, ahead)]
+            yaw = _wrap(ref + _median(off))
+        elif sum(has_yaw) >= 2:
             rate = _median(
                 [_wrap(yaws[j] - yaws[i]) / dt for i, j, dt in pairs if has_yaw[i] and has_yaw[j]]
             )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -238,6 +239,18 @@ def test_zero_quaternion_means_unknown_yaw():
     assert rm.quaternion_to_yaw(q["x"] * 2, q["y"] * 2, q["z"] * 2, q["w"] * 2) == pytest.approx(
         0.7
     )
+
+
+def test_quaternion_yaw_on_floats_equals_the_array_form():
+    """The one-quaternion form (the live node's) gives the array form's yaw: random and non-unit
+    quaternions, the zero one (NaN), and a NaN component."""
+    rng = np.random.default_rng(0)
+    quats = [*rng.normal(0.0, 1.0, (200, 4)).tolist(), [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 2.0],
+             [0.0, 0.0, math.nan, 1.0], [1e-7, 0.0, 0.0, 0.0]]  # fmt: skip
+    want = rm.quaternion_to_yaw(*np.array(quats).T)
+    got = np.array([rm.quaternion_yaw(*q) for q in quats])
+    np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-15)
+    assert np.isnan(got[200]) and np.isnan(got[202]) and got[201] == 0.0
 
 
 # ---------------------------------------------------------------- CSV -> Drive
