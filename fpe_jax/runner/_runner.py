@@ -616,16 +616,7 @@ class Runner:
 
         has_yaw = [math.isfinite(a) for a in yaws]
         ref = yaws[-1] if has_yaw[-1] else course
-        if all(has_yaw) and n >= 2:  # the common case of a source with orientation
-            # _wrap written out: ~45 pairs, each a function call less
-            floor = math.floor
-            rate = _median(
-                [(d - _TWO_PI * floor((d + _PI) * _HALF_INV_PI)) / dt
-                 for i, j, dt in pairs for d in (yaws[j] - yaws[i],)]
-            )  # fmt: skip
-            off = [_wrap(a + rate * h - ref) for a, h in zip(yaws, ahead)]
-            yaw = _wrap(ref + _median(off))
-        elif sum(has_yaw) >= 2:
+        if sum(has_yaw) >= 2:
             rate = _median(
                 [_wrap(yaws[j] - yaws[i]) / dt for i, j, dt in pairs if has_yaw[i] and has_yaw[j]]
             )
