@@ -31,6 +31,7 @@ from fpe_jax.evaluate._metrics import (
     summarize,
     track_frame_residuals,
 )
+from fpe_jax.geometry._path import covariance_map as covariance_map  # re-exported
 from fpe_jax.geometry._track import Track, project_rollout
 from fpe_jax.model._history import distinct_mask, history_windows
 from fpe_jax.model._params import Params, Settings
@@ -218,14 +219,6 @@ def path_heading(track: Track, xy_m: np.ndarray, states: State) -> np.ndarray:
 def _heading_chunk(track: Track, xy_m, start_xy_m, s_start_m):
     along = jax.vmap(project_rollout, in_axes=(None, 0, 0, 0))(track, xy_m, start_xy_m, s_start_m)
     return jax.vmap(jax.vmap(track.heading_at))(along)
-
-
-def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
-    """(N, H, 2, 2) map-frame covariance [m^2] from the track-frame one, per step (H, 2, 2) or
-    per prediction (N, H, 2, 2), turned by the path heading (N, H) [rad]."""
-    c, s = np.cos(heading_rad), np.sin(heading_rad)
-    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (N, H, 2, 2)
-    return rot @ np.asarray(cov_track_m2) @ np.swapaxes(rot, -1, -2)
 
 
 def _track_residuals(xy_m: np.ndarray, d: Dataset, params: Params) -> np.ndarray:

@@ -23,6 +23,7 @@ _LAZY = {
     "builtin_track": "_tracks",
     "check_on_track": "_path",
     "check_share_near": "_path",
+    "covariance_map": "_path",
     "is_builtin": "_tracks",
     "left_normals": "_path",
     "loop_arclength": "_tracks",

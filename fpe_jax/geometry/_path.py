@@ -38,6 +38,14 @@ def wrap_angle(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+def covariance_map(cov_track_m2, heading_rad: np.ndarray) -> np.ndarray:
+    """(N, H, 2, 2) map-frame covariance [m^2] from the track-frame one, per step (H, 2, 2) or
+    per prediction (N, H, 2, 2), turned by the path heading (N, H) [rad]."""
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (N, H, 2, 2)
+    return rot @ np.asarray(cov_track_m2) @ np.swapaxes(rot, -1, -2)
+
+
 def nearest_index(points_m: np.ndarray, path_xy_m: np.ndarray) -> np.ndarray:
     """(P,) index of the nearest path point (K, 2) to each point (P, 2) (ties: the lowest).
 

@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 
 from fpe_jax.errors import InputError
-from fpe_jax.geometry._path import build_path, waypoints_sha256
+from fpe_jax.geometry._path import build_path, covariance_map, waypoints_sha256
 from fpe_jax.io.config import check_waypoints, read_config
 from fpe_jax.runner._calibrate import CALIBRATION_DECAY, PRIOR_SAMPLES, EllipseCalibration
 from fpe_jax.runner._runner import Runner, load_waypoints_xy
@@ -598,14 +598,14 @@ def predict_drive_adaptive(
     if with_covariance and runner.calibration is None:
         raise ValueError("predict_drive_adaptive: with_covariance needs calibrate=True")
     rows = zip(local.t_s.tolist(), local.xy_m.tolist(), local.yaw_rad.tolist())
-    poses, cov = [], []
+    poses, cov_track, heading = [], [], []
     for t, (x, y), a in rows:
         poses.append(runner.update(t, x, y, a))
         if with_covariance:
-            h = np.array([runner.path.heading_at(s) for s in runner._step_s_m])
-            c, s = np.cos(h), np.sin(h)
-            rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
-            cov.append(rot @ runner.covariance() @ np.swapaxes(rot, -1, -2))
+            cov_track.append(runner.covariance())
+            heading.append([runner.path.heading_at(s) for s in runner._step_s_m])
     poses = np.stack(poses)
     poses[..., :2] += origin
-    return (runner, poses, np.stack(cov)) if with_covariance else (runner, poses)
+    if not with_covariance:
+        return runner, poses
+    return runner, poses, covariance_map(np.stack(cov_track), np.array(heading))
