@@ -102,7 +102,7 @@ def _add_settings_flags(p: argparse.ArgumentParser, when: str) -> None:
 
 
 def _add_adapt_flags(p: argparse.ArgumentParser, save: bool) -> None:
-    """--adapt and --delay; with save, --save-state (of `fpe predict`)."""
+    """--adapt, --delay and --calibrate-ellipses; with save, --save-state (of `fpe predict`)."""
     p.add_argument(
         "--adapt",
         action="store_true",
@@ -121,13 +121,18 @@ def _add_adapt_flags(p: argparse.ArgumentParser, save: bool) -> None:
             metavar="OUT.json",
             help="with --adapt: write what it learned as a config (default: none)",
         )
-        p.add_argument(
-            "--calibrate-ellipses",
-            action="store_true",
-            help="with --adapt and a --config with ellipses: size them on the runner's own "
-            "errors as it goes; writes each prediction's covariance, and --save-state saves "
-            "them (default: off)",
+    p.add_argument(
+        "--calibrate-ellipses",
+        action="store_true",
+        help="with --adapt and a --config with ellipses: size them on the runner's own "
+        "errors as it goes; "
+        + (
+            "writes each prediction's covariance, and --save-state saves them"
+            if save
+            else 'each reply carries its covariance "cov_m2" (H x 2 x 2, m^2)'
         )
+        + " (default: off)",
+    )
 
 
 def _settings_from_args(args) -> dict:
@@ -561,10 +566,15 @@ def cmd_run(args) -> int:
         raise InputError("stdin", "is closed", "observation lines on stdin")
     if sys.stdout is None:  # started with stdout closed: fail before the work, as a write would
         raise OSError(errno.EBADF, os.strerror(errno.EBADF))
+    if args.calibrate_ellipses and (not args.adapt or args.config is None):
+        why = "given without --adapt" if not args.adapt else "given without a config with ellipses"
+        raise InputError("--calibrate-ellipses", why, "--adapt --config TUNED.json ...")
     if args.adapt:
         from fpe_jax.runner._adapt import AdaptiveRunner
 
-        runner = AdaptiveRunner.from_files(args.config, args.waypoints, delay_s=args.delay)
+        runner = AdaptiveRunner.from_files(
+            args.config, args.waypoints, delay_s=args.delay, calibrate=args.calibrate_ellipses
+        )
     elif args.config is None:
         raise InputError("--config", "missing", "a tuned config JSON (or --adapt)")
     else:

@@ -64,6 +64,10 @@ NOTES = (
     "delay,tau,pace,smoothing,filter`, real_drives_steady_fit-delay-tau-pace-smoothing-"
     "filter.md) the long-horizon fit's ratio is 0.10 at 1 s and 0.12 at 3 s, and its ellipses "
     "still cover only 18 % / 55 %.",
+    "The adapting runner's online calibration (`AdaptiveRunner(calibrate=True)`): why its "
+    "ellipses are too wide at 1 sigma while about right at 2 sigma on these drives, and what "
+    "other online rules and scales chosen in hindsight give: real_drives_calibration.md "
+    "(experiments/real_drives/calibration.py).",
 )
 
 

@@ -341,6 +341,15 @@ class AdaptiveRunner(Runner):
         now (None without the calibration)."""
         return None if self.calibration is None else self.calibration.covariance()
 
+    def covariance_map(self) -> np.ndarray | None:
+        """(H, 2, 2) the calibrated covariance [m^2] of the last prediction in the frame of the
+        observations: `covariance` turned by the path heading at each step's arc length in
+        the rollout (None without the calibration)."""
+        if self.calibration is None:
+            return None
+        heading = np.array([[self.path.heading_at(s) for s in self._step_s_m]])
+        return covariance_map(self.covariance()[None], heading)[0]
+
     # ---- learning -----------------------------------------------------------------------------
 
     def learn(
@@ -598,14 +607,13 @@ def predict_drive_adaptive(
     if with_covariance and runner.calibration is None:
         raise ValueError("predict_drive_adaptive: with_covariance needs calibrate=True")
     rows = zip(local.t_s.tolist(), local.xy_m.tolist(), local.yaw_rad.tolist())
-    poses, cov_track, heading = [], [], []
+    poses, cov = [], []
     for t, (x, y), a in rows:
         poses.append(runner.update(t, x, y, a))
         if with_covariance:
-            cov_track.append(runner.covariance())
-            heading.append([runner.path.heading_at(s) for s in runner._step_s_m])
+            cov.append(runner.covariance_map())
     poses = np.stack(poses)
     poses[..., :2] += origin
     if not with_covariance:
         return runner, poses
-    return runner, poses, covariance_map(np.stack(cov_track), np.array(heading))
+    return runner, poses, np.stack(cov)

@@ -970,7 +970,9 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
     """Predict for every usable observation line of `lines` (parsed by `fpe_jax.io.stream`),
     writing one JSON line to `out` for each: {"stamp": t, "poses": [[x, y, yaw] x H], "valid":
     bool (`fpe_jax.model.history_valid`: enough history)}, flushed
-    at once (a car's process pipes into it).
+    at once (a car's process pipes into it). A runner with calibrated ellipses
+    (`fpe_jax.runner.AdaptiveRunner(calibrate=True)`) adds "cov_m2": [[[xx, xy], [xy, yy]] x H],
+    each step's covariance [m^2] in the frame of the observations (`covariance_map`).
 
     A bad line is reported on `err` with its line number and skipped (the first
     `spec.STREAM_MESSAGES` in full, then rate-limited, with a closing count: see
@@ -995,6 +997,8 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
         try:
             poses = runner.update(obs.since_s, obs.x_m, obs.y_m, obs.yaw_rad)
             reply = {"stamp": obs.t_s, "poses": poses.tolist(), "valid": runner.valid}
+            if getattr(runner, "calibration", None) is not None:
+                reply["cov_m2"] = runner.covariance_map().tolist()
             reply = json.dumps(reply, allow_nan=False)
         except (InputError, ValueError) as e:
             warn(f"line {obs.line}: {e}; skipped")

@@ -340,3 +340,56 @@ def test_fpe_predict_calibrate_ellipses_refuses_bad_combinations(
     assert cli.main([*argv, *extra, "--quiet"]) == 2
     assert words in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_fpe_run_adapt_calibrate_ellipses_replies_carry_them(logs, monkeypatch, capsys):
+    """`fpe run --adapt --config C --calibrate-ellipses`: each reply's "cov_m2" (H x 2 x 2, map
+    frame) is the calibrated track-frame ellipses of a reference runner fed the same stream,
+    turned by the path heading at each step; the poses are those without the flag, which adds
+    no "cov_m2"."""
+    from helpers import fpe_run
+
+    from fpe_jax import io
+
+    drive = io.load_drive(logs / "a" / "drive.mcap")
+    wp = io.load_waypoints(logs / "a" / "waypoints.csv").xy_m
+    rows = np.column_stack([drive.t_s - drive.t_s[0], drive.xy_m])[:120]
+    lines = ["t,x,y", *(f"{t!r},{x!r},{y!r}" for t, x, y in rows.tolist())]
+    argv = ["--waypoints", str(logs / "a" / "waypoints.csv"), "--adapt"]
+    argv += ["--config", str(logs / "tuned.json")]
+    rc, replies, err = fpe_run(monkeypatch, capsys, [*argv, "--calibrate-ellipses"], lines)
+    assert rc == 0 and len(replies) == len(rows), err
+    ref, want = AdaptiveRunner(read_config(logs / "tuned.json"), wp, calibrate=True), []
+    for t, x, y in rows.tolist():
+        ref.update(t, x, y)
+        h = np.array([ref.path.heading_at(s) for s in ref._step_s_m])
+        c, s = np.cos(h), np.sin(h)
+        rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+        want.append(rot @ ref.covariance() @ np.swapaxes(rot, -1, -2))
+    got = np.array([r["cov_m2"] for r in replies])
+    assert got.shape == (len(rows), 10, 2, 2)
+    np.testing.assert_allclose(got, np.array(want), rtol=1e-12, atol=1e-15)
+    assert ref.calibration.errors > 100
+    rc, plain, _ = fpe_run(monkeypatch, capsys, argv, lines)
+    assert rc == 0 and "cov_m2" not in plain[0]
+    np.testing.assert_array_equal([r["poses"] for r in plain], [r["poses"] for r in replies])
+
+
+@pytest.mark.parametrize(
+    "extra, words",
+    [
+        (["--calibrate-ellipses"], "--calibrate-ellipses: given without --adapt"),
+        (["--adapt", "--calibrate-ellipses"], "given without a config with ellipses"),
+    ],
+)
+def test_fpe_run_calibrate_ellipses_refuses_bad_combinations(
+    logs, monkeypatch, capsys, extra, words
+):
+    from helpers import fpe_run
+
+    argv = ["--waypoints", str(logs / "a" / "waypoints.csv"), *extra]
+    if "--adapt" not in extra:
+        argv += ["--config", str(logs / "tuned.json")]
+    rc, replies, err = fpe_run(monkeypatch, capsys, argv, ["t,x,y", "0.0,1.0,2.0"])
+    assert rc == 2 and replies == []
+    assert any(words in line for line in err), err
