@@ -873,16 +873,20 @@ def fit(
         best = next(iter(candidates))
     p0, free = candidates[best]
     progress(f"fitting {_label(p0)} on {sum(len(d.targets.rows) for d in train)} predictions")
-    params, info = fit_params(
-        train, p0, free=free, solver=solver, block_rows=block_rows, devices=devices
-    )
-    progress(f"estimating uncertainty on {len(train)} training drive(s)")
-    uncertainty = fit_uncertainty(params, train)
-    progress(f"evaluating the fit on {len(test)} held-out drive(s)")
-    report = {"fitted": evaluate(params, test, uncertainty=uncertainty)}
-    for i, name in enumerate(BASELINES, 1):
-        progress(f"evaluating preset '{name}' on held-out data ({i}/{len(BASELINES)})")
-        report[name] = evaluate(baseline(name, settings), test)
+    # The presets' held-out scores do not depend on the fit: a second thread computes them
+    # while this one waits for the solver's executable and its steps (XLA's threads)
+    with ThreadPoolExecutor(1) as pool:
+        presets_done = pool.submit(
+            lambda: {name: evaluate(baseline(name, settings), test) for name in BASELINES}
+        )
+        params, info = fit_params(
+            train, p0, free=free, solver=solver, block_rows=block_rows, devices=devices
+        )
+        progress(f"estimating uncertainty on {len(train)} training drive(s)")
+        uncertainty = fit_uncertainty(params, train)
+        progress(f"evaluating the fit and {len(BASELINES)} presets on held-out data")
+        scores = presets_done.result()
+    report = {"fitted": evaluate(params, test, uncertainty=uncertainty)} | scores
     chosen = params.settings.model
     info.update(
         blend=params.settings.blend,
