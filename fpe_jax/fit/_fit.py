@@ -873,19 +873,27 @@ def fit(
         best = next(iter(candidates))
     p0, free = candidates[best]
     progress(f"fitting {_label(p0)} on {sum(len(d.targets.rows) for d in train)} predictions")
-    # The presets' held-out scores do not depend on the fit: a second thread computes them
-    # while this one waits for the solver's executable and its steps (XLA's threads)
+
+    def independent_of_the_fit():
+        """The presets' held-out scores and the line model's cross-fitted lines (for its
+        uncertainty, `cross_fold_lines`, kept by each dataset)."""
+        scores = {name: evaluate(baseline(name, settings), test) for name in BASELINES}
+        if p0.settings.model == "line":
+            for d in train:
+                cross_fold_lines(d)
+        return scores
+
+    # a second thread does what does not depend on the fit while this one waits for the
+    # solver's executable and its steps (XLA's threads)
     with ThreadPoolExecutor(1) as pool:
-        presets_done = pool.submit(
-            lambda: {name: evaluate(baseline(name, settings), test) for name in BASELINES}
-        )
+        meanwhile = pool.submit(independent_of_the_fit)
         params, info = fit_params(
             train, p0, free=free, solver=solver, block_rows=block_rows, devices=devices
         )
-        progress(f"estimating uncertainty on {len(train)} training drive(s)")
-        uncertainty = fit_uncertainty(params, train)
-        progress(f"evaluating the fit and {len(BASELINES)} presets on held-out data")
-        scores = presets_done.result()
+        scores = meanwhile.result()
+    progress(f"estimating uncertainty on {len(train)} training drive(s)")
+    uncertainty = fit_uncertainty(params, train)
+    progress(f"evaluating the fit on {len(test)} held-out drive(s)")
     report = {"fitted": evaluate(params, test, uncertainty=uncertainty)} | scores
     chosen = params.settings.model
     info.update(
