@@ -885,12 +885,15 @@ def fit(
 
     # a second thread does what does not depend on the fit while this one waits for the
     # solver's executable and its steps (XLA's threads)
-    with ThreadPoolExecutor(1) as pool:
-        meanwhile = pool.submit(independent_of_the_fit)
+    pool = ThreadPoolExecutor(1)
+    meanwhile = pool.submit(independent_of_the_fit)
+    try:
         params, info = fit_params(
             train, p0, free=free, solver=solver, block_rows=block_rows, devices=devices
         )
         scores = meanwhile.result()
+    finally:  # an error or a Ctrl-C is reported without waiting for the second thread
+        pool.shutdown(wait=False, cancel_futures=True)
     progress(f"estimating uncertainty on {len(train)} training drive(s)")
     uncertainty = fit_uncertainty(params, train)
     progress(f"evaluating the fit on {len(test)} held-out drive(s)")
