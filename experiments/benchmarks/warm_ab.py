@@ -1,6 +1,8 @@
 """Warm command times of two or more checkouts, interleaved: `make bench`'s `fpe predict`,
-`fpe evaluate`, `fpe plot` (60 s drive, a config fitted on it) and `fpe fit` (1-minute drive),
-each run in a fresh process with a compilation cache the checkout filled before.
+`fpe evaluate`, `fpe plot` (60 s drive, a config fitted on it) and `fpe fit` (the 1-minute drive;
+`--fit-minutes 10,60` fits simulated drives of those lengths instead, as `make bench`'s "fit 10
+min" and "fit 60 min"), each run in a fresh process with a compilation cache the checkout filled
+before.
 
 Each checkout's package is compiled to bytecode before each of its runs (`compileall`: a
 no-op once done), as an installed wheel has it: where PYTHONDONTWRITEBYTECODE is set, an
@@ -18,6 +20,8 @@ importing `fpe_jax.cli` and parsing a `fpe predict` line; `--imports MOD,...` th
 importing those modules in a fresh process (numpy first, apart, as every command imports it).
 
     python experiments/benchmarks/warm_ab.py OLD=../old/.venv NEW=.venv --runs 9
+    python experiments/benchmarks/warm_ab.py OLD=../old/.venv NEW=.venv --commands fit \
+        --fit-minutes 10,60
 
 Each LABEL=VENV names a checkout by its virtual environment (its `bin/fpe` and `bin/python`).
 The drive and config are made once with the first one; every checkout reads the same files.
@@ -95,21 +99,32 @@ def run_fpe(
 
 
 def time_commands(
-    venvs: dict[str, Path], names: list[str], runs: int, tmp: Path, sources: dict[str, Path]
+    venvs: dict[str, Path],
+    names: list[str],
+    runs: int,
+    tmp: Path,
+    sources: dict[str, Path],
+    fit_minutes: list[float] | None = None,
 ) -> None:
     """Print the median warm wall and CPU times of the commands `names` of each checkout (those
-    in `sources`, label -> package folder, without bytecode)."""
+    in `sources`, label -> package folder, without bytecode); "fit" on the 1-minute drive, or
+    with `fit_minutes` on simulated drives of those lengths, one row each ("fit 10 min")."""
     first = next(iter(venvs.values()))
-    drive = tmp / "drive"
     fpe = str(first / "bin" / "fpe")
     env = {**os.environ, "FPE_CACHE_DIR": str(tmp / "prep")}
-    subprocess.run(
-        [fpe, "simulate", "--duration", "60", "--out", str(drive)],
-        check=True,
-        capture_output=True,
-        env=env,
-    )
-    log = [str(drive / "drive.mcap"), "--waypoints", str(drive / "waypoints.csv")]
+
+    def sim(minutes: float) -> list[str]:
+        """A simulated drive of `minutes` (the first checkout's): its log and --waypoints."""
+        drive = tmp / f"drive-{minutes:g}min"
+        subprocess.run(
+            [fpe, "simulate", "--duration", f"{60 * minutes:g}", "--out", str(drive)],
+            check=True,
+            capture_output=True,
+            env=env,
+        )
+        return [str(drive / "drive.mcap"), "--waypoints", str(drive / "waypoints.csv")]
+
+    log = sim(1)
     config = tmp / "config.json"
     subprocess.run(
         [fpe, "fit", *log, "--out", str(config)], check=True, capture_output=True, env=env
@@ -120,6 +135,14 @@ def time_commands(
         "plot": ["plot", *log, "--config", str(config), "--out", "{out}/p.png", "--force"],
         "fit": ["fit", *log, "--out", "{out}/c.json", "--force"],
     }
+    if fit_minutes and "fit" in names:
+        del commands["fit"]
+        at = names.index("fit")
+        fits = [f"fit {m:g} min" for m in fit_minutes]
+        names = names[:at] + fits + names[at + 1 :]
+        for m, name in zip(fit_minutes, fits):
+            drive = log if m == 1 else sim(m)
+            commands[name] = ["fit", *drive, "--out", f"{{out}}/c{m:g}.json", "--force"]
     times: dict[tuple[str, str], list[tuple[float, float]]] = {}
     for name in names:
         argvs = {}
@@ -151,6 +174,11 @@ def main() -> None:
     ap.add_argument("checkouts", nargs="+", metavar="LABEL=VENV")
     ap.add_argument("--runs", type=int, default=9, help="warm runs per command and checkout")
     ap.add_argument("--commands", default="predict,evaluate,plot,fit", help="comma list")
+    ap.add_argument(
+        "--fit-minutes",
+        metavar="M,...",
+        help="time fit on simulated drives of these minutes (default: the 1-minute drive)",
+    )
     ap.add_argument("--parser", action="store_true", help="also time the CLI's start")
     ap.add_argument("--imports", metavar="MOD,...", help="also time importing these modules")
     ap.add_argument(
@@ -203,8 +231,9 @@ def measure(args, venvs: dict[str, Path], tmp: Path) -> None:
         if label not in sources:
             compile_bytecode(venv)
     names = [n for n in args.commands.split(",") if n]
+    fit_minutes = [float(m) for m in args.fit_minutes.split(",")] if args.fit_minutes else None
     if names:
-        time_commands(venvs, names, args.runs, tmp, sources)
+        time_commands(venvs, names, args.runs, tmp, sources, fit_minutes)
     if args.parser:
         starts: dict[str, list[tuple[float, float]]] = {}
         for _ in range(max(args.runs, 11)):

@@ -35,6 +35,7 @@ import numpy as np
 from fpe_jax.compile import _cache as cache
 
 _MEMO: dict[str, Executable] = {}
+_MAKING: dict[str, threading.Lock] = {}  # held while an executable is loaded or compiled
 _LOCK = threading.Lock()
 # XLA's CPU backend has two code generators for fused loops. On these programs (vmapped history
 # windows, short scans, many small reductions) its older loop emitters compile faster and run as
@@ -204,19 +205,27 @@ def _entry(key: str) -> tuple[Path, bytes] | None:
 
 
 def executable(fun, *args, **kwargs) -> Executable:
-    """The executable of `fun` for arguments like these (arrays or ShapeDtypeStructs)."""
+    """The executable of `fun` for arguments like these (arrays or ShapeDtypeStructs). Threads
+    that ask for one executable at once wait for the first to make it."""
     leaves, treedef, traced = _split(args, kwargs)
     key = _key(fun, leaves, treedef, traced)
     with _LOCK:
         exe = _MEMO.get(key)
+        making = _MAKING.setdefault(key, threading.Lock()) if exe is None else None
     if exe is not None:  # made earlier in this process: it cost this call nothing
         return Executable(exe._compiled, exe._out, exe._traced)
-    store = _entry(key)
-    exe = (_load(*store, traced) if store is not None else None) or _build(
-        fun, leaves, treedef, traced, store
-    )
-    with _LOCK:
-        return _MEMO.setdefault(key, exe)
+    with making:
+        with _LOCK:
+            exe = _MEMO.get(key)
+        if exe is not None:  # another thread made it while this one waited
+            return Executable(exe._compiled, exe._out, exe._traced)
+        store = _entry(key)
+        exe = (_load(*store, traced) if store is not None else None) or _build(
+            fun, leaves, treedef, traced, store
+        )
+        with _LOCK:
+            _MAKING.pop(key, None)
+            return _MEMO.setdefault(key, exe)
 
 
 def jit(fun):

@@ -99,6 +99,7 @@ class Dataset:
     targets: Targets
     kalman: bool = False  # the first estimate also runs the Kalman filter, whatever the model
     _states: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
+    _folds: list = dataclasses.field(default_factory=list, repr=False, compare=False)
 
     def states(self, params: Params) -> State:
         """The model's states at the target rows (`model_states`).
@@ -242,10 +243,13 @@ def cross_fold_lines(d: Dataset) -> tuple[np.ndarray, list[dict[str, np.ndarray]
     from it at the rows it was learned on are better than on a drive it was not learned on.
 
     Returns (fold (N,) int, the fold of each of d's prediction rows; lines, per fold the
-    profile as `learn_line` gives it).
+    profile as `learn_line` gives it). Made once per dataset (they depend on its drive alone;
+    the long-horizon fit and the uncertainty both ask); treat them as read-only.
     """
     from fpe_jax.model._line import line_from_samples, line_samples
 
+    if d._folds:
+        return d._folds[0]
     # at least MIN_FOLD_S per fold: on a 40 s drive five folds' lines were too good (the oval
     # test's 2-sigma coverage 74.7 %)
     folds = int(np.clip(d.drive.duration_s // MIN_FOLD_S, 2, CROSS_FOLDS))
@@ -257,6 +261,7 @@ def cross_fold_lines(d: Dataset) -> tuple[np.ndarray, list[dict[str, np.ndarray]
     lines = [
         line_from_samples([whole.outside(lo, hi)], d.track) for lo, hi in zip(edges[:-1], edges[1:])
     ]
+    d._folds.append((fold, lines))
     return fold, lines
 
 

@@ -873,16 +873,31 @@ def fit(
         best = next(iter(candidates))
     p0, free = candidates[best]
     progress(f"fitting {_label(p0)} on {sum(len(d.targets.rows) for d in train)} predictions")
-    params, info = fit_params(
-        train, p0, free=free, solver=solver, block_rows=block_rows, devices=devices
-    )
+
+    def independent_of_the_fit():
+        """The presets' held-out scores and the line model's cross-fitted lines (for its
+        uncertainty, `cross_fold_lines`, kept by each dataset)."""
+        scores = {name: evaluate(baseline(name, settings), test) for name in BASELINES}
+        if p0.settings.model == "line":
+            for d in train:
+                cross_fold_lines(d)
+        return scores
+
+    # a second thread does what does not depend on the fit while this one waits for the
+    # solver's executable and its steps (XLA's threads)
+    pool = ThreadPoolExecutor(1)
+    meanwhile = pool.submit(independent_of_the_fit)
+    try:
+        params, info = fit_params(
+            train, p0, free=free, solver=solver, block_rows=block_rows, devices=devices
+        )
+        scores = meanwhile.result()
+    finally:  # an error or a Ctrl-C is reported without waiting for the second thread
+        pool.shutdown(wait=False, cancel_futures=True)
     progress(f"estimating uncertainty on {len(train)} training drive(s)")
     uncertainty = fit_uncertainty(params, train)
     progress(f"evaluating the fit on {len(test)} held-out drive(s)")
-    report = {"fitted": evaluate(params, test, uncertainty=uncertainty)}
-    for i, name in enumerate(BASELINES, 1):
-        progress(f"evaluating preset '{name}' on held-out data ({i}/{len(BASELINES)})")
-        report[name] = evaluate(baseline(name, settings), test)
+    report = {"fitted": evaluate(params, test, uncertainty=uncertainty)} | scores
     chosen = params.settings.model
     info.update(
         blend=params.settings.blend,

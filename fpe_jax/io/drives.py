@@ -30,6 +30,7 @@ from fpe_jax.io.logs import (
     STAMPED_POSE_TYPES,
     TF_TYPES,
     Log,
+    PoseRows,
     check_stamps_vary,
     is_log_path,
     open_log,
@@ -171,12 +172,13 @@ def _clean(source, what: str, t_ns: np.ndarray, cols: dict[str, np.ndarray], fin
     return t_s[last], {k: v[keep] for k, v in cols.items()}, counts
 
 
-def _log_series(log: Log, topic: str, tf_pair, log_time: bool, tags: dict):
+def _log_series(log: Log, topic: str, tf_pair, log_time: bool, tags: dict, read: dict):
     """Cleaned (t_s, cols, counts) of one pose-like topic; cols has xy_m, yaw_rad, v_mps, t_ns.
 
-    A detection topic's counts also hold "detection": `apriltag.detection_rows`' meta.
+    read: `Log.pose_tables` of the topic, unless it is a detection topic, whose counts also hold
+    "detection": `apriltag.detection_rows`' meta.
     """
-    rows, extra = [], {}
+    extra = {}
     if log.topics[topic].msgtype in DETECTION_TYPES:
         from fpe_jax.io import apriltag  # with the TF reader: only for detection topics
 
@@ -192,13 +194,14 @@ def _log_series(log: Log, topic: str, tf_pair, log_time: bool, tags: dict):
             log_time=log_time,
             max_tf_gap_s=tags.get("max_tf_gap_s"),
         )
+        table = PoseRows.of(rows)
     else:
-        rows = log.pose_rows(topic, tf_pair)
-    a = np.array(rows, dtype=np.float64)
-    t_ns = np.array([r[1] if log_time else r[0] for r in rows], dtype=np.int64)
+        table = read[topic]
+    t_ns = table.log_ns if log_time else table.stamp_ns
     if not log_time:
         check_stamps_vary(log.source, topic, t_ns)
-    cols = {"xy_m": a[:, 2:4], "quat": a[:, 4:8], "v_mps": a[:, 8]}
+    a = table.values
+    cols = {"xy_m": a[:, 0:2], "quat": a[:, 2:6], "v_mps": a[:, 6]}
     t_s, cols, counts = _clean(log.source, topic, t_ns, cols, ["xy_m", "quat"])
     cols["yaw_rad"] = rm.quaternion_to_yaw(*cols.pop("quat").T)
     return t_s, cols, counts | extra
@@ -227,7 +230,11 @@ def _refuse_tag_options(source, topic: str, tags: dict) -> None:
 def _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair, tags: dict) -> Drive:
     log = open_log(path)
     pose_topic, truth_topic = choose_topics(log, pose_topic, truth_topic, tf_pair)
-    t_s, cols, counts = _log_series(log, pose_topic, tf_pair, log_time, tags)
+    poses = [t for t in (pose_topic, truth_topic) if t is not None]
+    read = log.pose_tables(
+        [t for t in poses if log.topics[t].msgtype not in DETECTION_TYPES], tf_pair
+    )
+    t_s, cols, counts = _log_series(log, pose_topic, tf_pair, log_time, tags, read)
     if log.topics[pose_topic].msgtype not in DETECTION_TYPES:
         _refuse_tag_options(log.source, pose_topic, tags)
     meta: dict[str, Any] = {
@@ -242,7 +249,7 @@ def _drive_from_log(path, pose_topic, truth_topic, log_time, tf_pair, tags: dict
     }
     truth = {}
     if truth_topic is not None:
-        tt, tc, tcounts = _log_series(log, truth_topic, tf_pair, log_time, tags)
+        tt, tc, tcounts = _log_series(log, truth_topic, tf_pair, log_time, tags, read)
         truth = dict(truth_t_s=tt, **{f"truth_{k}": tc[k] for k in ("xy_m", "yaw_rad", "v_mps")})
         truth["truth_t_ns"] = tc["t_ns"]
         meta["truth_type"] = rm.full_type(log.topics[truth_topic].msgtype)

@@ -27,9 +27,9 @@ import contextlib
 import dataclasses
 import struct
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -64,6 +64,34 @@ class TopicInfo:
         if self.count < 2 or self.last_ns == self.first_ns:
             return None
         return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+
+
+class PoseRows(NamedTuple):
+    """A pose-like topic's poses (`Log.pose_tables`): stamp_ns (N,) int64 header stamps,
+    log_ns (N,) int64 recording times, values (N, 7) float64: x, y [m], the orientation
+    quaternion qx, qy, qz, qw, and v [m/s], an Odometry twist's planar speed (NaN otherwise)."""
+
+    stamp_ns: np.ndarray
+    log_ns: np.ndarray
+    values: np.ndarray
+
+    @classmethod
+    def of(cls, rows: Sequence[tuple]) -> PoseRows:
+        """From `pose_rows` rows (stamp_ns, log_ns, x, y, qx, qy, qz, qw, v)."""
+        return cls(
+            np.array([r[0] for r in rows], np.int64),
+            np.array([r[1] for r in rows], np.int64),
+            np.array([r[2:] for r in rows], np.float64).reshape(len(rows), 7),
+        )
+
+    @classmethod
+    def joined(cls, parts: Sequence[PoseRows]) -> PoseRows:
+        if not parts:
+            return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 7)))
+        return cls(*(np.concatenate(a) for a in zip(*parts)))
+
+    def take(self, rows: np.ndarray) -> PoseRows:
+        return PoseRows(self.stamp_ns[rows], self.log_ns[rows], self.values[rows])
 
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -329,37 +357,70 @@ class Log:
         with self._anyreader() as reader:
             return [(c.topic, rm.short_type(c.msgtype)) for c in reader.connections]
 
-    def pose_rows(self, topic: str, tf_pair: tuple[str, str]) -> list[tuple]:
-        """`pose_rows` of every message of a pose-like topic, in log-time order.
+    def pose_tables(self, topics: Sequence[str], tf_pair: tuple[str, str]) -> dict[str, PoseRows]:
+        """The `PoseRows` of each of `topics` (pose-like), in log-time order.
 
         In MCAP files the fixed-layout types (`CDR_POSE_TYPES`) are read straight from their
-        CDR bytes (`cdr_pose_row`): decoding a message with mcap_ros2 took ~50x longer, and a
-        10-minute drive holds 37,000 of them.
+        CDR bytes (`cdr_pose_table`), all such topics in one walk over the file, POSE_BATCH
+        messages of a channel at a time: decoding a message with mcap_ros2 took ~50x longer,
+        and a 10-minute drive holds 37,000 of them.
         """
         fast = self.format == "mcap" and self._summary is not None
-        if not fast or self.topics[topic].msgtype not in CDR_POSE_TYPES:
-            return [
-                row
-                for _, msgtype, log_ns, msg in self.messages([topic])
-                for row in pose_rows(msgtype, msg, log_ns, tf_pair)
-            ]
-        channels = {i: c for i, c in self._summary.channels.items() if c.topic == topic}
+        quick = [t for t in topics if fast and self.topics[t].msgtype in CDR_POSE_TYPES]
+        out = self._cdr_pose_tables(quick, tf_pair) if quick else {}
+        for topic in topics:
+            if topic not in out:
+                decoded = self.messages([topic])
+                rows = [
+                    r for _, name, ns, msg in decoded for r in pose_rows(name, msg, ns, tf_pair)
+                ]
+                out[topic] = PoseRows.of(rows)
+        return {t: out[t] for t in topics}
+
+    def _cdr_pose_tables(self, topics: list[str], tf_pair) -> dict[str, PoseRows]:
+        channels = {i: c for i, c in self._summary.channels.items() if c.topic in topics}
+        pending: dict[int, list] = {i: [] for i in channels}  # (order, log_ns, data) to decode
+        parts: dict[str, list] = {t: [] for t in topics}  # (order, PoseRows) per batch
         decoders: dict = {}
+
+        def decode(channel: int) -> None:
+            order, log_ns, data = zip(*pending[channel])
+            pending[channel] = []
+            c = channels[channel]
+            rows = self._channel_rows(c, data, np.array(log_ns, np.int64), decoders, tf_pair)
+            parts[c.topic].append((np.array(order, np.int64), rows))
+
         with _library_errors(self.source, self.format, self._mcap_files):
-            found = list(scan_mcap(self._target, self._summary, set(channels)))
-            found.sort(key=lambda m: m[1])  # log-time order (stable: equal times as recorded)
-            rows = []
-            for channel, log_ns, data in found:
-                c = channels[channel]
-                name = self._schema_name(c)
-                row = cdr_pose_row(name, data, log_ns) if c.message_encoding == "cdr" else None
-                if row is None:  # another encoding or unexpected bytes: the full decoder says
-                    schema = self._summary.schemas.get(c.schema_id)
-                    msg = self._decoder(decoders, schema, c)(data)
-                    rows.extend(pose_rows(name, msg, log_ns, tf_pair))
-                else:
-                    rows.append(row)
-        return rows
+            found = scan_mcap(self._target, self._summary, set(channels))
+            for k, (channel, log_ns, data) in enumerate(found):
+                pending[channel].append((k, log_ns, data))
+                if len(pending[channel]) == POSE_BATCH:
+                    decode(channel)
+            for channel in channels:
+                if pending[channel]:
+                    decode(channel)
+        out = {}
+        for topic, batches in parts.items():
+            order = np.concatenate([o for o, _ in batches]) if batches else np.zeros(0, np.int64)
+            rows = PoseRows.joined([r for _, r in batches])
+            # log-time order; equal times in file order, as a stable sort of the walk gives
+            out[topic] = rows.take(np.lexsort((order, rows.log_ns)))
+        return out
+
+    def _channel_rows(self, c, data, log_ns, decoders: dict, tf_pair) -> PoseRows:
+        """The rows of messages `data` (bytes) of MCAP channel `c`, received at log_ns."""
+        name = self._schema_name(c)
+        n = len(data)
+        if c.message_encoding == "cdr":
+            stamp_ns, values, ok = cdr_pose_table(name, data)
+        else:
+            stamp_ns, values, ok = np.zeros(n, np.int64), np.zeros((n, 7)), np.zeros(n, bool)
+        for k in np.flatnonzero(~ok).tolist():  # another encoding or unexpected bytes
+            schema = self._summary.schemas.get(c.schema_id)
+            msg = self._decoder(decoders, schema, c)(data[k])
+            (row,) = pose_rows(name, msg, int(log_ns[k]), tf_pair)  # one per pose message
+            stamp_ns[k], values[k] = row[0], row[2:]
+        return PoseRows(stamp_ns, log_ns, values)
 
     def _decoder(self, decoders: dict, schema, channel):
         """The decoder of an MCAP channel's messages, made once per channel id (in `decoders`);
@@ -495,35 +556,72 @@ def pose_rows(msgtype: str, msg: Any, log_ns: int, tf_pair: tuple[str, str]) -> 
 
 # types whose CDR layout is fixed up to their frame id strings: read without a decoder
 CDR_POSE_TYPES = STAMPED_POSE_TYPES + ODOMETRY_TYPES
-_CDR_HEADER = struct.Struct("<iII")  # stamp.sec, stamp.nanosec, length of header.frame_id
-_CDR_U32 = struct.Struct("<I")
-_CDR_POSE = struct.Struct("<7d")  # position x, y, z, orientation x, y, z, w
-_CDR_XY = struct.Struct("<2d")
+POSE_BATCH = 4096  # messages of a channel read as one array: memory bounded in the log's length
 # Odometry: from the pose to twist.twist.linear: 7 pose values and a 6 x 6 covariance
 _ODOM_TWIST_OFFSET = 8 * (7 + 36)
 
 
-def cdr_pose_row(msgtype: str, data: bytes, log_ns: int) -> tuple | None:
-    """The `pose_rows` row of one PoseStamped, PoseWithCovarianceStamped or Odometry message,
-    read from its little-endian CDR bytes (ROS 2's encoding: a 4-byte encapsulation header,
-    then fields aligned to their size counted from its end); None when the bytes are not that
-    (big-endian, or too short), and the message must go through the full decoder."""
-    if data[:2] != b"\x00\x01":  # the encapsulation id of little-endian CDR
-        return None
-    try:
-        sec, nanosec, n = _CDR_HEADER.unpack_from(data, 4)
-        at = 12 + n  # after header.frame_id (its length counts the terminating NUL)
+def cdr_pose_table(
+    msgtype: str, data: Sequence[bytes]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The `PoseRows` stamp_ns (N,) and values (N, 7) of N PoseStamped,
+    PoseWithCovarianceStamped or Odometry messages read from their little-endian CDR bytes
+    (ROS 2's encoding: a 4-byte encapsulation header, then fields aligned to their size counted
+    from its end), and ok (N,): False where the bytes are not that (big-endian, or too short),
+    and that message must go through the full decoder.
+
+    Messages of one layout (size and frame id lengths; in a recording, nearly always all of
+    them) are read as one array.
+    """
+    n = len(data)
+    stamp_ns, values, ok = np.zeros(n, np.int64), np.full((n, 7), np.nan), np.zeros(n, bool)
+    size = np.fromiter(map(len, data), np.int64, n)
+    for length in np.unique(size).tolist():
+        rows = np.flatnonzero(size == length)
+        raw = np.frombuffer(b"".join([data[k] for k in rows.tolist()]), np.uint8)
+        _cdr_pose_layouts(msgtype, raw.reshape(len(rows), length), rows, stamp_ns, values, ok)
+    return stamp_ns, values, ok
+
+
+def _cdr_field(raw: np.ndarray, at: int, dtype: str, count: int = 1) -> np.ndarray:
+    """(N, count) values of `dtype` at byte `at` of each row of raw (N, L) uint8."""
+    width = np.dtype(dtype).itemsize * count
+    return np.ascontiguousarray(raw[:, at : at + width]).view(dtype)
+
+
+def _cdr_pose_layouts(msgtype, raw, rows, stamp_ns, values, ok) -> None:
+    """`cdr_pose_table` of messages of one size, raw (N, L) uint8, rows (N,) their indices into
+    stamp_ns, values and ok (written where readable)."""
+    length = raw.shape[1]
+    if length < 16:  # no room for the header
+        return
+    little = (raw[:, 0] == 0) & (raw[:, 1] == 1)  # the encapsulation id of little-endian CDR
+    frame = _cdr_field(raw, 12, "<u4")[:, 0].astype(np.int64)  # header.frame_id's length
+    for n_frame in np.unique(frame[little]).tolist():
+        at = 12 + n_frame  # after header.frame_id (its length counts the terminating NUL)
+        same = little & (frame == n_frame)
+        child = [0]
         if msgtype in ODOMETRY_TYPES:  # child_frame_id, a second string
             at = (at + 3) & ~3
-            at += 4 + _CDR_U32.unpack_from(data, 4 + at)[0]
-        at = (at + 7) & ~7
-        x, y, _, qx, qy, qz, qw = _CDR_POSE.unpack_from(data, 4 + at)
-        v = np.nan
-        if msgtype in ODOMETRY_TYPES:
-            v = float(np.hypot(*_CDR_XY.unpack_from(data, 4 + at + _ODOM_TWIST_OFFSET)))
-    except struct.error:
-        return None
-    return (sec * 1_000_000_000 + nanosec, int(log_ns), x, y, qx, qy, qz, qw, v)
+            if 4 + at + 4 > length:
+                continue
+            lengths = _cdr_field(raw, 4 + at, "<u4")[:, 0].astype(np.int64)
+            child = np.unique(lengths[same]).tolist()
+        for n_child in child:
+            pose_at = 4 + (((at + 4 + n_child if msgtype in ODOMETRY_TYPES else at) + 7) & ~7)
+            end = pose_at + 8 * (_ODOM_TWIST_OFFSET // 8 + 2 if msgtype in ODOMETRY_TYPES else 7)
+            if end > length:
+                continue
+            these = same & (lengths == n_child) if msgtype in ODOMETRY_TYPES else same
+            r, k = raw[these], rows[these]
+            sec = _cdr_field(r, 4, "<i4")[:, 0].astype(np.int64)
+            stamp_ns[k] = sec * 1_000_000_000 + _cdr_field(r, 8, "<u4")[:, 0].astype(np.int64)
+            pose = _cdr_field(r, pose_at, "<f8", 7)  # position x, y, z, orientation x, y, z, w
+            values[k, :6] = pose[:, [0, 1, 3, 4, 5, 6]]
+            if msgtype in ODOMETRY_TYPES:  # twist.twist.linear x, y: the planar speed
+                xy = _cdr_field(r, pose_at + _ODOM_TWIST_OFFSET, "<f8", 2)
+                values[k, 6] = np.hypot(xy[:, 0], xy[:, 1])
+            ok[k] = True
 
 
 def _row(stamp, log_ns: int, p, q, v: float = np.nan) -> tuple:

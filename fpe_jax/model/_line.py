@@ -185,7 +185,8 @@ def line_from_samples(
     offset = np.where(sm["w"] > 1e-9, sm["d"] / np.maximum(sm["w"], 1e-9), 0.0)
     speed = np.where(sm["vw"] > 1e-9, sm["v"] / np.maximum(sm["vw"], 1e-9), 0.0)
     offset, speed = np.where(coverage > 0, offset, 0.0), np.where(coverage > 0, speed, 0.0)
-    if coverage.any():
+    # the prior fills the share (1 - coverage) the samples leave: nothing on a covered track
+    if coverage.any() and not (coverage == 1.0).all():
         prior_offset, prior_speed = _prior(track, offset, speed, coverage, spacing)
         offset = coverage * offset + (1.0 - coverage) * prior_offset
         speed = coverage * speed + (1.0 - coverage) * prior_speed

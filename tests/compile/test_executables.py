@@ -162,6 +162,45 @@ def test_executables_are_kept_by_shape_and_reloaded_from_disk(tmp_path, monkeypa
     assert len(list(tmp_path.rglob("*.exe"))) == 3
 
 
+def test_threads_asking_for_one_executable_at_once_make_it_once(tmp_path, monkeypatch):
+    """A fit scores the presets on a second thread while the first loads the solver and
+    estimates states: an executable both ask for at once is loaded or compiled once."""
+    import threading
+
+    import jax.numpy as jnp
+
+    from fpe_jax.compile import _aot as aot
+
+    monkeypatch.setattr(cache, "_ACTIVE", [tmp_path])
+    monkeypatch.setattr(aot, "_MEMO", {})
+    built, build = [], aot._build
+
+    def slow_build(*args):
+        built.append(threading.current_thread().name)
+        time.sleep(0.3)  # the other thread asks meanwhile
+        return build(*args)
+
+    monkeypatch.setattr(aot, "_build", slow_build)
+
+    def shifted(x):
+        return jnp.cos(x) + 1.0
+
+    x = np.linspace(0.0, 1.0, 5)
+    got = {}
+    threads = [
+        threading.Thread(target=lambda k=k: got.setdefault(k, aot.executable(shifted, x)(x)))
+        for k in range(3)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(built) == 1 and len(list(tmp_path.rglob("*.exe"))) == 1
+    for k in range(3):
+        np.testing.assert_allclose(got[k], np.cos(x) + 1.0, rtol=1e-15)
+    assert aot._MAKING == {}  # nothing left behind
+
+
 def _spy_compile_options(monkeypatch) -> list:
     """Record the compiler_options of every XLA compilation from here on."""
     import jax

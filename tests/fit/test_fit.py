@@ -708,3 +708,33 @@ def test_the_pace_return_is_fitted_only_when_named(oval_drives):
     named, info = F.fit_params([data], init, free=("pace",))
     assert info["converged"] and float(named.pace_return_1ps) > 0.0
     assert float(named.pace_return_1ps) != pytest.approx(F.PACE_RETURN_INIT_1PS, abs=1e-3)
+
+
+def test_a_failing_solve_is_reported_without_waiting_for_the_presets(monkeypatch):
+    """`fit` scores the presets on a second thread while the solver runs: an error in the
+    solve (or a Ctrl-C) comes out at once, not after the presets' work."""
+    import threading
+    import time
+
+    res = simulate("oval", duration_s=30.0, seed=2)
+    track = Track.from_waypoints(res.centerline_xy_m)
+    started, release = threading.Event(), threading.Event()
+
+    def slow_evaluate(*args, **kwargs):
+        started.set()
+        release.wait(30.0)  # the presets' work, far longer than the solve's refusal
+        raise AssertionError("the presets' scores were used after a failed solve")
+
+    def refuse(*args, **kwargs):
+        assert started.wait(30.0)  # the second thread is busy
+        raise InputError("free", "refused here", "anything")
+
+    monkeypatch.setattr(F, "evaluate", slow_evaluate)
+    monkeypatch.setattr(F, "fit_params", refuse)
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(InputError, match="refused here"):
+            F.fit([res.drive], [track])
+        assert time.perf_counter() - t0 < 20.0
+    finally:
+        release.set()

@@ -123,11 +123,14 @@ def test_log_roundtrip(tmp_path, container, msgtype):
 
 
 @pytest.mark.parametrize("msgtype", [PS, PWCS, ODOM])
-def test_cdr_rows_equal_the_decoders(tmp_path, msgtype):
+def test_cdr_rows_equal_the_decoders(tmp_path, msgtype, monkeypatch):
     """The fixed-layout reader gives the full decoder's rows for every frame id length (so every
-    string alignment), and bytes it does not understand go to the decoder."""
-    from fpe_jax.io.logs import cdr_pose_row, open_log, pose_rows
+    string alignment, several layouts in one batch and batches split across them), and bytes it
+    does not understand go to the decoder."""
+    from fpe_jax.io import logs
+    from fpe_jax.io.logs import PoseRows, cdr_pose_table, open_log, pose_rows
 
+    monkeypatch.setattr(logs, "POSE_BATCH", 5)
     s = make_series(24)
     events = series_events("/car/pose", msgtype, s)
     for k, (_, _, _, msg) in enumerate(events):
@@ -136,14 +139,51 @@ def test_cdr_rows_equal_the_decoders(tmp_path, msgtype):
             msg["child_frame_id"] = "c" * (k % 7)
             msg["twist"]["covariance"] = [float(i) for i in range(36)]
     log = open_log(write_mcap(tmp_path / "a.mcap", events))
-    fast = log.pose_rows("/car/pose", ("map", "x"))
+    fast = log.pose_tables(["/car/pose"], ("map", "x"))["/car/pose"]
     slow = [r for _, t, ns, m in log.messages(["/car/pose"]) for r in pose_rows(t, m, ns, ("", ""))]
-    assert len(fast) == len(slow) == 24
-    np.testing.assert_array_equal(np.array(fast), np.array(slow))
-    raw = [cdr_pose_row(msgtype, m.data, m.log_time) for _, _, m, _ in log._mcap_messages(None)]
-    np.testing.assert_array_equal(np.array(raw), np.array(slow))  # none fell back
-    assert cdr_pose_row(msgtype, b"\x00\x00\x00\x00" + bytes(400), 0) is None  # big-endian
-    assert cdr_pose_row(msgtype, b"\x00\x01\x00\x00" + bytes(20), 0) is None  # too short
+    slow = PoseRows.of(slow)
+    assert len(fast.stamp_ns) == len(slow.stamp_ns) == 24
+    for got, want in zip(fast, slow):
+        np.testing.assert_array_equal(got, want)
+        assert got.dtype == want.dtype
+    data = [m.data for _, _, m, _ in log._mcap_messages(None)]
+    stamp_ns, values, ok = cdr_pose_table(msgtype, data)
+    assert ok.all()  # none fell back
+    np.testing.assert_array_equal(stamp_ns, slow.stamp_ns)
+    np.testing.assert_array_equal(values, slow.values)
+    bad = [b"\x00\x00\x00\x00" + bytes(400), b"\x00\x01\x00\x00" + bytes(20), data[0][:40]]
+    assert list(cdr_pose_table(msgtype, bad + data[:1])[2]) == [False, False, False, True]
+
+
+def test_pose_rows_read_in_one_walk_in_log_time_order(tmp_path, monkeypatch):
+    """Both pose-like topics of a drive come from one walk over the file, each in log-time
+    order with equal times in file order, the same rows as the full decoder's."""
+    from fpe_jax.io import logs
+    from fpe_jax.io.logs import PoseRows, open_log, pose_rows
+
+    monkeypatch.setattr(logs, "POSE_BATCH", 7)
+    s = make_series(30)
+    coarse = s["ns"] // 300_000_000 * 300_000_000  # about three messages share each log time
+    events = series_events("/car/pose", PS, s, coarse) + series_events("/car/odom", ODOM, s)
+    events = [events[k] for k in np.random.default_rng(1).permutation(len(events))]
+    log = open_log(write_mcap(tmp_path / "a.mcap", events))
+    walks = []
+    scan = logs.scan_mcap
+    monkeypatch.setattr(logs, "scan_mcap", lambda *a, **k: walks.append(a) or scan(*a, **k))
+    got = log.pose_tables(["/car/odom", "/car/pose"], ("map", "x"))
+    assert len(walks) == 1
+    monkeypatch.setattr(logs, "scan_mcap", scan)
+    for topic in ("/car/odom", "/car/pose"):
+        decoded = [
+            r for _, t, ns, m in log.messages([topic]) for r in pose_rows(t, m, ns, ("", ""))
+        ]
+        by_stamp = {r[0]: r for r in decoded}
+        stamps = [(lg, m["header"]["stamp"]) for lg, t, _, m in events if t == topic]
+        in_file = [(lg, st["sec"] * 1_000_000_000 + st["nanosec"]) for lg, st in stamps]
+        want = PoseRows.of([by_stamp[n] for _, n in sorted(in_file, key=lambda e: e[0])])
+        assert len(set(np.diff(want.log_ns) == 0)) == (2 if topic == "/car/pose" else 1)
+        for a, b in zip(got[topic], want):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_simulated_drive_roundtrip(tmp_path):

@@ -8,11 +8,14 @@ import numpy as np
 import pytest
 
 from fpe_jax.geometry._track import Track
+from fpe_jax.model import _line
 from fpe_jax.model._line import (
     PRIOR_FOLDS,
+    PROFILE_DS_M,
     _shrunk_fit,
     learn_line,
     limit_speed,
+    line_from_samples,
     line_samples,
     min_curvature_offset,
 )
@@ -36,6 +39,28 @@ def test_uncovered_points_get_a_prior_within_the_covered_range(partial):
     assert np.all(v[unseen] >= v[seen].min() - 1e-9) and np.all(v[unseen] <= v[seen].max() + 1e-9)
     assert np.all(np.abs(d[unseen]) <= np.abs(d[seen]).max() + 1e-9)
     assert np.ptp(v[unseen]) > 0.0  # shaped by the track, not a constant
+
+
+def test_a_covered_track_gets_the_samples_line_without_computing_a_prior(monkeypatch):
+    """The prior's weight is 1 - coverage: on a track covered everywhere the line is the
+    samples' own, the values that blending in the prior gives, and the prior is not computed."""
+    res = simulate("oval", duration_s=60.0, seed=5)
+    track = Track.from_waypoints(res.centerline_xy_m)
+    samples = [line_samples(res.drive, track)]
+    prior = _line._prior
+
+    def refuse(*args):
+        raise AssertionError("the prior was computed on a covered track")
+
+    monkeypatch.setattr(_line, "_prior", refuse)
+    got = line_from_samples(samples, track)
+    c, d, v = got["line_coverage"], got["line_offset_m"], got["line_speed_mps"]
+    assert np.all(c == 1.0)
+    n = max(int(round(float(track.length_m) / PROFILE_DS_M)), 8)
+    prior_d, prior_v = prior(track, d, v, c, float(track.length_m) / n)  # a loop: length / n
+    assert np.all(np.isfinite(prior_d)) and np.all(np.isfinite(prior_v))
+    np.testing.assert_array_equal(d, c * d + (1.0 - c) * prior_d)
+    np.testing.assert_array_equal(v, c * v + (1.0 - c) * prior_v)
 
 
 def test_samples_outside_a_time_range_are_the_samples_of_the_parts_around_it():

@@ -140,3 +140,29 @@ def test_a_fitted_filter_models_uncertainty_carries_its_terms_into_the_config(tm
         path.write_text(json.dumps(bad))
         with pytest.raises(InputError, match=what):
             read_config(path)
+
+
+def test_a_datasets_cross_fitted_lines_are_learned_once(monkeypatch):
+    """The cross-fitted lines depend on the dataset's drive alone: the long-horizon fit, a
+    fit's second thread (while the solver runs) and the uncertainty share one learning of them,
+    which gives the same lines as learning them afresh."""
+    from fpe_jax.model import _line
+
+    wp, drive = track_drive("oval")
+    track = Track.from_waypoints(wp)
+    p = presets["default"]
+    (d,) = E.make_datasets([drive], [track], p.settings, "training")
+    learned, learn = [], _line.line_from_samples
+    monkeypatch.setattr(
+        _line, "line_from_samples", lambda *a, **k: learned.append(1) or learn(*a, **k)
+    )
+    fold, lines = E.cross_fold_lines(d)
+    assert len(learned) == len(lines) >= 2
+    again = E.cross_fold_lines(d)
+    assert len(learned) == len(lines) and again[0] is fold and again[1] is lines
+    (fresh,) = E.make_datasets([drive], [track], p.settings, "training")
+    fresh_fold, fresh_lines = E.cross_fold_lines(fresh)
+    np.testing.assert_array_equal(fresh_fold, fold)
+    for a, b in zip(fresh_lines, lines, strict=True):
+        for k in a:
+            np.testing.assert_array_equal(a[k], b[k])
