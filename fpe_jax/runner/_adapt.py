@@ -300,7 +300,7 @@ class AdaptiveRunner(Runner):
         if hasattr(self, "_last_s"):  # Runner.__init__ resets before the state exists
             self._last_s[:] = -math.inf
             self._residual, self._residual_at, self.changed = [0.0, 0.0], None, False
-        if getattr(self, "calibration", None) is not None:
+        if self.calibration is not None:
             self.calibration.reset()
 
     def _track_frame(self, s_hint_m: float):

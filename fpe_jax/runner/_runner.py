@@ -369,7 +369,11 @@ class Runner:
         horizon: number of predicted steps H.
         dt_s: step between predicted poses [s].
         model, blend: the config's settings (see fpe_jax.model.Settings).
+        calibration: the online calibration of the config's ellipses; None here (the config's
+            ellipses as they are), set by `AdaptiveRunner(calibrate=True)`.
     """
+
+    calibration = None
 
     def __init__(self, config: dict, waypoints_xy_m, *, source: str = "config"):
         """Args:
@@ -997,7 +1001,7 @@ def run_stream(runner: Runner, lines, out, err, rate_hz: float | None = None) ->
         try:
             poses = runner.update(obs.since_s, obs.x_m, obs.y_m, obs.yaw_rad)
             reply = {"stamp": obs.t_s, "poses": poses.tolist(), "valid": runner.valid}
-            if getattr(runner, "calibration", None) is not None:
+            if runner.calibration is not None:
                 reply["cov_m2"] = runner.covariance_map().tolist()
             reply = json.dumps(reply, allow_nan=False)
         except (InputError, ValueError) as e:
