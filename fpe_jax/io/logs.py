@@ -595,30 +595,30 @@ def _cdr_pose_layouts(msgtype, raw, rows, stamp_ns, values, ok) -> None:
     length = raw.shape[1]
     if length < 16:  # no room for the header
         return
+    odom = msgtype in ODOMETRY_TYPES  # a second string (child_frame_id) and the twist after
+    pose_bytes = _ODOM_TWIST_OFFSET + 16 if odom else 56  # what is read from the pose on
     little = (raw[:, 0] == 0) & (raw[:, 1] == 1)  # the encapsulation id of little-endian CDR
     frame = _cdr_field(raw, 12, "<u4")[:, 0].astype(np.int64)  # header.frame_id's length
+    child = np.zeros(len(raw), np.int64)  # child_frame_id's length field, with its 4 bytes
     for n_frame in np.unique(frame[little]).tolist():
         at = 12 + n_frame  # after header.frame_id (its length counts the terminating NUL)
         same = little & (frame == n_frame)
-        child = [0]
-        if msgtype in ODOMETRY_TYPES:  # child_frame_id, a second string
+        if odom:
             at = (at + 3) & ~3
             if 4 + at + 4 > length:
                 continue
-            lengths = _cdr_field(raw, 4 + at, "<u4")[:, 0].astype(np.int64)
-            child = np.unique(lengths[same]).tolist()
-        for n_child in child:
-            pose_at = 4 + (((at + 4 + n_child if msgtype in ODOMETRY_TYPES else at) + 7) & ~7)
-            end = pose_at + 8 * (_ODOM_TWIST_OFFSET // 8 + 2 if msgtype in ODOMETRY_TYPES else 7)
-            if end > length:
+            child = _cdr_field(raw, 4 + at, "<u4")[:, 0].astype(np.int64) + 4
+        for n_child in np.unique(child[same]).tolist():
+            pose_at = 4 + ((at + n_child + 7) & ~7)
+            if pose_at + pose_bytes > length:
                 continue
-            these = same & (lengths == n_child) if msgtype in ODOMETRY_TYPES else same
+            these = same & (child == n_child)
             r, k = raw[these], rows[these]
             sec = _cdr_field(r, 4, "<i4")[:, 0].astype(np.int64)
             stamp_ns[k] = sec * 1_000_000_000 + _cdr_field(r, 8, "<u4")[:, 0].astype(np.int64)
             pose = _cdr_field(r, pose_at, "<f8", 7)  # position x, y, z, orientation x, y, z, w
             values[k, :6] = pose[:, [0, 1, 3, 4, 5, 6]]
-            if msgtype in ODOMETRY_TYPES:  # twist.twist.linear x, y: the planar speed
+            if odom:  # twist.twist.linear x, y: the planar speed
                 xy = _cdr_field(r, pose_at + _ODOM_TWIST_OFFSET, "<f8", 2)
                 values[k, 6] = np.hypot(xy[:, 0], xy[:, 1])
             ok[k] = True
