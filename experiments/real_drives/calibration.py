@@ -46,16 +46,13 @@ Writes experiments/results/real_drives_calibration.md.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
-import sys
 import time
 from collections import deque
-from pathlib import Path
 
 import numpy as np
+from diagnose import _study  # run.py loaded as a module (this script's folder is on the path)
 
-HERE = Path(__file__).resolve().parent
 COLD_S = 0.6
 END_S = 1.5
 CLIP = 4.0
@@ -64,14 +61,6 @@ LEVEL_STEPS = 3
 LEVEL_DECAY = 0.8
 BETAS = (0.0, 2.5, 5.0, 10.0, 20.0)
 IDEAL = (1 - math.exp(-0.5), 1 - math.exp(-2.0))
-
-
-def _study():
-    spec = importlib.util.spec_from_file_location("real_drives_run", HERE / "run.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclasses resolve their annotations through it
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def fit_real(study, case):
