@@ -326,7 +326,7 @@ def markdown(names, rows, wall_s: float, steady: bool = False) -> str:
         "along / across the track [m], on the fit part's cross-fitted predictions (where the "
         "ellipses were fitted) and on the held-out part.",
         "",
-        "| drive | coverage fit part | coverage held-out | ellipse sd fit / held-out | "
+        "| drive | coverage fit part | coverage held-out | ellipse sd, fit part ; held-out | "
         "median abs residual fit | median abs residual held-out |",
         "|---|---|---|---|---|---|",
     ]
