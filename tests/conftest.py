@@ -44,21 +44,57 @@ import pytest  # noqa: E402
 from jaxtyping import _import_hook  # noqa: E402
 
 
-# The run-time checks (`--jaxtyping-packages` in pyproject.toml) decorate every function of
-# fpe_jax as its module loads, and so every function nested in another: a nested function is
-# defined anew on each call of its outer one, and each definition builds, compiles and decorates
-# a checking wrapper (jaxtyping's exec plus beartype's), which made the I/O tests three times
-# slower (tests/io/test_apriltag.py 94 -> 35 s). Module-level functions, classes and methods,
-# which carry the annotations users rely on, stay checked on every call; nested helpers do not.
+# The run-time checks (`--jaxtyping-packages` in pyproject.toml) decorate every function and class
+# of fpe_jax as its module loads. Two changes keep their cost in proportion, both measured:
+# - functions nested in other functions are not decorated: a nested function is defined anew on
+#   each call of its outer one, and each definition built, compiled and decorated a checking
+#   wrapper (tests/io/test_apriltag.py 94 -> 35 s);
+# - in a module without jaxtyping's array annotations (no shapes to bind across arguments) the
+#   functions get the typechecker directly, without jaxtyping's per-call wrapper, which binds
+#   each call's arguments to the signature: the runner's, the node's and the readers' calls per
+#   message cost 1.7x their time with it (tests/runner, the node core, the hostile-input and
+#   AprilTag tests, the rollout tests: 169 CPU s with the wrapper, 101 without, 96 unchecked).
+# Module-level functions, classes and methods keep every check of their annotations.
+class _Typechecker:
+    """The hook's typechecker, applied as a plain decorator (see above)."""
+
+    def __init__(self, hooked):
+        self._lookup = f"jaxtyping._import_hook.Typechecker.lookup[{hooked.get_hash()!r}]"
+
+    def get_ast(self):
+        return ast.parse(f"@{self._lookup}\ndef _():\n    ...").body[0].decorator_list[0]
+
+
+def _uses_jaxtyping(node: ast.Module) -> bool:
+    return any(
+        (isinstance(n, ast.ImportFrom) and n.module == "jaxtyping")
+        or (isinstance(n, ast.Import) and any(a.name == "jaxtyping" for a in n.names))
+        for n in node.body
+    )
+
+
+def _visit_module(transformer, node):
+    transformer._plain = None if _uses_jaxtyping(node) else _Typechecker(transformer._typechecker)
+    return _visit_module_as_hooked(transformer, node)
+
+
 def _check_outer_functions_only(transformer, node):
     if any(isinstance(p, ast.FunctionDef | ast.AsyncFunctionDef) for p in transformer._parents):
         transformer._parents.append(node)
         transformer.generic_visit(node)
         transformer._parents.pop()
         return node
-    return _check_every_function(transformer, node)
+    if transformer._plain is None:
+        return _check_every_function(transformer, node)
+    hooked, transformer._typechecker = transformer._typechecker, transformer._plain
+    try:
+        return _check_every_function(transformer, node)
+    finally:
+        transformer._typechecker = hooked
 
 
+_visit_module_as_hooked = _import_hook.JaxtypingTransformer.visit_Module
+_import_hook.JaxtypingTransformer.visit_Module = _visit_module
 _check_every_function = _import_hook.JaxtypingTransformer.visit_FunctionDef
 _import_hook.JaxtypingTransformer.visit_FunctionDef = _check_outer_functions_only
 
@@ -90,15 +126,42 @@ def fpe_cache_dir() -> Path:
     return Path(os.environ["FPE_CACHE_DIR"])
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _release_compiled_programs():
-    """Drop JAX's in-memory compiled programs after each test file: one process runs the whole
-    suite, and the programs of 50-odd files would otherwise stay resident (several GB). What a
-    later file compiles again comes from the session's disk cache. The freed memory then goes
-    back to the system (glibc keeps it otherwise: the process stayed at its high-water mark,
-    2.3 GB after tests/fit, for the rest of the run)."""
-    yield
+def release_compiled_programs() -> None:
+    """Drop the compiled programs held in memory (JAX's and the package's executables) and give
+    the freed memory back to the system; what is used again comes from the session's disk cache.
+    glibc keeps freed memory otherwise (a process stayed at its high-water mark, 2.3 GB after
+    tests/fit, for the rest of the run), and the package's executables alone held 0.65 GB."""
+    from fpe_jax.compile import _aot
+
     jax.clear_caches()
+    _aot._MEMO.clear()
     gc.collect()
     if _LIBC is not None:
         _LIBC.malloc_trim(0)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """After each test file: one process runs many files, and the programs of 50-odd files would
+    otherwise stay resident (several GB)."""
+    yield
+    release_compiled_programs()
+
+
+# A test that leaves its process above this keeps nothing compiled for the next one: the two
+# workers of `make test` (`pytest -n 2`) then stay within 3 GB together (4.0 GB before), while
+# the many small tests keep their programs (releasing after every test made tests/fit 28 %
+# slower).
+_RELEASE_ABOVE_BYTES = 1.2e9
+
+
+@pytest.fixture(autouse=True)
+def _release_when_large():
+    yield
+    try:
+        with open("/proc/self/statm") as f:  # Linux: (total, resident, ...) in pages
+            resident_bytes = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except OSError:
+        return
+    if resident_bytes > _RELEASE_ABOVE_BYTES:
+        release_compiled_programs()

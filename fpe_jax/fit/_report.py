@@ -9,11 +9,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+# the fit's module imports the solvers: the report's readers (`fpe evaluate`) do without it, and
+# the hints name it in full so that a run-time checker finds it once a result exists
 if TYPE_CHECKING:
-    from fpe_jax.fit._fit import FitResult
+    import fpe_jax.fit._fit
 
 
-def provenance(result: FitResult, sources: Sequence[str], topics: dict) -> dict:
+def provenance(result: fpe_jax.fit._fit.FitResult, sources: Sequence[str], topics: dict) -> dict:
     """The provenance block of a tuned config."""
     from fpe_jax import __version__  # the package root imports nothing eagerly
 
@@ -42,7 +44,7 @@ def _steps(info: dict) -> str:
     return f"{info['steps']} {info['solver']} steps" + (f" (+{pre} on a subsample)" if pre else "")
 
 
-def line_section(result: FitResult, waypoints: str | None) -> dict | None:
+def line_section(result: fpe_jax.fit._fit.FitResult, waypoints: str | None) -> dict | None:
     """The config's `line` section of a line-model fit: the sha256 of the waypoints the line was
     learned on and the file they came from (`waypoints`, None when unknown); None for other
     models."""
@@ -50,7 +52,7 @@ def line_section(result: FitResult, waypoints: str | None) -> dict | None:
     return None if sha is None else {"waypoints_sha256": sha, "waypoints": waypoints}
 
 
-def format_fitted(result: FitResult) -> str:
+def format_fitted(result: fpe_jax.fit._fit.FitResult) -> str:
     """Two lines: the fitted values, and the per-step weights (or the line); after `--model
     auto` a first line with the validation scores it chose by."""
     p, info = result.params.physical(), result.info

@@ -16,7 +16,6 @@ from helpers import FRESH  # the fresh-process loader script of the export tests
 
 from fpe_jax import io, spec
 from fpe_jax.cli import main
-from fpe_jax.compile import _aot as aot
 from fpe_jax.drive import Drive
 from fpe_jax.errors import InputError
 from fpe_jax.evaluate import _evaluate as E
@@ -437,10 +436,11 @@ def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     assert not np.any(inner.targets.mask & (due >= cut - 0.05))  # nothing from after the cut
     np.testing.assert_array_equal(inner.targets.mask, d.targets.mask & (due < cut - 0.05))
     a, _ = F.fit_params([inner], init, free=("delay",))
-    n_compiled = len(aot._MEMO)
-    b, info = F.fit_params([d], init, free=("delay",))  # other mask, same shapes: no new compile
-    assert len(aot._MEMO) == n_compiled
-    assert info["trace_s"] == info["compile_s"] == info["load_s"] == 0.0  # the timing says so
+    # other mask, same shapes: the solver's executable comes from memory (its timing says so;
+    # the count of the process's executables would not: the suite frees them between tests,
+    # and another test's background work may still be loading its own)
+    b, info = F.fit_params([d], init, free=("delay",))
+    assert info["trace_s"] == info["compile_s"] == info["load_s"] == 0.0
     assert 0.0 < info["solve_s"] <= info["seconds"]
     assert float(a.delay_s) != float(b.delay_s)  # and the masks did make a difference
     with pytest.raises(InputError, match="inner split"):
