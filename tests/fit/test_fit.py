@@ -436,9 +436,9 @@ def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     assert not np.any(inner.targets.mask & (due >= cut - 0.05))  # nothing from after the cut
     np.testing.assert_array_equal(inner.targets.mask, d.targets.mask & (due < cut - 0.05))
     a, _ = F.fit_params([inner], init, free=("delay",))
-    # other mask, same shapes: the solver's executable comes from memory (its timing says so;
-    # the count of the process's executables would not: the suite frees them between tests,
-    # and another test's background work may still be loading its own)
+    # other mask, same shapes: the solver's executable comes from memory, as its timing says
+    # (the number of executables the process holds is no measure of it: that depends on what
+    # earlier tests in the same process loaded and the suite freed)
     b, info = F.fit_params([d], init, free=("delay",))
     assert info["trace_s"] == info["compile_s"] == info["load_s"] == 0.0
     assert 0.0 < info["solve_s"] <= info["seconds"]
