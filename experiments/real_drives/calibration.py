@@ -334,8 +334,9 @@ RULES = {
 }
 
 
-def replay(d: dict, rule_cls) -> np.ndarray:
-    """(M, H, 2, 2) the ellipses the rule gave each scored prediction."""
+def replay(d: dict, rule_cls, read=None) -> np.ndarray:
+    """(M, H, 2, 2) the ellipses the rule gave each scored prediction; with `read`, what
+    read(rule) gave as the rule stood when each scored prediction was made."""
     rule = rule_cls(d["base"], d["dt"], d["delay"])
     out, events, i = [], d["events"], 0
     for k in range(d["n"]):
@@ -344,7 +345,7 @@ def replay(d: dict, rule_cls) -> np.ndarray:
             e = events[i]
             (rule.observe if e[1] == "o" else rule.record)(*e[2:])
             i += 1
-        out.append(rule.covariance())
+        out.append(rule.covariance() if read is None else read(rule))
     return np.asarray(out)[d["rows"]]
 
 

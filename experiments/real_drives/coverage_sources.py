@@ -246,31 +246,10 @@ def smoothed_reference(d: dict, drive, case) -> dict:
     return dict(d, events=events)
 
 
-def replay_events(d: dict, rule_cls) -> np.ndarray:
-    """calibration.py's replay, passing every field of an event on."""
-    rule = rule_cls(d["base"], d["dt"], d["delay"])
-    out, events, i = [], d["events"], 0
-    for k in range(d["n"]):
-        while i < len(events) and events[i][0] == k:
-            e = events[i]
-            (rule.observe if e[1] == "o" else rule.record)(*e[2:])
-            i += 1
-        out.append(rule.covariance())
-    return np.asarray(out)[d["rows"]]
-
-
 def local_level(d: dict) -> np.ndarray:
     """(M,) calibration.py's local level (the recent realised short-step errors against their
     scale) as it stood when each scored prediction was made, replayed on stream d."""
-    rule = LocalLevel(d["base"], d["dt"], d["delay"])
-    out, events, i = [], d["events"], 0
-    for k in range(d["n"]):
-        while i < len(events) and events[i][0] == k:
-            e = events[i]
-            (rule.observe if e[1] == "o" else rule.record)(*e[2:])
-            i += 1
-        out.append(rule.level)
-    return np.asarray(out)[d["rows"]]
+    return replay(d, LocalLevel, read=lambda rule: rule.level)
 
 
 def study_drive(study, src, poses, seed: int) -> dict:
@@ -449,9 +428,7 @@ def markdown(names, rows, wall_s: float, steady: bool = False) -> str:
             lines.append(f"| {ref} | {rule} | {_pooled(qs)} |")
     for rule, cls in (("mean (the runner's)", SmoothedMean), ("mean of r^2 - reference variance",
                                                            DeconvolvedMean)):  # fmt: skip
-        qs = [
-            d2(r["warm"]["res"], replay_events(r["smoothed"], cls))[r["warm"]["mask"]] for r in rows
-        ]
+        qs = [d2(r["warm"]["res"], replay(r["smoothed"], cls))[r["warm"]["mask"]] for r in rows]
         lines.append(f"| smoothed ({SMOOTH_N} detections) | {rule} | {_pooled(qs)} |")
     qs = [d2(r["warm"]["res"], hindsight_cov(r["warm"], "median"))[r["warm"]["mask"]] for r in rows]
     lines.append(
