@@ -14,6 +14,7 @@ import os
 import queue
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -969,9 +970,8 @@ def _resend_interrupts() -> None:
     second Ctrl-C can land inside the hook. A Ctrl-C (or SIGTERM) that landed in a callback
     Python cannot raise from (JAX's garbage-collection callback) is sent to the main thread
     again, a moment later (at once it could land in the same callback), so the work still stops;
-    several in one burst are sent once; anything else is reported as usual."""
-    import _thread
-
+    several in one burst are sent once; anything else is reported as usual. It is sent as a
+    signal, so a main thread blocked in a system call (`fpe run` waiting on stdin) wakes."""
     kinds = ((SystemExit, signal.SIGTERM), (KeyboardInterrupt, signal.SIGINT))
     while True:
         burst = [_UNRAISABLE.get()]
@@ -986,7 +986,8 @@ def _resend_interrupts() -> None:
             else:
                 sys.__unraisablehook__(unraisable)
         if signums:
-            _thread.interrupt_main(max(signums))  # SIGTERM (15) over SIGINT (2)
+            # SIGTERM (15) over SIGINT (2)
+            signal.pthread_kill(threading.main_thread().ident, max(signums))
 
 
 # the library arguments that commands set from flags: the library's errors name the argument
@@ -1012,8 +1013,6 @@ LIBRARY_FLAGS = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    import threading
-
     words = sys.argv[1:] if argv is None else argv
     args = _build_parser(words[0] if words else None).parse_args(argv)
     main_thread = threading.current_thread() is threading.main_thread()

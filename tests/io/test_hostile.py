@@ -368,7 +368,8 @@ def test_a_ctrl_c_in_a_callback_is_resent_even_when_another_lands_in_the_hook(tm
     """A Ctrl-C that lands in a callback Python cannot raise from (an unraisable
     KeyboardInterrupt, as in JAX's garbage-collection callback) still ends the command with 130,
     and a second one landing while the interpreter reports the first (at any line the main
-    thread runs in cli.py or threading.py from then on) prints no traceback."""
+    thread runs in cli.py or threading.py from then on) prints no traceback. The command is
+    blocked in a system call (as `fpe run` waits on stdin): the interrupt sent again ends it."""
     code = f"""
 import sys, time
 from fpe_jax import cli
@@ -393,7 +394,7 @@ def command(args):
     sys.settrace(tracer)
     Callback()
     sys.settrace(None)
-    time.sleep(5)  # the interrupt sent again ends this
+    time.sleep(60)  # the interrupt sent again ends this
     return 0
 
 args = cli._build_parser().parse_args(["presets"])
@@ -401,7 +402,9 @@ args.func = command
 cli._build_parser = lambda *only: type("P", (), {{"parse_args": lambda self, argv: args}})()
 cli.entry()
 """
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    p = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=30
+    )
     assert p.returncode == 130 and "Traceback" not in p.stderr, (p.returncode, p.stderr)
     assert p.stderr.strip() == "fpe: interrupted", p.stderr
 
