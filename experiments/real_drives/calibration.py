@@ -549,13 +549,14 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     t0 = time.perf_counter()
     names, data, warm = [], [], []
-    for src in study.SOURCES:
+    for src in study.selected(args):
         try:
-            poses = study.load_mocap_mat(study.read_source(args.mirror, src), src.rate_hz, src.name)
+            poses = study.load_poses(args.mirror, src)
+            edges = study.read_edges(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             continue
-        case = study.make_case(src, poses, args.seed)
+        case = study.make_case(src, poses, args.seed, edges)
         print(f"{src.name}: fitting", flush=True)
         names.append(src.name.replace("F1TENTH skid-pad ", ""))
         res = fit_real(study, case)
