@@ -574,7 +574,7 @@ def main(argv=None) -> int:
         print(f"{track}: fitting", flush=True)
         sim_names.append(track)
         sim_data.append(checked(record_stream(case, fit_case(case)), track))
-    out = study.RESULTS / "real_drives_calibration.md"
+    out = study.RESULTS / f"real_drives_calibration{study.partial(args)}.md"
     out.write_text(markdown(names, data, warm, sim_names, sim_data, time.perf_counter() - t0))
     print(f"wrote {out}")
     return 0

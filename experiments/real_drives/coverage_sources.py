@@ -541,7 +541,8 @@ def main(argv=None) -> int:
     if not rows:
         print("no source present: nothing written")
         return 0
-    out = study.RESULTS / f"real_drives_coverage_sources{'_steady' if args.steady else ''}.md"
+    stem = f"real_drives_coverage_sources{'_steady' if args.steady else ''}{study.partial(args)}"
+    out = study.RESULTS / f"{stem}.md"
     out.write_text(markdown(names, rows, time.perf_counter() - t0, args.steady))
     print(f"wrote {out}")
     return 0

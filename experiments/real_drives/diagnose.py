@@ -243,7 +243,7 @@ def main(argv=None) -> int:
     if not rows:
         print("no source present: nothing written")
         return 0
-    out = study.RESULTS / "real_drives_diagnosis.md"
+    out = study.RESULTS / f"real_drives_diagnosis{study.partial(args)}.md"
     out.write_text(markdown(rows, time.perf_counter() - t0))
     print(f"wrote {out}")
     return 0

@@ -730,6 +730,11 @@ def selected(args) -> list[Source]:
     return [s for s in SOURCES if not args.source or any(n in s.name for n in args.source)]
 
 
+def partial(args) -> str:
+    """The results files' suffix for a run on the sources `--source` names ("" without it)."""
+    return "_partial" if args.source else ""
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_source_args(ap)
@@ -792,7 +797,7 @@ def main(argv=None) -> int:
     stem += "_steady" if args.steady else ""
     stem += f"_fit-{'-'.join(free)}" if free else ""
     stem += "_folds" if args.calibrate == "folds" else ""
-    stem += "_partial" if args.source else ""
+    stem += partial(args)
     png = _plot(rows, RESULTS / f"{stem}.png")
     md = RESULTS / f"{stem}.md"
     flags = (f" --estimator {args.estimator}" if args.estimator else "") + (
