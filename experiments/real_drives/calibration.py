@@ -549,13 +549,14 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     t0 = time.perf_counter()
     names, data, warm = [], [], []
-    for src in study.SOURCES:
+    for src in study.selected(args):
         try:
-            poses = study.load_mocap_mat(study.read_source(args.mirror, src), src.rate_hz, src.name)
+            poses = study.load_poses(args.mirror, src)
+            edges = study.read_edges(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             continue
-        case = study.make_case(src, poses, args.seed)
+        case = study.make_case(src, poses, args.seed, edges)
         print(f"{src.name}: fitting", flush=True)
         names.append(src.name.replace("F1TENTH skid-pad ", ""))
         res = fit_real(study, case)
@@ -573,7 +574,7 @@ def main(argv=None) -> int:
         print(f"{track}: fitting", flush=True)
         sim_names.append(track)
         sim_data.append(checked(record_stream(case, fit_case(case)), track))
-    out = study.RESULTS / "real_drives_calibration.md"
+    out = study.RESULTS / f"real_drives_calibration{study.partial(args)}.md"
     out.write_text(markdown(names, data, warm, sim_names, sim_data, time.perf_counter() - t0))
     print(f"wrote {out}")
     return 0

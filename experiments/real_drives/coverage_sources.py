@@ -216,18 +216,22 @@ def _line_at_centre(t_s: np.ndarray, y: np.ndarray, t_c: float) -> tuple[float, 
 def smoothed_reference(d: dict, drive, case) -> dict:
     """The stream d with each filtered observation the calibration was given replaced by a
     smoothed one: at the newest SMOOTH_N detections, lines in time through their arc length
-    and offset on the skid-pad circle (the waypoints), evaluated at the middle detection's
-    stamp, that stamp and the lines' variances there carried with it (`DeconvolvedMean`)."""
+    and offset along the waypoints' path, evaluated at the middle detection's stamp, that
+    stamp and the lines' variances there carried with it (`DeconvolvedMean`)."""
     from fpe_jax.drive import local_frame
+    from fpe_jax.runner._runner import RunnerPath
 
     local, wp, _, _ = local_frame(drive, case.waypoints_xy_m)
-    c = wp.mean(axis=0)
-    radius = float(np.mean(np.linalg.norm(wp - c, axis=1)))
-    a, b = wp[1] - c, wp[2] - c
-    turn = np.sign(a[0] * b[1] - a[1] * b[0])  # +1 counter-clockwise
-    rel = local.xy_m - c
-    s_m = turn * radius * np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))
-    d_m = turn * (radius - np.linalg.norm(rel, axis=1))  # left of the direction of travel
+    path = RunnerPath(wp)
+    s_m, d_m = np.empty(len(local.t_s)), np.empty(len(local.t_s))
+    s_prev = None
+    for i, (x, y) in enumerate(local.xy_m.tolist()):
+        s = path.project(x, y)
+        s = s if s_prev is None else path.continuous(s, s_prev)  # counts laps
+        h = path.heading_at(s)
+        px, py = path.point_at(s)
+        s_m[i], d_m[i] = s, math.cos(h) * (y - py) - math.sin(h) * (x - px)  # left of travel
+        s_prev = s
     events = []
     for e in d["events"]:
         if e[1] != "o":
@@ -240,9 +244,9 @@ def smoothed_reference(d: dict, drive, case) -> dict:
         t_c = float(local.t_s[rows[SMOOTH_N // 2]])
         (s_c, var_s), (d_c, var_d) = (_line_at_centre(local.t_s[rows], y[rows], t_c)
                                       for y in (s_m, d_m))  # fmt: skip
-        a = turn * s_c / radius
-        r = radius - turn * d_c
-        events.append((k, "o", t_c, c[0] + r * math.cos(a), c[1] + r * math.sin(a), (var_s, var_d)))
+        h = path.heading_at(s_c)
+        px, py = path.point_at(s_c)
+        events.append((k, "o", t_c, px - math.sin(h) * d_c, py + math.cos(h) * d_c, (var_s, var_d)))
     return dict(d, events=events)
 
 
@@ -252,8 +256,8 @@ def local_level(d: dict) -> np.ndarray:
     return replay(d, LocalLevel, read=lambda rule: rule.level)
 
 
-def study_drive(study, src, poses, seed: int) -> dict:
-    case = study.make_case(src, poses, seed)
+def study_drive(study, src, poses, seed: int, edges=()) -> dict:
+    case = study.make_case(src, poses, seed, edges)
     res = fit_long(study, case)
     whole = whole_recording(study, poses, case, seed)
     cold = record_stream(case, res)
@@ -465,11 +469,12 @@ def markdown(names, rows, wall_s: float, steady: bool = False) -> str:
         "",
         "## The recordings' final halt",
         "",
-        "Each recording ends with the car halting within a few tenths of a second (after the "
-        "last time its speed over 0.5 s is at least 80 % of its median: run.py's "
-        "`steady_part`). The held-out targets due after that, and their coverage under the "
-        "fit's own ellipses, the runner's (started at the recording) and the hindsight scales "
-        "above:",
+        "The skid-pad recordings end with the car halting within a few tenths of a second "
+        "after the last time its speed over 0.5 s is at least 80 % of its median (run.py's "
+        "`steady_part`); the full-size ones (cut where their speed first falls below 5 m/s) "
+        "with the car slowing down (LVMS) or at speed (Putnam). The held-out targets due after "
+        "that time, and their coverage under the fit's own ellipses, the runner's (started at "
+        "the recording) and the hindsight scales above:",
         "",
         "| drive | halt from [s] | share of targets | fit's ellipses | runner's | hindsight |",
         "|---|---|---|---|---|---|",
@@ -521,9 +526,10 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     t0 = time.perf_counter()
     names, rows = [], []
-    for src in study.SOURCES:
+    for src in study.selected(args):
         try:
-            poses = study.load_mocap_mat(study.read_source(args.mirror, src), src.rate_hz, src.name)
+            poses = study.load_poses(args.mirror, src)
+            edges = study.read_edges(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             continue
@@ -531,11 +537,12 @@ def main(argv=None) -> int:
             poses = study.steady_part(poses)
         print(f"{src.name}: fitting", flush=True)
         names.append(src.name.replace("F1TENTH skid-pad ", ""))
-        rows.append(study_drive(study, src, poses, args.seed))
+        rows.append(study_drive(study, src, poses, args.seed, edges))
     if not rows:
         print("no source present: nothing written")
         return 0
-    out = study.RESULTS / f"real_drives_coverage_sources{'_steady' if args.steady else ''}.md"
+    stem = f"real_drives_coverage_sources{'_steady' if args.steady else ''}{study.partial(args)}"
+    out = study.RESULTS / f"{stem}.md"
     out.write_text(markdown(names, rows, time.perf_counter() - t0, args.steady))
     print(f"wrote {out}")
     return 0

@@ -231,19 +231,19 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     rows = []
-    for src in study.SOURCES:
+    # the diagnosis is of the skid-pad circles (the circle through each part's positions)
+    for src in (s for s in study.selected(args) if s.track == "circle"):
         try:
-            data = study.read_source(args.mirror, src)
+            poses = study.load_poses(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             continue
-        poses = study.load_mocap_mat(data, src.rate_hz, src.name)
         print(f"{src.name}: fitting", flush=True)
         rows.append((src, diagnose(study, src, poses, args.seed)))
     if not rows:
         print("no source present: nothing written")
         return 0
-    out = study.RESULTS / "real_drives_diagnosis.md"
+    out = study.RESULTS / f"real_drives_diagnosis{study.partial(args)}.md"
     out.write_text(markdown(rows, time.perf_counter() - t0))
     print(f"wrote {out}")
     return 0

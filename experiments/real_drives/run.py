@@ -3,9 +3,10 @@ baseline on drives the fit did not see in time.
 
 Each source in SOURCES is a public recording of a real race car's poses, read at run time from a
 git mirror of its repository (`git show COMMIT:PATH`; nothing is copied into this project). Each
-trajectory becomes a drive of detections through `fpe_jax.sim.observe` (the simulator's capture
-timing, range-dependent noise, outliers, dropouts and 0.3 s of delay); the predictors get the
-source's track as waypoints. The fit sees the first 60 % of the drive's duration and is scored on
+trajectory (for a source with a speed threshold, its moving part: `moving_part`) becomes a drive
+of detections through `fpe_jax.sim.observe` (the simulator's capture timing, range-dependent
+noise, outliers, dropouts and 0.3 s of delay); the predictors get the source's track as
+waypoints. The fit sees the first 60 % of the drive's duration and is scored on
 the last 40 %, at 1 s and 3 s ahead (one fit with a 3 s horizon), against every baseline, and
 against the fitted config run through the adapting runner (`fpe_jax.runner.AdaptiveRunner`,
 as `fpe predict --adapt --config` runs it) over the held-out part from its first detection,
@@ -50,24 +51,26 @@ CV_FOLDS = 2  # --calibrate folds: contiguous parts of the fit drive, each predi
 # what else was measured on these drives (each line names the results file it comes from)
 NOTES = (
     "`--fit delay,tau,pace,smoothing,filter` (the long-horizon fit of experiments/horizon): "
-    "median FDE ratio 0.23 at 1 s and 0.29 at 3 s, no drive lost "
-    "(real_drives_fit-delay-tau-pace-smoothing-filter.md), against 0.33 and 0.84 and 'cw v2_5' "
+    "median FDE ratio 0.20 at 1 s and 0.41 at 3 s over the six drives, no drive lost "
+    "(real_drives_fit-delay-tau-pace-smoothing-filter.md), against 0.23 and 0.71 and 'cw v2_5' "
     "lost at 1 s with the default fit (real_drives.md); its ellipses are narrower on the "
-    "held-out part (pooled 31 % / 56 % against 39 % / 70 %).",
+    "held-out part (pooled 36 % / 76 % against 49 % / 85 %).",
+    "Measured on the four skid-pad runs only (before the IAC drives were added): "
     "`--calibrate folds` (the ellipses fitted on residuals out of sample in the fitted values "
     "and the line: each half of the fit drive predicted by a fit on the other) did not help: "
-    "pooled 34 % / 54 % with the long-horizon fit "
+    "pooled 34 % / 54 % with the long-horizon fit against its own 31 % / 56 % there "
     "(real_drives_fit-delay-tau-pace-smoothing-filter_folds.md): out of sample within the fit "
     "drive the errors are no larger than cross-fitted, while the held-out parts' are "
     "(real_drives_diagnosis.md: rms along / across at 1 s).",
-    "Not the final stop alone: on the recordings' steady parts (`--steady --fit "
-    "delay,tau,pace,smoothing,filter`, real_drives_steady_fit-delay-tau-pace-smoothing-"
-    "filter.md) the long-horizon fit's ratio is 0.10 at 1 s and 0.12 at 3 s, and its ellipses "
-    "still cover only 18 % / 55 %.",
+    "Measured on the four skid-pad runs only: not the final stop alone: on the recordings' "
+    "steady parts (`--steady --fit delay,tau,pace,smoothing,filter`, real_drives_steady_fit-"
+    "delay-tau-pace-smoothing-filter.md) the long-horizon fit's ratio is 0.10 at 1 s and 0.12 "
+    "at 3 s, and its ellipses still cover only 18 % / 55 %.",
     "The adapting runner's online calibration (`AdaptiveRunner(calibrate=True)`): why its "
-    "ellipses are too wide at 1 sigma while about right at 2 sigma on these drives, and what "
-    "other online rules and scales chosen in hindsight give: real_drives_calibration.md "
-    "(experiments/real_drives/calibration.py).",
+    "ellipses are too wide at 1 sigma while about right at 2 sigma on the skid-pad runs, and "
+    "what other online rules and scales chosen in hindsight give: real_drives_calibration.md "
+    "(experiments/real_drives/calibration.py, on the four skid-pad runs); on every drive: "
+    "real_drives_coverage_sources.md (experiments/real_drives/coverage_sources.py).",
 )
 
 
@@ -81,10 +84,16 @@ class Source:
         licence: the licence the repository states (or that it states none).
         commit: the commit read.
         path: the file inside the repository.
-        rate_hz: the recording's pose rate [Hz] (the file holds no stamps).
+        rate_hz: the recording's pose rate [Hz] where the file holds no stamps; None: the
+            file's own stamps.
         track: how the waypoints are made ("circle": the skid-pad circle, fitted to the fit
-            part's recorded positions only).
+            part's recorded positions only; "edges": the line midway between the two track
+            edges `edges` the repository ships, `centre_line`).
         description: what the recording is.
+        reader: the file's format ("mocap-mat": `load_mocap_mat`; "state-csv":
+            `load_state_csv`).
+        edges: the repository's files of the track's two edges (track "edges").
+        min_speed_mps: > 0: only the recording's moving part at this speed (`moving_part`).
     """
 
     name: str
@@ -92,9 +101,12 @@ class Source:
     licence: str
     commit: str
     path: str
-    rate_hz: float
+    rate_hz: float | None
     track: str
     description: str
+    reader: str = "mocap-mat"
+    edges: tuple[str, ...] = ()
+    min_speed_mps: float = 0.0
 
 
 _TT = "Tinker-Twins/F1TENTH-Mocap-Data-Recording-Pipeline"
@@ -118,11 +130,45 @@ def _skidpad(direction: str, v: str) -> Source:
     )
 
 
+_DD = "linklab-uva/deep-dynamics"
+_DD_COMMIT = "88c856539c84fe7004b933d1cf03aad14ab69bd2"
+_DD_LICENCE = "GPL-3.0 (LICENSE: GNU General Public License v3)"
+# the repository's own parser keeps the rows from the first at |vx| >= 5 m/s to the first
+# after that below it: the same cut, from the positions
+_DD_MIN_SPEED_MPS = 5.0
+
+
+def _iac(name: str, file: str, track: str, where: str) -> Source:
+    return Source(
+        name=name,
+        repo=_DD,
+        licence=_DD_LICENCE,
+        commit=_DD_COMMIT,
+        path=f"deep_dynamics/data/{file}.csv",
+        rate_hz=None,
+        track="edges",
+        description=(
+            f"full-size Indy Autonomous Challenge car (Dallara AV-21) driving laps of {where}: "
+            "its state estimate (25 Hz stamps, x, y [m], yaw phi [rad])"
+        ),
+        reader="state-csv",
+        edges=tuple(
+            f"deep_dynamics/visualize/tracks/{track}_{side}_bound.csv"
+            for side in ("inner", "outer")
+        ),
+        min_speed_mps=_DD_MIN_SPEED_MPS,
+    )
+
+
 SOURCES = (
     _skidpad("ccw", "1_0"),
     _skidpad("ccw", "2_0"),
     _skidpad("cw", "1_5"),
     _skidpad("cw", "2_5"),
+    _iac("IAC LVMS oval", "LVMS_23_01_04_B", "lvms", "the Las Vegas Motor Speedway oval"),
+    _iac(
+        "IAC Putnam road course", "Putnam_park2023_run4_2", "putnam", "the Putnam Park road course"
+    ),
 )
 
 
@@ -131,17 +177,84 @@ def mirror_dir(mirror_root: Path, src: Source) -> Path:
     return mirror_root / src.repo.replace("/", "+") / "repo"
 
 
-def read_source(mirror_root: Path, src: Source) -> bytes:
-    """The source file's bytes at its commit, read from the mirror (FileNotFoundError if absent)."""
+def read_source(mirror_root: Path, src: Source, path: str | None = None) -> bytes:
+    """The bytes of the source's file (or of `path` in its repository) at its commit, read
+    from the mirror (FileNotFoundError if absent)."""
     git = mirror_dir(mirror_root, src)
+    path = src.path if path is None else path
     if not git.is_dir():
         raise FileNotFoundError(f"no mirror of {src.repo} at {git}")
     out = subprocess.run(
-        ["git", "-C", str(git), "show", f"{src.commit}:{src.path}"], capture_output=True
+        ["git", "-C", str(git), "show", f"{src.commit}:{path}"], capture_output=True
     )
     if out.returncode:
-        raise FileNotFoundError(f"{src.repo}@{src.commit[:8]}:{src.path}: {out.stderr.decode()}")
+        raise FileNotFoundError(f"{src.repo}@{src.commit[:8]}:{path}: {out.stderr.decode()}")
     return out.stdout
+
+
+def load_poses(mirror_root: Path, src: Source) -> dict:
+    """The source's recorded poses, read by its reader from the mirror (its moving part where
+    the source names a speed): {"t_s" (N,), "xy_m" (N, 2), "yaw_rad" (N,)}."""
+    data = read_source(mirror_root, src)
+    if src.reader == "mocap-mat":
+        poses = load_mocap_mat(data, src.rate_hz, src.name)
+    elif src.reader == "state-csv":
+        poses = load_state_csv(data, src.name)
+    else:
+        raise ValueError(f"{src.name}: unknown reader {src.reader!r}")
+    if src.min_speed_mps > 0:
+        poses = moving_part(poses, src.min_speed_mps)
+    if src.track == "edges":
+        poses = from_track_entry(poses, read_edges(mirror_root, src))
+    return poses
+
+
+def read_edges(mirror_root: Path, src: Source) -> tuple[np.ndarray, ...]:
+    """The track edges the source names, each (K, 2) x, y [m] (the first two columns of a
+    header-less table); () for a source without them."""
+    return tuple(_table(read_source(mirror_root, src, p), p).data[:, :2] for p in src.edges)
+
+
+def _table(data: bytes, name: str):
+    """`fpe_jax.io.tables.read_table` of a file's bytes (its error messages name `name`)."""
+    import tempfile
+
+    from fpe_jax.errors import InputError
+    from fpe_jax.io.tables import read_table
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / Path(name).name
+        path.write_bytes(data)
+        try:
+            return read_table(path)
+        except InputError as e:
+            raise ValueError(f"{name}: {e}".replace(str(path), Path(name).name)) from e
+
+
+def load_state_csv(data: bytes, source: str) -> dict:
+    """Poses from a stamped vehicle-state CSV whose header (its last comment line or first
+    row) names `time` [s], `x` [m], `y` [m] and the yaw `phi` [rad] (units in brackets kept out
+    of the names), as deep-dynamics' recordings are.
+
+    Returns {"t_s" (N,) from the first stamp, "xy_m" (N, 2), "yaw_rad" (N,)}; raises ValueError
+    naming `source` when a column is missing, a value is not finite or the stamps do not
+    increase."""
+    table = _table(data, source)
+    names = table.header or ()
+    missing = [c for c in ("time", "x", "y", "phi") if c not in names]
+    if missing or table.t_ns is None:
+        raise ValueError(
+            f"{source}: expected columns time, x, y, phi in the header, got {','.join(names)!r}"
+        )
+    col = {c: table.data[:, names.index(c)] for c in ("x", "y", "phi")}
+    t_s = (table.t_ns - table.t_ns[0]) * 1e-9
+    ok = table.t_ok & np.isfinite(col["x"]) & np.isfinite(col["y"]) & np.isfinite(col["phi"])
+    if not np.all(ok) or len(t_s) < 3 or np.any(np.diff(t_s) <= 0):
+        raise ValueError(
+            f"{source}: expected at least 3 rows of finite values with increasing stamps "
+            f"({int(np.sum(~ok))} rows not finite)"
+        )
+    return dict(t_s=t_s, xy_m=np.stack([col["x"], col["y"]], axis=1), yaw_rad=col["phi"])
 
 
 def load_mocap_mat(data: bytes, rate_hz: float, source: str) -> dict:
@@ -164,18 +277,40 @@ def load_mocap_mat(data: bytes, rate_hz: float, source: str) -> dict:
     return dict(t_s=np.arange(len(st)) / rate_hz, xy_m=st[:, :2], yaw_rad=st[:, 2])
 
 
-def steady_part(poses: dict) -> dict:
-    """The poses from the first to the last time the car's speed (the distance covered over
-    STEADY_WINDOW_S, centred) is at least STEADY_FRACTION of its median: a recording's run-up
-    and final stop left out. Same keys as `load_mocap_mat`."""
+def window_speed(poses: dict) -> np.ndarray:
+    """(N,) the car's speed [m/s]: the distance covered over STEADY_WINDOW_S, centred; NaN
+    within half the window of either end."""
     t, xy = poses["t_s"], poses["xy_m"]
     h = max(int(round(STEADY_WINDOW_S / 2 / np.median(np.diff(t)))), 1)
-    if len(t) <= 2 * h:
-        return poses
     v = np.full(len(t), np.nan)
-    v[h:-h] = np.linalg.norm(xy[2 * h :] - xy[: -2 * h], axis=1) / (t[2 * h :] - t[: -2 * h])
+    if len(t) > 2 * h:
+        v[h:-h] = np.linalg.norm(xy[2 * h :] - xy[: -2 * h], axis=1) / (t[2 * h :] - t[: -2 * h])
+    return v
+
+
+def steady_part(poses: dict) -> dict:
+    """The poses from the first to the last time the car's speed (`window_speed`) is at least
+    STEADY_FRACTION of its median: a recording's run-up and final stop left out. Same keys as
+    `load_mocap_mat`."""
+    v = window_speed(poses)
+    if np.all(np.isnan(v)):
+        return poses
     fast = np.flatnonzero(v >= STEADY_FRACTION * np.nanmedian(v))
     rows = slice(fast[0], fast[-1] + 1)
+    return {k: a[rows] for k, a in poses.items()}
+
+
+def moving_part(poses: dict, min_speed_mps: float) -> dict:
+    """The poses from the first time the car's speed (`window_speed`) reaches min_speed_mps to
+    the last before it first falls below it again: a recording's wait at the start and what
+    follows its first stop (a pit stop, parking) left out. Same keys as `load_mocap_mat`;
+    ValueError when the car never reaches that speed."""
+    fast = window_speed(poses) >= min_speed_mps
+    if not np.any(fast):
+        raise ValueError(f"the car never reaches {min_speed_mps} m/s")
+    first = int(np.argmax(fast))
+    slow = np.flatnonzero(~fast[first:])
+    rows = slice(first, first + int(slow[0]) if len(slow) else len(fast))
     return {k: a[rows] for k, a in poses.items()}
 
 
@@ -195,18 +330,61 @@ def fit_circle(xy_m: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
     return np.stack([cx + r * np.cos(ang), cy + r * np.sin(ang)], axis=1)
 
 
-def make_case(src: Source, poses: dict, seed: int):
+def from_track_entry(poses: dict, edges: tuple[np.ndarray, np.ndarray]) -> dict:
+    """The poses from the first one on the track: within half the edges' median distance of
+    the line midway between them (`centre_line`), a drive out of the pit lane left out. Same
+    keys as `load_mocap_mat`; ValueError when the car is never on the track."""
+    from scipy.spatial import cKDTree
+
+    mid = centre_line(edges, poses["xy_m"], poses["yaw_rad"])
+    half_width_m = 0.5 * float(np.median(cKDTree(edges[1]).query(edges[0])[0]))
+    on = cKDTree(mid).query(poses["xy_m"])[0] <= half_width_m
+    if not np.any(on):
+        raise ValueError(f"the car is never within {half_width_m:.1f} m of the track's centre")
+    first = int(np.argmax(on))
+    return {k: a[first:] for k, a in poses.items()}
+
+
+def centre_line(edges: tuple[np.ndarray, np.ndarray], xy_m: np.ndarray, yaw_rad: np.ndarray):
+    """(K, 2) the line midway between a track's two edges (each (K_i, 2) [m], in order along
+    the track): each point of the first edge paired with the nearest point of the second
+    (its segments, not only its points), in the direction the car at xy_m (N, 2) [m] heading
+    yaw_rad (N,) [rad] mostly drives."""
+    a, b = (np.asarray(e, dtype=float) for e in edges)
+    # the second edge densified to 0.1 m: its nearest point is then within 5 cm of the true one
+    seg = np.hypot(*np.diff(b, axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    fine = np.arange(0.0, s[-1], 0.1)
+    dense = np.stack([np.interp(fine, s, b[:, 0]), np.interp(fine, s, b[:, 1])], axis=1)
+    from scipy.spatial import cKDTree
+
+    mid = 0.5 * (a + dense[cKDTree(dense).query(a)[1]])
+    # the way the car goes: its heading against the line's direction at its nearest point
+    step = np.gradient(mid, axis=0)
+    j = cKDTree(mid).query(xy_m)[1]
+    along = step[j, 0] * np.cos(yaw_rad) + step[j, 1] * np.sin(yaw_rad)
+    return mid if np.sum(along > 0) >= np.sum(along < 0) else mid[::-1].copy()
+
+
+def make_case(src: Source, poses: dict, seed: int, edges: tuple[np.ndarray, ...] = ()):
     """A `fpe_jax.fit.Case`: the trajectory observed through the simulator's detector, split
-    in time (fit on the first 60 %, test on the rest); waypoints from the fit part only."""
+    in time (fit on the first 60 %, test on the rest); waypoints from the fit part only (the
+    circle) or from the track's `edges` (`read_edges`) and the fit part's direction."""
     from fpe_jax.evaluate._evaluate import split_drive
     from fpe_jax.fit._cases import Case
     from fpe_jax.sim._sim import observe
 
     t = poses["t_s"]
     fit_rows = t <= t[0] + (1 - HOLDOUT) * (t[-1] - t[0])
-    if src.track != "circle":
+    fit_xy, fit_yaw = poses["xy_m"][fit_rows], poses["yaw_rad"][fit_rows]
+    if src.track == "circle":
+        waypoints = fit_circle(fit_xy, fit_yaw)
+    elif src.track == "edges":
+        if len(edges) != 2:
+            raise ValueError(f"{src.name}: track 'edges' needs the two edges, got {len(edges)}")
+        waypoints = centre_line(edges, fit_xy, fit_yaw)
+    else:
         raise ValueError(f"{src.name}: unknown track kind {src.track!r}")
-    waypoints = fit_circle(poses["xy_m"][fit_rows], poses["yaw_rad"][fit_rows])
     drive = observe(
         t,
         poses["xy_m"],
@@ -402,13 +580,18 @@ def markdown(
         "On track = `fpe_jax.geometry.check_on_track` passes on every detection of the drive "
         "without `--allow-off-track`.",
         "",
-        "What the sources are and are not: skid-pad runs (constant commanded speed and steering "
-        "on a circle, several laps, about 15 s each) of a 1:10 car under motion capture, not "
-        "race laps; their files hold no stamps, so the poses are taken at the 60 Hz their "
-        "folder names (a different true rate would scale every speed alike). The waypoints are "
-        "the circle fitted to the fit part's recorded positions. The repository states no "
-        "licence: the data are read from its mirror at run time and nothing of them is copied "
-        "here.",
+        "What the sources are and are not. F1TENTH skid-pad: runs of a 1:10 car under motion "
+        "capture at constant commanded speed and steering on a circle (several laps, about 15 s "
+        "each), not race laps; their files hold no stamps, so the poses are taken at the 60 Hz "
+        "their folder names (a different true rate would scale every speed alike); the "
+        "waypoints are the circle fitted to the fit part's recorded positions; the repository "
+        "states no licence. IAC: laps of a full-size autonomous race car (Dallara AV-21, "
+        "Indy Autonomous Challenge) from its own state estimate at 25 Hz (stamped), on a "
+        "1.5-mile oval and on a 2.9 km road course, cut to the part from the first time it "
+        "reaches 5 m/s (over 0.5 s) to the first time it falls back below it, from its first "
+        "pose between the track's edges on (the pit lane left out); the waypoints are the line "
+        "midway between the two track edges the same repository ships. The data are read from "
+        "the mirrors at run time and nothing of them is copied here.",
         "",
         "## Sources",
         "",
@@ -485,6 +668,12 @@ def markdown(
         + ", ".join(f"{r['adapt_changes']}" for _, r in rows)
         + " times.",
         "",
+        "Pooled per source (each drive's held-out targets, steps 1-30):",
+        "",
+        "| source | drives | fitted ellipses 1 / 2 sigma | adapting, calibrated 1 / 2 sigma |",
+        "|---|---|---|---|",
+        *_per_source(rows),
+        "",
         f"Peak resident memory of the whole run (every fit, in one process): {peak_mib:.0f} MiB; "
         "each fit's peak is at most this.",
     ]
@@ -492,6 +681,21 @@ def markdown(
         lines += ["", f"![held-out median FDE per drive]({png})"]
     lines += ["", "## Notes", "", *(f"- {n}" for n in NOTES)]
     return "\n".join(lines) + "\n"
+
+
+def _per_source(rows) -> list[str]:
+    """Table rows: per repository, the coverage pooled over its drives (weighted by targets)
+    of the fitted ellipses and of the adapting runner's calibrated ones."""
+    out = []
+    for repo in dict.fromkeys(s.repo for s, _ in rows):
+        mine = [r for s, r in rows if s.repo == repo]
+        n = np.array([r["n_targets"] for r in mine], float)
+        cells = []
+        for get in (lambda r: (r["cov1"], r["cov2"]), lambda r: r["cov_adapt"]["calibrated"]):
+            c = np.array([get(r) for r in mine])
+            cells.append(" / ".join(f"{np.sum(n * c[:, k]) / n.sum():.1%}" for k in (0, 1)))
+        out.append(f"| {repo} | {len(mine)} | {cells[0]} | {cells[1]} |")
+    return out
 
 
 def _pooled(rows, which: str) -> str:
@@ -513,6 +717,22 @@ def add_source_args(ap: argparse.ArgumentParser) -> None:
         help="folder of OWNER+NAME/repo git mirrors (default $FPE_MIRROR or /work/.mirror)",
     )
     ap.add_argument("--seed", type=int, default=0, help="the detector's seed (0)")
+    ap.add_argument(
+        "--source",
+        action="append",
+        metavar="TEXT",
+        help="only the sources whose name contains TEXT (repeatable; default: every source)",
+    )
+
+
+def selected(args) -> list[Source]:
+    """The sources `--source` names (all of them without it)."""
+    return [s for s in SOURCES if not args.source or any(n in s.name for n in args.source)]
+
+
+def partial(args) -> str:
+    """The results files' suffix for a run on the sources `--source` names ("" without it)."""
+    return "_partial" if args.source else ""
 
 
 def main(argv=None) -> int:
@@ -552,9 +772,10 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     t0 = time.perf_counter()
     rows, skipped, kept = [], [], []
-    for src in SOURCES:
+    for src in selected(args):
         try:
-            poses = load_mocap_mat(read_source(args.mirror, src), src.rate_hz, src.name)
+            poses = load_poses(args.mirror, src)
+            edges = read_edges(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             skipped.append((src, "mirror absent"))
@@ -562,7 +783,7 @@ def main(argv=None) -> int:
         if args.steady:
             poses = steady_part(poses)
         kept.append((src, poses["t_s"][0], poses["t_s"][-1]))
-        case = make_case(src, poses, args.seed)
+        case = make_case(src, poses, args.seed, edges)
         print(f"{src.name}: fitting ({len(case.fit_drive.t_s)} detections)", flush=True)
         rows.append((src, run_case(case, args.estimator, free, args.calibrate)))
         print(f"  {rows[-1][1]['fde']}", flush=True)
@@ -576,6 +797,7 @@ def main(argv=None) -> int:
     stem += "_steady" if args.steady else ""
     stem += f"_fit-{'-'.join(free)}" if free else ""
     stem += "_folds" if args.calibrate == "folds" else ""
+    stem += partial(args)
     png = _plot(rows, RESULTS / f"{stem}.png")
     md = RESULTS / f"{stem}.md"
     flags = (f" --estimator {args.estimator}" if args.estimator else "") + (
@@ -583,6 +805,7 @@ def main(argv=None) -> int:
     )
     flags += f" --fit {','.join(free)}" if free else ""
     flags += " --calibrate folds" if args.calibrate == "folds" else ""
+    flags += "".join(f" --source '{n}'" for n in args.source or ())
     text = markdown(rows, skipped, time.perf_counter() - t0, peak_mib, png, flags)
     if args.estimator:
         text = text.replace("\n\n", f"\n\nFit with `--estimator {args.estimator}`.\n\n", 1)
@@ -630,10 +853,11 @@ def _plot(rows, out: Path) -> str:
             ax.bar(x + i * w, vals, w, label=n)
         ax.set_xticks(
             x + 0.4 - w / 2,
-            [s.name.replace("F1TENTH ", "") for s, _ in rows],
+            [s.name.replace("F1TENTH ", "").replace(" road course", "") for s, _ in rows],
             rotation=20,
             fontsize=7,
         )
+        ax.set_yscale("log")  # the 1:10 and the full-size drives' errors, metres apart
         ax.set_ylabel(f"median FDE at {label} [m]")
         ax.set_title(f"held-out last {HOLDOUT:.0%}, {label} ahead")
     axes[0].legend(fontsize=7)

@@ -1,6 +1,7 @@
-"""The real-motion study's loader and sensor pipeline (experiments/real_drives/run.py) on a tiny
-synthetic trajectory in the sources' format: a MATLAB file with `states` (N, 3) x, y, yaw at a
-fixed rate, read from a git repository at a commit as the study reads its mirrors."""
+"""The real-motion study's loaders and sensor pipeline (experiments/real_drives/run.py) on tiny
+synthetic trajectories in the sources' formats, read from a git repository at a commit as the
+study reads its mirrors: a MATLAB file with `states` (N, 3) x, y, yaw at a fixed rate, and a
+stamped vehicle-state CSV with the track's two edges as header-less x, y[, z] tables."""
 
 from __future__ import annotations
 
@@ -162,8 +163,9 @@ def test_the_real_sources_load_from_the_mirror(study):
     if not present:
         pytest.skip(f"no source mirror under {root} (set FPE_MIRROR to a folder of git mirrors)")
     for src in present:
-        poses = study.load_mocap_mat(study.read_source(root, src), src.rate_hz, src.name)
+        poses = study.load_poses(root, src)
         assert len(poses["t_s"]) > 300 and np.all(np.isfinite(poses["xy_m"]))
+        assert len(study.read_edges(root, src)) == (2 if src.track == "edges" else 0)
 
 
 @pytest.fixture(scope="module")
@@ -211,3 +213,167 @@ def test_the_steady_part_leaves_out_the_run_up_and_the_stop(study):
     # a steady recording is kept whole but for its first and last quarter second
     whole = dict(t_s=t, xy_m=st[:, :2], yaw_rad=st[:, 2])
     assert len(study.steady_part(whole)["t_s"]) == len(t) - 30
+
+
+# --- stamped state CSV with track edges (the IAC sources) ---------------------------------------
+
+STATE_HEADER = "# time(s),x(m),y(m),vx(m/s),vy(m/s),phi(rad),delta(rad),omega(rad/s)"
+EPOCH_NS = 1692117187_463807580
+
+
+def ring(radius_m: float, n: int, z: float | None = None) -> np.ndarray:
+    """(n, 2 or 3) points of a counter-clockwise circle about the origin, open (no repeat)."""
+    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    xy = radius_m * np.stack([np.cos(a), np.sin(a)], axis=1)
+    return xy if z is None else np.column_stack([xy, np.full(n, z)])
+
+
+def state_csv(t_s: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> bytes:
+    """The poses as the sources' CSV: epoch stamps (t_s after EPOCH_NS, to the nanosecond),
+    the header as a comment line."""
+    rows = [STATE_HEADER]
+    for t, (x, y), p in zip(t_s, xy, yaw):
+        ns = EPOCH_NS + round(t * 1e9)
+        rows.append(f"{ns // 10**9}.{ns % 10**9:09d},{x:.8f},{y:.8f},0.0,0.0,{p:.8f},0.0,0.0")
+    return ("\n".join(rows) + "\n").encode()
+
+
+def oval_drive(rate_hz=25.0, v_mps=20.0, radius_m=98.0):
+    """A car 2 s at rest in a pit 30 m inside a ring track (edges at 95 m and 105 m), 1 s to
+    drive onto the track, 30 s round it counter-clockwise at v, 2 s at rest, 2 s on again:
+    (t_s, xy, yaw) and the rows of each phase."""
+    t = np.arange(int(37.0 * rate_hz)) / rate_hz
+    ang = np.zeros_like(t)
+    r = np.full_like(t, radius_m)
+    pit = t < 3.0
+    r[t < 2.0] = radius_m - 30.0
+    r[(t >= 2.0) & pit] = radius_m - 30.0 * (3.0 - t[(t >= 2.0) & pit])
+    lap = (t >= 3.0) & (t < 33.0)
+    ang[lap] = v_mps / radius_m * (t[lap] - 3.0)
+    ang[t >= 33.0] = ang[lap][-1]
+    again = t >= 35.0
+    ang[again] += v_mps / radius_m * (t[again] - 35.0)
+    xy = np.stack([r * np.cos(ang), r * np.sin(ang)], axis=1)
+    return t, xy, ang + np.pi / 2
+
+
+def state_source(study, commit, edges=("e/inner.csv", "e/outer.csv")):
+    return study.Source(
+        name="synthetic oval",
+        repo="owner/name",
+        licence="test",
+        commit=commit,
+        path="d/run.csv",
+        rate_hz=None,
+        track="edges",
+        description="synthetic oval",
+        reader="state-csv",
+        edges=edges,
+        min_speed_mps=5.0,
+    )
+
+
+def git_repo_with_files(tmp_path: Path, files: dict[str, bytes]) -> tuple[Path, str]:
+    first, *rest = files.items()
+    root, _ = git_repo_with(tmp_path, *first)
+    repo = root / "owner+name" / "repo"
+    for rel, data in rest:
+        (repo / rel).parent.mkdir(parents=True, exist_ok=True)
+        (repo / rel).write_bytes(data)
+    run = lambda *a: subprocess.run(["git", "-C", str(repo), *a], check=True, capture_output=True)  # noqa: E731
+    run("add", ".")
+    run("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "more")
+    commit = run("rev-parse", "HEAD").stdout.decode().strip()
+    return root, commit
+
+
+def table_bytes(a: np.ndarray) -> bytes:
+    return ("\n".join(",".join(repr(float(v)) for v in row) for row in a) + "\n").encode()
+
+
+def test_the_state_csv_keeps_its_stamps_positions_and_yaw(study):
+    t, xy, yaw = oval_drive()
+    poses = study.load_state_csv(state_csv(t, xy, yaw), "d/run.csv")
+    # stamps from the first one, exact to the nanosecond: an epoch stamp in float64 would
+    # already be off by up to 1.2e-7 s
+    np.testing.assert_allclose(poses["t_s"], t, atol=1e-12)
+    np.testing.assert_allclose(poses["xy_m"], xy, atol=1e-8)
+    np.testing.assert_allclose(poses["yaw_rad"], yaw, atol=1e-8)
+
+
+def test_a_state_csv_without_the_columns_or_stamps_is_refused_by_name(study):
+    bad = b"# time(s),x(m),y(m)\n1.0,0.0,0.0\n2.0,1.0,0.0\n3.0,2.0,0.0\n"
+    with pytest.raises(ValueError, match="run.csv: expected columns time, x, y, phi"):
+        study.load_state_csv(bad, "d/run.csv")
+    t, xy, yaw = oval_drive()
+    t[5] = t[4]
+    with pytest.raises(ValueError, match="run.csv: .*increasing stamps"):
+        study.load_state_csv(state_csv(t, xy, yaw), "d/run.csv")
+    with pytest.raises(ValueError, match="run.csv: line 3 has 2 cells"):
+        study.load_state_csv(b"# time(s),x(m),y(m),phi\n1,0,0,0\n2,0\n", "d/run.csv")
+
+
+def test_the_moving_part_ends_at_the_first_stop(study):
+    t, xy, yaw = oval_drive()
+    part = study.moving_part(dict(t_s=t, xy_m=xy, yaw_rad=yaw), 5.0)
+    # the speed over 12 rows (0.48 s) centred: out of the pit at 30 m/s from 2 s, it covers
+    # 5 m/s x 0.48 s from t = 2 - 0.24 + 0.08; stopping from 20 m/s after its last move at
+    # 32.96 s, until t = 32.96 + 0.24 - 0.12 (each to a row: 0.04 s)
+    assert part["t_s"][0] == pytest.approx(1.84, abs=0.041)
+    assert part["t_s"][-1] == pytest.approx(33.08, abs=0.041)
+    with pytest.raises(ValueError, match="never reaches 50"):
+        study.moving_part(dict(t_s=t, xy_m=xy, yaw_rad=yaw), 50.0)
+
+
+def test_the_centre_line_is_midway_and_runs_the_cars_way(study):
+    inner, outer = ring(95.0, 600), ring(105.0, 653)
+    t, xy, yaw = oval_drive()
+    lap = (t >= 3.0) & (t < 33.0)
+    for sign in (1.0, -1.0):  # counter-clockwise, then the mirror image: clockwise
+        m = np.array([1.0, sign])
+        mid = study.centre_line((inner * m, outer * m), xy[lap] * m, sign * yaw[lap])
+        # midway to within the outer ring's 0.1 m densified chords
+        np.testing.assert_allclose(np.hypot(*mid.T), 100.0, atol=0.01)
+        step = mid[1] - mid[0]
+        assert np.sign(mid[0, 0] * step[1] - mid[0, 1] * step[0]) == sign
+
+
+def test_a_drive_from_the_pit_starts_where_it_joins_the_track(study):
+    t, xy, yaw = oval_drive()
+    poses = dict(t_s=t, xy_m=xy, yaw_rad=yaw)
+    part = study.from_track_entry(poses, (ring(95.0, 600), ring(105.0, 653)))
+    # the first pose within 5 m of the 100 m centre: r = 68 + 30 (t - 2) >= 95 from t = 2.9 s
+    assert part["t_s"][0] == pytest.approx(2.92, abs=1e-9)
+    np.testing.assert_array_equal(part["xy_m"], xy[t >= 2.9 + 1e-9])
+    with pytest.raises(ValueError, match="never within 5.0 m"):
+        study.from_track_entry(poses, (ring(195.0, 600), ring(205.0, 653)))
+
+
+def test_an_edges_source_loads_from_its_mirror_and_becomes_a_case(study, tmp_path):
+    t, xy, yaw = oval_drive()
+    root, commit = git_repo_with_files(
+        tmp_path,
+        {
+            "d/run.csv": state_csv(t, xy, yaw),
+            "e/inner.csv": table_bytes(ring(95.0, 600, z=-34.0)),
+            "e/outer.csv": table_bytes(ring(105.0, 653, z=-34.0)),
+        },
+    )
+    src = state_source(study, commit)
+    poses = study.load_poses(root, src)
+    edges = study.read_edges(root, src)
+    assert [e.shape for e in edges] == [(600, 2), (653, 2)]
+    # on the track from 2.92 s to its stop (`moving_part`): the pit and the second stint left
+    # out
+    assert poses["t_s"][0] == pytest.approx(2.92, abs=1e-6)
+    assert poses["t_s"][-1] == pytest.approx(33.08, abs=0.041)
+    case = study.make_case(src, poses, 0, edges)
+    np.testing.assert_allclose(np.hypot(*case.waypoints_xy_m.T), 100.0, atol=0.01)
+    fit, test = case.fit_drive, case.test_drive
+    split = fit.t_s[0] + 0.6 * (test.t_s[-1] - fit.t_s[0])  # 60 / 40 of the detections' time
+    assert fit.t_s[-1] <= split < test.t_s[0]
+    assert poses["t_s"][0] + study.LATENCY_S <= fit.t_s[0] and test.t_s[-1] <= poses["t_s"][-1]
+    with pytest.raises(FileNotFoundError, match="e/missing.csv"):
+        study.read_edges(root, state_source(study, commit, ("e/inner.csv", "e/missing.csv")))
+    with pytest.raises(ValueError, match="needs the two edges, got 0"):
+        study.make_case(src, poses, 0)

@@ -92,10 +92,32 @@ def test_the_smoothed_reference_is_where_the_car_was(cs, ccw):
         assert t_c == drive.t_s[middle] - t0
         cap = t_c + t0 - LATENCY_S
         true = [np.interp(cap, poses["t_s"], poses["xy_m"][:, i]) for i in (0, 1)]
-        # on the circle; the truth interpolated linearly between its 60 Hz poses cuts the
-        # chords, (v dt)^2 / (8 r) = 6.5e-5 m inside it at most
-        assert math.hypot(x + origin[0] - true[0], y + origin[1] - true[1]) < 1e-4
-        assert var_s < 1e-10 and var_d < 1e-10  # the chords again: 10 micrometres
+        # on the circle to within the chords: the truth interpolated linearly between its
+        # 60 Hz poses, (v dt)^2 / (8 r) = 6.5e-5 m, and the path's 0.1 m segments the arc
+        # length and offset are taken on, 0.1^2 / (8 r) = 1.0e-3 m
+        assert math.hypot(x + origin[0] - true[0], y + origin[1] - true[1]) < 1.1e-3
+        assert var_s < 1e-6 and var_d < 1e-6  # the chords again: a millimetre
+
+
+def test_the_smoothed_reference_follows_any_path(cs):
+    """On a straight of a rectangular loop, a car 0.5 m left of the waypoints at constant
+    speed: the reference is where it was, to rounding."""
+    corners = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 60.0], [0.0, 60.0], [0.0, 0.0]])
+    waypoints = np.concatenate(
+        [np.linspace(a, b, 200, endpoint=False) for a, b in zip(corners[:-1], corners[1:])]
+    )
+    t = np.arange(0.0, 4.0, 1 / 25)
+    xy = np.stack([20.0 + 8.0 * t, np.full_like(t, 0.5)], axis=1)
+    drive = observe(t, xy, np.zeros_like(t), waypoints, latency_s=LATENCY_S, seed=2,
+                    sensor=Sensor.clean())  # fmt: skip
+    case = types.SimpleNamespace(waypoints_xy_m=waypoints, test_drive=drive)
+    out = cs.smoothed_reference(stream(drive, case), drive, case)
+    _, _, t0, origin = local_frame(drive, case.waypoints_xy_m)
+    obs = np.array([e[2:5] for e in out["events"] if e[1] == "o"])
+    assert len(obs) == len(drive.t_s) - cs.SMOOTH_N + 1
+    cap = obs[:, 0] + t0 - LATENCY_S
+    np.testing.assert_allclose(obs[:, 1] + origin[0], 20.0 + 8.0 * cap, atol=1e-9)
+    np.testing.assert_allclose(obs[:, 2] + origin[1], 0.5, atol=1e-9)
 
 
 def test_the_recorded_pose_reference_measures_the_runners_reference(cs):
