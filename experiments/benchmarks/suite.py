@@ -1,11 +1,13 @@
 """Wall time and peak memory of a command with all its child processes (the test suite's).
 
-    .venv/bin/python experiments/benchmarks/suite.py -- .venv/bin/pytest -q -n 2
+    CI=true .venv/bin/python experiments/benchmarks/suite.py -- make test
 
 `/usr/bin/time -v` reports the largest single process; pytest-xdist's workers and the commands
-the tests start run side by side, so this samples the resident memory of the whole process tree
-(every 0.2 s, from /proc) and prints the peak of its sum, with the load average before and after.
-Linux only.
+the tests start run side by side, so this samples the memory of the whole process tree (every
+0.2 s, from /proc) and prints the peak of two sums, with the load average before and after:
+resident memory (RSS: a page that several processes map, as the JAX library's code, counts once
+per process) and proportional memory (PSS: each shared page split among the processes that map
+it, so the sum is what the tree holds of the machine's memory). Linux only.
 """
 
 from __future__ import annotations
@@ -28,18 +30,22 @@ def _children() -> dict[int, list[int]]:
     return tree
 
 
-def tree_rss_bytes(root: int) -> int:
-    """Summed resident memory [bytes] of `root` and its descendants."""
-    tree, todo, total = _children(), [root], 0
-    page = os.sysconf("SC_PAGE_SIZE")
+def tree_memory_bytes(root: int) -> tuple[int, int]:
+    """Summed resident and proportional memory [bytes] (RSS, PSS) of `root` and its
+    descendants."""
+    tree, todo, rss, pss = _children(), [root], 0, 0
     while todo:
         pid = todo.pop()
         try:
-            total += int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * page
-        except OSError:
+            for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+                if line.startswith("Rss:"):
+                    rss += int(line.split()[1]) * 1024
+                elif line.startswith("Pss:"):
+                    pss += int(line.split()[1]) * 1024
+        except (OSError, ValueError):  # the process ended meanwhile
             pass
         todo += tree.get(pid, [])
-    return total
+    return rss, pss
 
 
 def main() -> int:
@@ -52,15 +58,17 @@ def main() -> int:
     load0 = os.getloadavg()
     t0 = time.perf_counter()
     proc = subprocess.Popen(argv)
-    peak = 0
+    peak_rss = peak_pss = 0
     while proc.poll() is None:
-        peak = max(peak, tree_rss_bytes(proc.pid))
+        rss, pss = tree_memory_bytes(proc.pid)
+        peak_rss, peak_pss = max(peak_rss, rss), max(peak_pss, pss)
         time.sleep(0.2)
     wall_s = time.perf_counter() - t0
     load1 = os.getloadavg()
     print(
-        f"exit {proc.returncode}; wall {wall_s:.0f} s; peak memory of the process tree "
-        f"{peak / 2**30:.2f} GiB; load average {load0[0]:.1f} before, {load1[0]:.1f} after "
+        f"exit {proc.returncode}; wall {wall_s:.0f} s; peak memory of the process tree: "
+        f"RSS {peak_rss / 1e9:.2f} GB, PSS {peak_pss / 1e9:.2f} GB; "
+        f"load average {load0[0]:.1f} before, {load1[0]:.1f} after "
         f"(15 min: {load1[2]:.1f})",
         file=sys.stderr,
     )
