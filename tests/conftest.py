@@ -145,8 +145,7 @@ def _release_compiled_programs():
     """After each test file: one process runs many files, and the programs of 50-odd files would
     otherwise stay resident (several GB)."""
     yield
-    if os.environ.get("FPE_TEST_NO_FILE_RELEASE") != "1":
-        release_compiled_programs()
+    release_compiled_programs()
 
 
 # A test that leaves its process above this keeps nothing compiled for the next one: the two
