@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -36,6 +37,27 @@ def drive_dir(tmp_path_factory) -> Path:
     r = fpe("simulate", "--duration", "12", "--out", str(out))
     assert r.returncode == 0, r.stderr
     return out
+
+
+@pytest.fixture(scope="module")
+def cold_predict(tmp_path_factory, drive_dir) -> tuple[Path, subprocess.CompletedProcess]:
+    """`fpe predict --quiet` with an empty cache folder: (folder holding cache/ and p.csv,
+    result). Tests take copies (`cold_predict_into`)."""
+    folder = tmp_path_factory.mktemp("cold")
+    env = {"FPE_CACHE_DIR": str(folder / "cache")}
+    return folder, fpe(*predict_args(drive_dir, folder / "p.csv"), "--quiet", env=env)
+
+
+def cold_predict_into(
+    tmp_path: Path, cold_predict: tuple[Path, subprocess.CompletedProcess], out: Path
+) -> subprocess.CompletedProcess:
+    """`cold_predict` as if run with FPE_CACHE_DIR=tmp_path/cache and --out out: its cache (the
+    user's key included, modes kept) and predictions copied there; its result."""
+    folder, result = cold_predict
+    assert result.returncode == 0, result.stderr
+    shutil.copytree(folder / "cache", tmp_path / "cache", symlinks=True)
+    shutil.copyfile(folder / "p.csv", out)
+    return result
 
 
 @pytest.fixture(scope="module")
@@ -96,10 +118,10 @@ def test_fast_commands_import_no_jax(tmp_path, drive_dir):
 
 
 def test_cache_is_written_reused_and_survives_corrupt_entries(
-    tmp_path, drive_dir, uncached_predict
+    tmp_path, drive_dir, cold_predict, uncached_predict
 ):
     env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
-    first = fpe(*predict_args(drive_dir, tmp_path / "a.csv"), "--quiet", env=env)
+    first = cold_predict_into(tmp_path, cold_predict, tmp_path / "a.csv")
     assert first.returncode == 0, first.stderr
     info = json.loads(fpe("cache", "info", "--json", env=env).stdout)
     assert info["path"] == str(tmp_path / "cache") and info["entries"] > 0 and info["bytes"] > 0
@@ -130,7 +152,7 @@ def test_cache_is_written_reused_and_survives_corrupt_entries(
     assert json.loads(fpe("cache", "info", "--json", env=off_env).stdout)["entries"] == 0
 
 
-def test_stored_executables_run_in_later_processes(tmp_path, drive_dir):
+def test_stored_executables_run_in_later_processes(tmp_path, drive_dir, cold_predict):
     """Each command loads what earlier ones stored and stores what it compiled itself: every
     later process runs them and gets the same numbers (a process that had read entries of
     JAX's own cache once stored executables that failed elsewhere with "Function ... not
@@ -139,7 +161,10 @@ def test_stored_executables_run_in_later_processes(tmp_path, drive_dir):
     log = [str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
     runs, kept = [], []
     for k in range(2):  # cold predict, then evaluate (loads predict's, compiles its own), twice
-        p = fpe(*predict_args(drive_dir, tmp_path / f"p{k}.csv"), "--quiet", env=env)
+        if k == 0:
+            p = cold_predict_into(tmp_path, cold_predict, tmp_path / "p0.csv")
+        else:
+            p = fpe(*predict_args(drive_dir, tmp_path / f"p{k}.csv"), "--quiet", env=env)
         e = fpe("evaluate", *log, "--preset", "frenet", "--json", "--quiet", env=env)
         assert p.returncode == 0 and e.returncode == 0, p.stderr + e.stderr
         assert "warning" not in p.stderr + e.stderr, p.stderr + e.stderr
