@@ -80,23 +80,23 @@ def assert_one_warning_and_recompiled(run: dict, fresh: dict) -> None:
 
 
 @pytest.fixture(scope="module")
-def filled_once(tmp_path_factory) -> tuple[Path, dict]:
+def filled_once(tmp_path_factory) -> tuple[Path, dict, dict]:
     """A cache folder holding the child's one executable, stored by one child and loaded by the
-    next: (folder, fresh result). Tests damage copies of it (`filled`)."""
+    next: (folder, fresh result, warm result). Tests damage copies of it (`filled`)."""
     folder = tmp_path_factory.mktemp("filled") / "cache"
     fresh = child(folder)
     assert fresh["stderr"] == "" and fresh["compile_s"] > 0
     [_] = entries(folder)
     warm = child(folder)
     assert warm["compile_s"] == 0.0 and warm["y"] == fresh["y"], warm["stderr"]
-    return folder, fresh
+    return folder, fresh, warm
 
 
 @pytest.fixture
 def filled(tmp_path, filled_once) -> tuple[Path, dict, Path]:
     """A copy of `filled_once` (the user's key and the entry, modes kept) for this test:
     (folder, fresh result, entry). An entry's MAC covers its name, not its folder."""
-    folder, fresh = filled_once
+    folder, fresh, _ = filled_once
     shutil.copytree(folder, tmp_path / "cache", symlinks=True)
     [entry] = entries(tmp_path / "cache")
     return tmp_path / "cache", fresh, entry
@@ -154,9 +154,9 @@ def test_a_fifo_entry_does_not_hang(filled):
     assert entry.is_file()  # replaced by the recompiled executable
 
 
-def test_a_link_to_dev_zero_is_refused_with_flat_memory(filled):
+def test_a_link_to_dev_zero_is_refused_with_flat_memory(filled, filled_once):
     cache_dir, fresh, entry = filled
-    warm = child(cache_dir)
+    warm = filled_once[2]  # a child that loaded the entry
     entry.unlink()
     entry.symlink_to("/dev/zero")
     # an address-space limit keeps a reader that would follow the link from eating the machine
