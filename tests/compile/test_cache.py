@@ -5,6 +5,7 @@ same numbers; `fpe cache clear|info` touch only what fpe wrote and follow no lin
 import json
 import os
 import pickle
+import shutil
 import subprocess
 import sys
 import time
@@ -63,6 +64,9 @@ def child(cache_dir: Path, timeout_s: float = 120.0, limit_bytes: int | None = N
     return {**json.loads(r.stdout.strip().splitlines()[-1]), "stderr": r.stderr}
 
 
+X = np.linspace(0.0, 2.0, 257)  # the child's input
+
+
 def entries(cache_dir: Path) -> list[Path]:
     return sorted(cache_dir.rglob("aot/*.exe"))
 
@@ -75,28 +79,44 @@ def assert_one_warning_and_recompiled(run: dict, fresh: dict) -> None:
     assert run["y"] == fresh["y"]  # bit for bit what a fresh compile gives
 
 
-@pytest.fixture
-def filled(tmp_path) -> tuple[Path, dict, Path]:
-    """A cache folder holding the child's one executable: (folder, fresh result, entry)."""
-    fresh = child(tmp_path / "cache")
+@pytest.fixture(scope="module")
+def filled_once(tmp_path_factory) -> tuple[Path, dict, dict]:
+    """A cache folder holding the child's one executable, stored by one child and loaded by the
+    next: (folder, fresh result, warm result). Tests damage copies of it (`filled`)."""
+    folder = tmp_path_factory.mktemp("filled") / "cache"
+    fresh = child(folder)
     assert fresh["stderr"] == "" and fresh["compile_s"] > 0
-    [entry] = entries(tmp_path / "cache")
-    warm = child(tmp_path / "cache")
+    [_] = entries(folder)
+    warm = child(folder)
     assert warm["compile_s"] == 0.0 and warm["y"] == fresh["y"], warm["stderr"]
+    return folder, fresh, warm
+
+
+@pytest.fixture
+def filled(tmp_path, filled_once) -> tuple[Path, dict, Path]:
+    """A copy of `filled_once` (the user's key and the entry, modes kept) for this test:
+    (folder, fresh result, entry). An entry's MAC covers its name, not its folder."""
+    folder, fresh, _ = filled_once
+    shutil.copytree(folder, tmp_path / "cache", symlinks=True)
+    [entry] = entries(tmp_path / "cache")
     return tmp_path / "cache", fresh, entry
 
 
-def test_a_flipped_bit_anywhere_gives_one_warning_and_a_recompile(filled):
+def test_a_flipped_bit_anywhere_gives_one_warning_and_a_recompile(filled, monkeypatch, capsys):
     cache_dir, fresh, entry = filled
+    monkeypatch.setenv("FPE_CACHE_DIR", str(cache_dir))
+    secret = cache.secret_key()
     good = entry.read_bytes()
     for offset in (3, 40, len(good) // 4, len(good) // 2, 3 * len(good) // 4, len(good) - 1):
         damaged = bytearray(good)
         damaged[offset] ^= 0x10
         entry.write_bytes(bytes(damaged))
         assert_one_warning_and_recompiled(child(cache_dir), fresh)
-        # the recompiled executable replaced the damaged entry
-        healed = child(cache_dir)
-        assert healed["compile_s"] == 0.0 and healed["stderr"] == "", (offset, healed["stderr"])
+        # the recompiled executable replaced the damaged entry: it loads without a warning and
+        # gives the fresh numbers (loaded here, as a later child's `aot.executable` would)
+        healed = aot._load(entry, secret, traced=[0])
+        assert healed is not None and capsys.readouterr().err == "", offset
+        assert np.asarray(healed(X)["y"]).tolist() == fresh["y"], offset
 
 
 def test_a_crafted_pickle_entry_is_never_unpickled(filled, tmp_path):
@@ -134,9 +154,9 @@ def test_a_fifo_entry_does_not_hang(filled):
     assert entry.is_file()  # replaced by the recompiled executable
 
 
-def test_a_link_to_dev_zero_is_refused_with_flat_memory(filled):
+def test_a_link_to_dev_zero_is_refused_with_flat_memory(filled, filled_once):
     cache_dir, fresh, entry = filled
-    warm = child(cache_dir)
+    warm = filled_once[2]  # a child that loaded the entry
     entry.unlink()
     entry.symlink_to("/dev/zero")
     # an address-space limit keeps a reader that would follow the link from eating the machine

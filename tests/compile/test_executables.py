@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -36,6 +37,37 @@ def drive_dir(tmp_path_factory) -> Path:
     r = fpe("simulate", "--duration", "12", "--out", str(out))
     assert r.returncode == 0, r.stderr
     return out
+
+
+@pytest.fixture(scope="module")
+def cold_predict(tmp_path_factory, drive_dir) -> tuple[Path, subprocess.CompletedProcess]:
+    """`fpe predict --quiet` with an empty cache folder: (folder holding cache/ and p.csv,
+    result). Tests take copies (`cold_predict_into`)."""
+    folder = tmp_path_factory.mktemp("cold")
+    env = {"FPE_CACHE_DIR": str(folder / "cache")}
+    return folder, fpe(*predict_args(drive_dir, folder / "p.csv"), "--quiet", env=env)
+
+
+def cold_predict_into(
+    tmp_path: Path, cold_predict: tuple[Path, subprocess.CompletedProcess], out: Path
+) -> subprocess.CompletedProcess:
+    """`cold_predict` as if run with FPE_CACHE_DIR=tmp_path/cache and --out out: its cache (the
+    user's key included, modes kept) and predictions copied there; its result."""
+    folder, result = cold_predict
+    assert result.returncode == 0, result.stderr
+    shutil.copytree(folder / "cache", tmp_path / "cache", symlinks=True)
+    shutil.copyfile(folder / "p.csv", out)
+    return result
+
+
+@pytest.fixture(scope="module")
+def uncached_predict(tmp_path_factory, drive_dir) -> tuple[subprocess.CompletedProcess, dict]:
+    """`fpe predict` with FPE_NO_CACHE=1 and a cache folder of its own: (result, environment).
+    With XLA's own optimisation (not the suite's debug build, see conftest) compiling lasts
+    > 1 s, so it shows progress lines (warm, the whole command may not)."""
+    folder = tmp_path_factory.mktemp("uncached")
+    env = {"FPE_CACHE_DIR": str(folder / "cache"), "FPE_NO_CACHE": "1", "XLA_FLAGS": ""}
+    return fpe(*predict_args(drive_dir, folder / "p.csv"), env=env), env
 
 
 def predict_args(drive_dir: Path, out: Path) -> list[str]:
@@ -85,9 +117,11 @@ def test_fast_commands_import_no_jax(tmp_path, drive_dir):
         assert last.startswith("no-jax 0"), (argv, r.stderr[-2000:])
 
 
-def test_cache_is_written_reused_and_survives_corrupt_entries(tmp_path, drive_dir):
+def test_cache_is_written_reused_and_survives_corrupt_entries(
+    tmp_path, drive_dir, cold_predict, uncached_predict
+):
     env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
-    first = fpe(*predict_args(drive_dir, tmp_path / "a.csv"), "--quiet", env=env)
+    first = cold_predict_into(tmp_path, cold_predict, tmp_path / "a.csv")
     assert first.returncode == 0, first.stderr
     info = json.loads(fpe("cache", "info", "--json", env=env).stdout)
     assert info["path"] == str(tmp_path / "cache") and info["entries"] > 0 and info["bytes"] > 0
@@ -112,27 +146,36 @@ def test_cache_is_written_reused_and_survives_corrupt_entries(tmp_path, drive_di
     assert json.loads(fpe("cache", "info", "--json", env=env).stdout)["entries"] == 0
     off = fpe(*predict_args(drive_dir, tmp_path / "c.csv"), "--no-cache", "--quiet", env=env)
     assert off.returncode == 0, off.stderr
-    off = fpe(*predict_args(drive_dir, tmp_path / "d.csv"), env={**env, "FPE_NO_CACHE": "1"})
-    assert off.returncode == 0, off.stderr
     assert json.loads(fpe("cache", "info", "--json", env=env).stdout)["entries"] == 0
+    off, off_env = uncached_predict
+    assert off.returncode == 0, off.stderr
+    assert json.loads(fpe("cache", "info", "--json", env=off_env).stdout)["entries"] == 0
 
 
-def test_stored_executables_run_in_later_processes(tmp_path, drive_dir):
+def test_stored_executables_run_in_later_processes(tmp_path, drive_dir, cold_predict):
     """Each command loads what earlier ones stored and stores what it compiled itself: every
     later process runs them and gets the same numbers (a process that had read entries of
     JAX's own cache once stored executables that failed elsewhere with "Function ... not
     found")."""
     env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
     log = [str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
-    runs = []
-    for k in range(3):  # cold predict, then evaluate (loads predict's, compiles its own), twice
-        p = fpe(*predict_args(drive_dir, tmp_path / f"p{k}.csv"), "--quiet", env=env)
+    runs, kept = [], []
+    for k in range(2):  # cold predict, then evaluate (loads predict's, compiles its own), twice
+        if k == 0:
+            p = cold_predict_into(tmp_path, cold_predict, tmp_path / "p0.csv")
+        else:
+            p = fpe(*predict_args(drive_dir, tmp_path / f"p{k}.csv"), "--quiet", env=env)
         e = fpe("evaluate", *log, "--preset", "frenet", "--json", "--quiet", env=env)
         assert p.returncode == 0 and e.returncode == 0, p.stderr + e.stderr
         assert "warning" not in p.stderr + e.stderr, p.stderr + e.stderr
+        # --quiet: no progress lines, cold (compiling) or warm
+        assert not [ln for ln in p.stderr.splitlines() if ln.startswith("[")], p.stderr
         runs.append((np.loadtxt(tmp_path / f"p{k}.csv", delimiter=",", skiprows=1), e.stdout))
+        kept.append({f: f.read_bytes() for f in (tmp_path / "cache").rglob("*") if f.is_file()})
     stored = list((tmp_path / "cache").rglob("aot/*.exe"))
     assert len(stored) >= 3
+    # the warm pair loaded everything and wrote nothing: any later process reads this same cache
+    assert kept[1] == kept[0]
     for poses, metrics in runs[1:]:
         np.testing.assert_array_equal(poses, runs[0][0])
         assert metrics == runs[0][1]
@@ -322,17 +365,12 @@ def test_progress_plain_lines_updating_line_and_quiet():
     assert slow.text.startswith("[") and slow.text.endswith("] compiling\n")  # no 'done'
 
 
-def test_predict_shows_progress_unless_quiet(tmp_path, drive_dir):
-    # without the cache and with XLA's own optimisation (not the suite's debug build, see
-    # conftest), compiling lasts > 1 s (warm, the whole command may not)
-    r = fpe(
-        *predict_args(drive_dir, tmp_path / "a.csv"), env={"FPE_NO_CACHE": "1", "XLA_FLAGS": ""}
-    )
+def test_predict_shows_progress_unless_quiet(uncached_predict):
+    r, _ = uncached_predict
     assert r.returncode == 0, r.stderr
     phases = [ln for ln in r.stderr.splitlines() if ln.startswith("[")]
     assert len(phases) >= 2 and phases[-1].endswith("done")
-    q = fpe(*predict_args(drive_dir, tmp_path / "b.csv"), "--quiet")
-    assert q.returncode == 0 and not [ln for ln in q.stderr.splitlines() if ln.startswith("[")]
+    # --quiet, cold and warm: test_stored_executables_run_in_later_processes
 
 
 def test_bucket_sizes():

@@ -271,9 +271,9 @@ def test_buffer_rejects_zero_quaternions():
 
 @pytest.fixture(scope="module")
 def drive_sim():
-    """A 30 s hairpin drive seen through the camera (the hairpin's turns take the tag out of
+    """A 20 s hairpin drive seen through the camera (the hairpin's turns take the tag out of
     view), written in both layouts: the AprilTag recording and the equivalent map-frame log."""
-    res = sim.simulate("hairpin", duration_s=30.0, seed=2, camera=sim.Camera())
+    res = sim.simulate("hairpin", duration_s=20.0, seed=2, camera=sim.Camera())
     return res
 
 
