@@ -373,11 +373,13 @@ def test_lead_time_scale_weighs_every_step_by_its_typical_error(oval_drives):
 def test_blend_default_fit_drives_at_the_measured_speed(oval_drives):
     """No memorised speed: the blend's default groups leave out `speed`, and it starts (and so
     stays) at speed_weight 1; naming `speed` still fits the shrinkage."""
-    fit_d, _, track = oval_drives
-    res = F.fit([fit_d.drive], [track], model="blend", blend="position")
+    fit_d, test_d, track = oval_drives
+    # (the whole fit drive: the solver of the blend --model auto fits on the inner split)
+    kw = dict(model="blend", blend="position", test_drives=[test_d.drive])
+    res = F.fit([fit_d.drive], [track], **kw)
     assert "speed" not in res.info["fit"]
     assert float(res.params.speed_weight) == pytest.approx(1.0, abs=1e-5)  # the raw map's 1e-6
-    named = F.fit([fit_d.drive], [track], model="blend", blend="position", free=("speed",))
+    named = F.fit([fit_d.drive], [track], free=("speed",), **kw)
     assert named.info["fit"] == ["speed"] and float(named.params.speed_weight) < 1.0
 
 
@@ -396,19 +398,19 @@ def test_line_model_fits_no_speed_and_rejects_blend_values(oval_drives):
 )
 def test_fit_without_latency_fits_no_delay(model, fit):
     a = simulate("oval", duration_s=40, latency_s=0.0, seed=21)
+    test = simulate("oval", duration_s=10, latency_s=0.0, seed=22).drive
     track = Track.from_waypoints(a.centerline_xy_m)
-    res = F.fit([a.drive], [track], model=model, blend="position", free=fit)
+    # fitted on all 40 s: the line model's solver is test_fit_recovers_the_latency_...'s
+    res = F.fit([a.drive], [track], model=model, blend="position", free=fit, test_drives=[test])
     assert res.params.settings.model == model
     assert float(res.params.delay_s) <= 0.05
 
 
-def test_cli_fit_evaluate_predict(oval_drives, tmp_path, capsys):
+def test_cli_fit_evaluate_predict(tmp_path, capsys):
+    a = simulate("oval", duration_s=30, latency_s=0.3, seed=31)
     from fpe_jax.sim._sim import write_simulation
 
-    # the fit drive of the Python API's tests: its line and blend fits (the default holdout)
-    # have the shapes of test_fit_without_latency_fits_no_delay's and
-    # test_blend_default_fit_drives_at_the_measured_speed's, so their solvers compile once
-    write_simulation(oval_drives[0], tmp_path / "sim")
+    write_simulation(a, tmp_path / "sim")
     log, wp = str(tmp_path / "sim" / "drive.mcap"), str(tmp_path / "sim" / "waypoints.csv")
     out = tmp_path / "cfg.json"
     args = ["fit", log, "--waypoints", wp, "--out", str(out), "--blend", "position"]
@@ -711,7 +713,7 @@ def test_long_data_are_first_fitted_on_every_kth_row_to_the_same_minimum():
     from the start does (loss to 1e-9 of it, the order of the stopping test), in fewer steps
     over all rows. Shorter data are solved over all rows only, exactly as with 0. (A subsample
     of a few dozen rows can lead to another local minimum: the default keeps 1024 or more.)"""
-    res = simulate("oval", duration_s=120, latency_s=0.3, seed=11)
+    res = simulate("oval", duration_s=60, latency_s=0.3, seed=11)
     track = Track.from_waypoints(res.centerline_xy_m)
     init = presets["default"]
     data = E.make_datasets([res.drive], [track], init.settings, "training")
