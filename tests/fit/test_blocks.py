@@ -29,8 +29,22 @@ def drive():
     return res.drive, Track.from_waypoints(res.centerline_xy_m)
 
 
+@pytest.fixture(scope="module")
+def objective(drive):
+    """`_objective` of the drive by model, made once per model (the tests only read it)."""
+    made = {}
+
+    def of(model: str):
+        if model not in made:
+            made[model] = _objective(drive, model)
+        return made[model]
+
+    return of
+
+
 def _objective(drive, model: str):
-    """(flat raw free values, args, unravel) of the default fit of `model` on the drive."""
+    """(flat raw free values, args, unravel, dataset, init) of the default fit of `model` on
+    the drive."""
     d, track = drive
     if model == "line":
         init = F._line_init([d], [track], Settings(), "kalman")
@@ -49,11 +63,11 @@ def _objective(drive, model: str):
 
 
 @pytest.mark.parametrize("model", ["line", "blend"])
-def test_blocked_loss_and_gradient_equal_the_loss_in_one_piece(drive, model):
+def test_blocked_loss_and_gradient_equal_the_loss_in_one_piece(objective, model):
     """Several whole blocks and a shorter last one (370 rows in blocks of 64), next to a
     dataset shorter than two blocks, sum to the one-piece loss to 1e-12 relative, and so does
     the gradient, under jit and grad (and vmap for the blend model)."""
-    y0, (fixed, groups, huber), unravel, data, _ = _objective(drive, model)
+    y0, (fixed, groups, huber), unravel, data, _ = objective(model)
     n = len(data.targets.rows)
     assert n > 2 * BLOCK and n % BLOCK, n  # several blocks and a partial one
     states, track, xy, mask, fold, lines, scale = groups[0]
@@ -73,10 +87,10 @@ def test_blocked_loss_and_gradient_equal_the_loss_in_one_piece(drive, model):
         np.testing.assert_allclose(np.asarray(many), [float(whole(y)[0]) for y in ys], rtol=1e-12)
 
 
-def test_a_fit_over_several_blocks_equals_the_fit_in_one_piece(drive):
+def test_a_fit_over_several_blocks_equals_the_fit_in_one_piece(objective):
     """The blocked fit (two datasets on one track, joined into one row set in blocks) changes
     only the order of the loss's sum: the loss to 1e-10 relative, the fitted values to 1e-6."""
-    _, _, _, data, init = _objective(drive, "blend")
+    _, _, _, data, init = objective("blend")
     later = E.targets_before(data, data.drive.t_s[-1] - 10.0, init.settings.dt_s)
     one, one_info = F.fit_params([data, later], init, block_rows=10**6)
     many, many_info = F.fit_params([data, later], init, block_rows=BLOCK)
@@ -89,11 +103,11 @@ def test_a_fit_over_several_blocks_equals_the_fit_in_one_piece(drive):
             F.fit_params([data], init, block_rows=bad)
 
 
-def _temp_bytes(drive, n_rows: int, block_rows: int | None, datasets: int = 1) -> int:
+def _temp_bytes(objective, n_rows: int, block_rows: int | None, datasets: int = 1) -> int:
     """XLA's temporary buffer size [bytes] of the compiled loss and gradient (what BFGS
     evaluates) of the line model on `datasets` datasets of n_rows target rows each (the
     drive's rows repeated)."""
-    y0, (fixed, groups, huber), unravel, data, _ = _objective(drive, "line")
+    y0, (fixed, groups, huber), unravel, data, _ = objective("line")
     states, track, xy, mask, fold, lines, scale = groups[0]
     big = pad_rows((states, xy, mask, fold), n_rows)
     big = (big[0], track, big[1], big[2], big[3], lines, scale)
@@ -106,13 +120,13 @@ def _temp_bytes(drive, n_rows: int, block_rows: int | None, datasets: int = 1) -
     return compiled.memory_analysis().temp_size_in_bytes
 
 
-def test_the_blocked_loss_needs_the_same_memory_for_four_times_the_rows(drive):
+def test_the_blocked_loss_needs_the_same_memory_for_four_times_the_rows(objective):
     """The compiled loss and gradient's temporary buffers (XLA's memory analysis) stay the
     same size from 8 to 32 blocks of rows, while those of the loss in one piece grow with the
     rows: the fit's memory beyond its data does not grow with the logs."""
     small, large = 8 * 512, 32 * 512
-    blocked = [_temp_bytes(drive, n, 512) for n in (small, large)]
-    whole = [_temp_bytes(drive, n, None) for n in (small, large)]
+    blocked = [_temp_bytes(objective, n, 512) for n in (small, large)]
+    whole = [_temp_bytes(objective, n, None) for n in (small, large)]
     assert blocked[1] <= 1.05 * blocked[0], blocked
     assert whole[1] >= 3.0 * whole[0], whole
     assert blocked[1] < whole[1] / 8, (blocked, whole)
@@ -128,7 +142,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from fpe_jax.evaluate import _evaluate as E
 from fpe_jax.fit import _fit as F
-from fpe_jax.model._params import presets, unconstrain
+from fpe_jax.model._params import Settings, presets, unconstrain
 from fpe_jax.sim import simulate
 from fpe_jax.geometry._track import Track
 
@@ -160,24 +174,11 @@ print(json.dumps(out))
 """
 
 
-def _run_on_two_devices(script: str, tmp_path) -> dict:
-    """The JSON last printed by `script` run in a process with two forced CPU devices (the
-    suite's XLA flags kept) and a cache folder of its own."""
-    env = {
-        **os.environ,
-        "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2",
-        "FPE_CACHE_DIR": str(tmp_path / "cache"),
-    }
-    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-def test_a_fit_over_two_forced_cpu_devices_equals_the_one_device_fit(tmp_path):
+def test_a_fit_over_two_forced_cpu_devices_equals_the_one_device_fit(two_devices):
     """In a process with two forced host devices, the row blocks split over both (the program
     adds the devices' partial sums: an all-reduce) give the loss and gradient of one device to
     1e-12 relative and the same fit (loss to 1e-10 relative, values to 1e-6)."""
-    out = _run_on_two_devices(TWO_DEVICES, tmp_path)
+    out = two_devices["blend"]
     assert out["devices"] == 2 and out["all_reduce"]
     assert out["loss_2"] == pytest.approx(out["loss_1"], rel=1e-12)
     g1, g2 = np.array(out["grad_1"]), np.array(out["grad_2"])
@@ -186,28 +187,15 @@ def test_a_fit_over_two_forced_cpu_devices_equals_the_one_device_fit(tmp_path):
     np.testing.assert_allclose(out["fit_2"], out["fit_1"], atol=1e-6)
 
 
-def test_more_devices_than_jax_has_are_refused(drive):
-    _, _, _, data, init = _objective(drive, "blend")
+def test_more_devices_than_jax_has_are_refused(objective):
+    _, _, _, data, init = objective("blend")
     for bad in (0, len(jax.devices()) + 1):
         with pytest.raises(InputError, match="^devices: .*a whole number from 1 to"):
             F.fit_params([data], init, devices=bad)
 
 
+# run after TWO_DEVICES in its process: the same drive and track
 LINE_TWO_DEVICES = r"""
-import json
-import jax
-jax.config.update("jax_enable_x64", True)
-import equinox as eqx
-import numpy as np
-from jax.flatten_util import ravel_pytree
-from fpe_jax.evaluate import _evaluate as E
-from fpe_jax.fit import _fit as F
-from fpe_jax.model._params import Settings, unconstrain
-from fpe_jax.sim import simulate
-from fpe_jax.geometry._track import Track
-
-res = simulate("oval", duration_s=40, latency_s=0.3, seed=11)
-track = Track.from_waypoints(res.centerline_xy_m)
 init = F._line_init([res.drive], [track], Settings(), "kalman")
 data = E.make_datasets([res.drive], [track], init.settings, "training", kalman=True)
 raw = unconstrain(init)
@@ -228,12 +216,29 @@ print(json.dumps(out))
 """
 
 
-def test_the_line_models_loss_over_two_forced_cpu_devices_equals_one_devices(tmp_path):
+@pytest.fixture(scope="module")
+def two_devices(tmp_path_factory) -> dict:
+    """What TWO_DEVICES ("blend") and then LINE_TWO_DEVICES ("line") print as JSON, run in one
+    process with two forced CPU devices (the suite's XLA flags kept) and a cache folder of its
+    own."""
+    env = {
+        **os.environ,
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2",
+        "FPE_CACHE_DIR": str(tmp_path_factory.mktemp("cache")),
+    }
+    script = TWO_DEVICES + LINE_TWO_DEVICES
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    blend, line = proc.stdout.strip().splitlines()[-2:]
+    return {"blend": json.loads(blend), "line": json.loads(line)}
+
+
+def test_the_line_models_loss_over_two_forced_cpu_devices_equals_one_devices(two_devices):
     """The line model (Kalman filter, cross-fitted lines, the pace free) over two devices: its
     scans' carries start from constants and take in each device's own rows, which
     `jax.shard_map` accepts only when the constants vary by device as the rows do. Loss and
     gradient equal one device's to 1e-12 relative (the order of the sum)."""
-    out = _run_on_two_devices(LINE_TWO_DEVICES, tmp_path)
+    out = two_devices["line"]
     assert out["devices"] == 2
     assert out["loss_2"] == pytest.approx(out["loss_1"], rel=1e-12)
     g1, g2 = np.array(out["grad_1"]), np.array(out["grad_2"])
