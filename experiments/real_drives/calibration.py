@@ -551,8 +551,7 @@ def main(argv=None) -> int:
     names, data, warm = [], [], []
     for src in study.selected(args):
         try:
-            poses = study.load_poses(args.mirror, src)
-            edges = study.read_edges(args.mirror, src)
+            poses, edges = study.load_source(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             continue

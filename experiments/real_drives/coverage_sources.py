@@ -219,6 +219,7 @@ def smoothed_reference(d: dict, drive, case) -> dict:
     and offset along the waypoints' path, evaluated at the middle detection's stamp, that
     stamp and the lines' variances there carried with it (`DeconvolvedMean`)."""
     from fpe_jax.drive import local_frame
+    from fpe_jax.node._core import frenet_to_map
     from fpe_jax.runner._runner import RunnerPath
 
     local, wp, _, _ = local_frame(drive, case.waypoints_xy_m)
@@ -244,9 +245,7 @@ def smoothed_reference(d: dict, drive, case) -> dict:
         t_c = float(local.t_s[rows[SMOOTH_N // 2]])
         (s_c, var_s), (d_c, var_d) = (_line_at_centre(local.t_s[rows], y[rows], t_c)
                                       for y in (s_m, d_m))  # fmt: skip
-        h = path.heading_at(s_c)
-        px, py = path.point_at(s_c)
-        events.append((k, "o", t_c, px - math.sin(h) * d_c, py + math.cos(h) * d_c, (var_s, var_d)))
+        events.append((k, "o", t_c, *frenet_to_map(path, s_c, d_c), (var_s, var_d)))
     return dict(d, events=events)
 
 
@@ -528,8 +527,7 @@ def main(argv=None) -> int:
     names, rows = [], []
     for src in study.selected(args):
         try:
-            poses = study.load_poses(args.mirror, src)
-            edges = study.read_edges(args.mirror, src)
+            poses, edges = study.load_source(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             continue

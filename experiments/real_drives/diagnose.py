@@ -234,7 +234,7 @@ def main(argv=None) -> int:
     # the diagnosis is of the skid-pad circles (the circle through each part's positions)
     for src in (s for s in study.selected(args) if s.track == "circle"):
         try:
-            poses = study.load_poses(args.mirror, src)
+            poses, _ = study.load_source(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             continue

@@ -192,9 +192,10 @@ def read_source(mirror_root: Path, src: Source, path: str | None = None) -> byte
     return out.stdout
 
 
-def load_poses(mirror_root: Path, src: Source) -> dict:
+def load_source(mirror_root: Path, src: Source) -> tuple[dict, tuple[np.ndarray, ...]]:
     """The source's recorded poses, read by its reader from the mirror (its moving part where
-    the source names a speed): {"t_s" (N,), "xy_m" (N, 2), "yaw_rad" (N,)}."""
+    the source names a speed, from its entry onto the track where it names the track's edges):
+    {"t_s" (N,), "xy_m" (N, 2), "yaw_rad" (N,)}, and its edges (`read_edges`)."""
     data = read_source(mirror_root, src)
     if src.reader == "mocap-mat":
         poses = load_mocap_mat(data, src.rate_hz, src.name)
@@ -204,9 +205,10 @@ def load_poses(mirror_root: Path, src: Source) -> dict:
         raise ValueError(f"{src.name}: unknown reader {src.reader!r}")
     if src.min_speed_mps > 0:
         poses = moving_part(poses, src.min_speed_mps)
+    edges = read_edges(mirror_root, src)
     if src.track == "edges":
-        poses = from_track_entry(poses, read_edges(mirror_root, src))
-    return poses
+        poses = from_track_entry(poses, edges)
+    return poses, edges
 
 
 def read_edges(mirror_root: Path, src: Source) -> tuple[np.ndarray, ...]:
@@ -369,7 +371,7 @@ def centre_line(edges: tuple[np.ndarray, np.ndarray], xy_m: np.ndarray, yaw_rad:
 def make_case(src: Source, poses: dict, seed: int, edges: tuple[np.ndarray, ...] = ()):
     """A `fpe_jax.fit.Case`: the trajectory observed through the simulator's detector, split
     in time (fit on the first 60 %, test on the rest); waypoints from the fit part only (the
-    circle) or from the track's `edges` (`read_edges`) and the fit part's direction."""
+    circle) or from the track's `edges` (`load_source`) and the fit part's direction."""
     from fpe_jax.evaluate._evaluate import split_drive
     from fpe_jax.fit._cases import Case
     from fpe_jax.sim._sim import observe
@@ -774,8 +776,7 @@ def main(argv=None) -> int:
     rows, skipped, kept = [], [], []
     for src in selected(args):
         try:
-            poses = load_poses(args.mirror, src)
-            edges = read_edges(args.mirror, src)
+            poses, edges = load_source(args.mirror, src)
         except FileNotFoundError as e:
             print(f"left out {src.name}: {e}")
             skipped.append((src, "mirror absent"))
