@@ -121,8 +121,7 @@ def test_cache_is_written_reused_and_survives_corrupt_entries(
     tmp_path, drive_dir, cold_predict, uncached_predict
 ):
     env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
-    first = cold_predict_into(tmp_path, cold_predict, tmp_path / "a.csv")
-    assert first.returncode == 0, first.stderr
+    cold_predict_into(tmp_path, cold_predict, tmp_path / "a.csv")
     info = json.loads(fpe("cache", "info", "--json", env=env).stdout)
     assert info["path"] == str(tmp_path / "cache") and info["entries"] > 0 and info["bytes"] > 0
     [sub] = info["subfolders"]  # keyed by jax + jaxlib version, backend and x64 mode
@@ -159,26 +158,27 @@ def test_stored_executables_run_in_later_processes(tmp_path, drive_dir, cold_pre
     found")."""
     env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
     log = [str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
-    runs, kept = [], []
-    for k in range(2):  # cold predict, then evaluate (loads predict's, compiles its own), twice
-        if k == 0:
-            p = cold_predict_into(tmp_path, cold_predict, tmp_path / "p0.csv")
-        else:
-            p = fpe(*predict_args(drive_dir, tmp_path / f"p{k}.csv"), "--quiet", env=env)
+
+    def then_evaluate(p, out: Path):
+        """After predict p (into out), evaluate (loads predict's executables, compiles its
+        own): (predictions, metrics, the cache's files and bytes)."""
         e = fpe("evaluate", *log, "--preset", "frenet", "--json", "--quiet", env=env)
         assert p.returncode == 0 and e.returncode == 0, p.stderr + e.stderr
         assert "warning" not in p.stderr + e.stderr, p.stderr + e.stderr
         # --quiet: no progress lines, cold (compiling) or warm
         assert not [ln for ln in p.stderr.splitlines() if ln.startswith("[")], p.stderr
-        runs.append((np.loadtxt(tmp_path / f"p{k}.csv", delimiter=",", skiprows=1), e.stdout))
-        kept.append({f: f.read_bytes() for f in (tmp_path / "cache").rglob("*") if f.is_file()})
-    stored = list((tmp_path / "cache").rglob("aot/*.exe"))
-    assert len(stored) >= 3
+        files = {f: f.read_bytes() for f in (tmp_path / "cache").rglob("*") if f.is_file()}
+        return np.loadtxt(out, delimiter=",", skiprows=1), e.stdout, files
+
+    out = tmp_path / "cold.csv"
+    cold = then_evaluate(cold_predict_into(tmp_path, cold_predict, out), out)
+    out = tmp_path / "warm.csv"
+    warm = then_evaluate(fpe(*predict_args(drive_dir, out), "--quiet", env=env), out)
+    assert len(list((tmp_path / "cache").rglob("aot/*.exe"))) >= 3
     # the warm pair loaded everything and wrote nothing: any later process reads this same cache
-    assert kept[1] == kept[0]
-    for poses, metrics in runs[1:]:
-        np.testing.assert_array_equal(poses, runs[0][0])
-        assert metrics == runs[0][1]
+    assert warm[2] == cold[2]
+    np.testing.assert_array_equal(warm[0], cold[0])
+    assert warm[1] == cold[1]
 
 
 def test_executables_are_kept_by_shape_and_reloaded_from_disk(tmp_path, monkeypatch):

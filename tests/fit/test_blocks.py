@@ -1,5 +1,6 @@
 """The fit's loss in row blocks: equal to the loss in one piece, the same fit, memory bounded."""
 
+import functools
 import json
 import os
 import subprocess
@@ -32,14 +33,7 @@ def drive():
 @pytest.fixture(scope="module")
 def objective(drive):
     """`_objective` of the drive by model, made once per model (the tests only read it)."""
-    made = {}
-
-    def of(model: str):
-        if model not in made:
-            made[model] = _objective(drive, model)
-        return made[model]
-
-    return of
+    return functools.cache(lambda model: _objective(drive, model))
 
 
 def _objective(drive, model: str):
@@ -133,6 +127,7 @@ def test_the_blocked_loss_needs_the_same_memory_for_four_times_the_rows(objectiv
 
 
 TWO_DEVICES = r"""
+import functools
 import json
 import jax
 jax.config.update("jax_enable_x64", True)

@@ -56,6 +56,14 @@ def short_drives(oval_drives):
 
 
 @pytest.fixture(scope="module")
+def short_default_data(oval_drives, short_drives):
+    """The short fit drive's training data for the "default" preset (the short blend fits')."""
+    return E.make_datasets(
+        [short_drives[0]], [oval_drives[2]], presets["default"].settings, "training"
+    )
+
+
+@pytest.fixture(scope="module")
 def short_line_fit(oval_drives, short_drives):
     """The line model (Kalman filter, default groups) fitted on the short fit drive."""
     drive, test = short_drives
@@ -374,7 +382,8 @@ def test_blend_default_fit_drives_at_the_measured_speed(oval_drives):
     """No memorised speed: the blend's default groups leave out `speed`, and it starts (and so
     stays) at speed_weight 1; naming `speed` still fits the shrinkage."""
     fit_d, test_d, track = oval_drives
-    # (the whole fit drive: the solver of the blend --model auto fits on the inner split)
+    # test drives given (no holdout): the shapes, and so the compiled solver, of the --model
+    # auto test's blend fit
     kw = dict(model="blend", blend="position", test_drives=[test_d.drive])
     res = F.fit([fit_d.drive], [track], **kw)
     assert "speed" not in res.info["fit"]
@@ -582,12 +591,11 @@ def test_a_study_case_is_fitted_with_the_estimator_it_is_given(oval_drives, shor
     assert res.report["fitted"]["fde_m"] == pytest.approx(E.evaluate(res.params, data)["fde_m"])
 
 
-def test_the_pace_return_is_fitted_only_when_named(oval_drives):
+def test_the_pace_return_is_fitted_only_when_named(oval_drives, short_drives):
     """The line model's default groups leave pace_return_1ps at 0 (the car keeps its pace:
     tests/fit/test_speed_shift.py); named, it starts from PACE_RETURN_INIT_1PS (the softplus is
     flat at 0) and moves."""
-    fit_d, _, track = oval_drives
-    drive = fit_d.drive.slice_time(0, 20)
+    drive, track = short_drives[0], oval_drives[2]
     init = F._line_init([drive], [track], Settings(), "kalman")
     assert "pace" not in F.default_groups(init.settings) and float(init.pace_return_1ps) == 0.0
     (data,) = E.make_datasets([drive], [track], init.settings, "training")
@@ -598,21 +606,11 @@ def test_the_pace_return_is_fitted_only_when_named(oval_drives):
     assert float(named.pace_return_1ps) != pytest.approx(F.PACE_RETURN_INIT_1PS, abs=1e-3)
 
 
-def test_fit_subset_keeps_the_rest_fixed(oval_drives, short_drives):
-    track = oval_drives[2]
+def test_inner_split_masks_targets_and_reuses_the_compiled_solver(short_default_data):
+    """An inner split masks the targets after its cut and keeps the shapes, so the final fit
+    reuses the compiled solver; a fit of a subset of the values keeps the rest fixed."""
     init = presets["default"]
-    data = E.make_datasets([short_drives[0]], [track], init.settings, "training")
-    p, info = F.fit_params(data, init, free=("delay",))
-    assert float(p.lookahead_m) == pytest.approx(float(init.lookahead_m), abs=1e-9)
-    np.testing.assert_allclose(np.asarray(p.weights), np.asarray(init.weights), atol=1e-9)
-    assert float(p.delay_s) != pytest.approx(float(init.delay_s), abs=1e-3)
-    assert info["steps"] >= 1
-
-
-def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
-    fit_d, _, track = oval_drives
-    init = presets["default"]
-    (d,) = E.make_datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
+    (d,) = short_default_data
     cut = 15.0
     inner = E.targets_before(d, cut, init.settings.dt_s)
     assert inner.targets.mask.shape == d.targets.mask.shape  # same shapes as the final fit
@@ -621,33 +619,33 @@ def test_inner_split_masks_targets_and_reuses_the_compiled_solver(oval_drives):
     np.testing.assert_array_equal(inner.targets.mask, d.targets.mask & (due < cut - 0.05))
     a, _ = F.fit_params([inner], init, free=("delay",))
     # other mask, same shapes: the solver's executable comes from memory, as its timing says
-    # (the number of executables the process holds is no measure of it: that depends on what
-    # earlier tests in the same process loaded and the suite freed)
     b, info = F.fit_params([d], init, free=("delay",))
     assert info["trace_s"] == info["compile_s"] == info["load_s"] == 0.0
     assert 0.0 < info["solve_s"] <= info["seconds"]
     assert float(a.delay_s) != float(b.delay_s)  # and the masks did make a difference
+    # only the delay was free
+    assert float(b.lookahead_m) == pytest.approx(float(init.lookahead_m), abs=1e-9)
+    np.testing.assert_allclose(np.asarray(b.weights), np.asarray(init.weights), atol=1e-9)
+    assert float(b.delay_s) != pytest.approx(float(init.delay_s), abs=1e-3)
+    assert info["steps"] >= 1
     with pytest.raises(InputError, match="inner split"):
         E.targets_before(d, 0.0, init.settings.dt_s)
 
 
-def test_fit_params_takes_solver_objects_and_the_old_fit_keyword_with_a_warning(oval_drives):
+def test_fit_params_takes_solver_objects_and_the_old_fit_keyword_with_a_warning(
+    short_default_data,
+):
     """Solvers are optimistix objects (a name is an error that says how to make one); the old
     `fit=` keyword still works, deprecated, with the same result."""
     import optimistix as optx
 
-    fit_d, _, track = oval_drives
-    init = presets["default"]
-    data = E.make_datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
+    init, data = presets["default"], short_default_data
     loose = optx.BFGS(rtol=1e-3, atol=1e-5, norm=optx.rms_norm)
     p, info = F.fit_params(data, init, free=("delay",), solver=loose)
     assert info["solver"] == "bfgs" and info["converged"]
     with pytest.warns(DeprecationWarning, match="free="):
         old, old_info = F.fit_params(data, init, fit=("delay",), solver=loose)
     assert float(old.delay_s) == float(p.delay_s) and old_info["loss"] == info["loss"]
-    # (the groups of test_both_solvers_reach_the_same_fit: its compiled LM solve)
-    _, lm_info = F.fit_params(data, init, free=("delay", "speed"), solver=solver_named("lm"))
-    assert lm_info["solver"] == "lm"
     with pytest.raises(InputError, match="^solver: 'lm' is not an optimistix solver.*solver_named"):
         F.fit_params(data, init, solver="lm")
     with pytest.raises(TypeError, match="free="):
@@ -658,16 +656,16 @@ def test_fit_params_takes_solver_objects_and_the_old_fit_keyword_with_a_warning(
     assert "0x" not in repr(F._Static(F.default_solver()))
 
 
-def test_both_solvers_reach_the_same_fit(oval_drives):
-    """BFGS on the scalar loss and LM on the residuals: one objective, one minimum."""
-    fit_d, _, track = oval_drives
-    init = presets["default"]
-    data = E.make_datasets([fit_d.drive.slice_time(0, 20)], [track], init.settings, "training")
+def test_both_solvers_reach_the_same_fit(oval_drives, short_default_data):
+    """BFGS on the scalar loss and LM on the residuals (optimistix objects, `solver_named`):
+    one objective, one minimum."""
+    track, init, data = oval_drives[2], presets["default"], short_default_data
     fits = {
         s: F.fit_params(data, init, free=("delay", "speed"), solver=solver_named(s))
         for s in F.SOLVERS
     }
     (p_bfgs, i_bfgs), (p_lm, i_lm) = fits["bfgs"], fits["lm"]
+    assert (i_bfgs["solver"], i_lm["solver"]) == ("bfgs", "lm")
     assert i_bfgs["converged"] and i_lm["converged"]
     assert i_bfgs["loss"] == pytest.approx(i_lm["loss"], rel=1e-4)
     (d,) = data

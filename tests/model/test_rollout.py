@@ -533,7 +533,7 @@ def test_pace_return_under_vmap_and_its_gradient():
         lambda *xs: jnp.stack(xs), state(5.0, 0.0, 0.0, 3.0), state(6.0, 0.1, 0.0, 1.0)
     )
     p = line_model(1.0, speed_tau_s=0.3, pace_return_1ps=0.7)
-    # compiled, not op by op: eagerly this test took 16 s (the rollout's scan, vmapped, by hand)
+    # compiled: run eagerly, the vmapped scan goes op by op
     vmapped = eqx.filter_jit(jax.vmap(rollout_frenet, in_axes=(None, 0, None)))
     batch = vmapped(p, states, track).x_m
     for i in range(2):

@@ -48,19 +48,18 @@ def mat_bytes(states: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def git_repo_with(tmp_path: Path, rel: str, data: bytes) -> tuple[Path, str]:
-    """A mirror root holding owner+name/repo with `rel` committed; -> (root, commit)."""
+def git_repo_with(tmp_path: Path, files: dict[str, bytes]) -> tuple[Path, str]:
+    """A mirror root holding owner+name/repo with `files` ({path: bytes}) committed;
+    -> (root, commit)."""
     repo = tmp_path / "mirror" / "owner+name" / "repo"
-    (repo / Path(rel).parent).mkdir(parents=True)
-    (repo / rel).write_bytes(data)
+    for rel, data in files.items():
+        (repo / rel).parent.mkdir(parents=True, exist_ok=True)
+        (repo / rel).write_bytes(data)
     run = lambda *a: subprocess.run(["git", "-C", str(repo), *a], check=True, capture_output=True)  # noqa: E731
     run("init", "-q")
     run("add", ".")
     run("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "data")
-    commit = subprocess.run(
-        ["git", "-C", str(repo), "rev-parse", "HEAD"], check=True, capture_output=True, text=True
-    ).stdout.strip()
-    return tmp_path / "mirror", commit
+    return tmp_path / "mirror", run("rev-parse", "HEAD").stdout.decode().strip()
 
 
 def source(study, commit, rel, track="circle"):
@@ -78,7 +77,7 @@ def source(study, commit, rel, track="circle"):
 
 def test_reads_the_file_at_its_commit_and_loads_the_poses(study, tmp_path):
     states = circle_poses()
-    root, commit = git_repo_with(tmp_path, "d/run 1.mat", mat_bytes(states))
+    root, commit = git_repo_with(tmp_path, {"d/run 1.mat": mat_bytes(states)})
     src = source(study, commit, "d/run 1.mat")
     poses = study.load_mocap_mat(study.read_source(root, src), 60.0, src.name)
     np.testing.assert_array_equal(poses["xy_m"], states[:, :2])
@@ -90,7 +89,7 @@ def test_absent_mirror_or_file_is_file_not_found(study, tmp_path):
     src = source(study, "0" * 40, "x.mat")
     with pytest.raises(FileNotFoundError, match="no mirror of owner/name"):
         study.read_source(tmp_path, src)
-    root, commit = git_repo_with(tmp_path, "a.mat", b"")
+    root, commit = git_repo_with(tmp_path, {"a.mat": b""})
     with pytest.raises(FileNotFoundError, match="b.mat"):
         study.read_source(root, source(study, commit, "b.mat"))
 
@@ -163,9 +162,9 @@ def test_the_real_sources_load_from_the_mirror(study):
     if not present:
         pytest.skip(f"no source mirror under {root} (set FPE_MIRROR to a folder of git mirrors)")
     for src in present:
-        poses = study.load_poses(root, src)
+        poses, edges = study.load_source(root, src)
         assert len(poses["t_s"]) > 300 and np.all(np.isfinite(poses["xy_m"]))
-        assert len(study.read_edges(root, src)) == (2 if src.track == "edges" else 0)
+        assert len(edges) == (2 if src.track == "edges" else 0)
 
 
 @pytest.fixture(scope="module")
@@ -241,7 +240,7 @@ def state_csv(t_s: np.ndarray, xy: np.ndarray, yaw: np.ndarray) -> bytes:
 def oval_drive(rate_hz=25.0, v_mps=20.0, radius_m=98.0):
     """A car 2 s at rest in a pit 30 m inside a ring track (edges at 95 m and 105 m), 1 s to
     drive onto the track, 30 s round it counter-clockwise at v, 2 s at rest, 2 s on again:
-    (t_s, xy, yaw) and the rows of each phase."""
+    (t_s, xy, yaw)."""
     t = np.arange(int(37.0 * rate_hz)) / rate_hz
     ang = np.zeros_like(t)
     r = np.full_like(t, radius_m)
@@ -271,20 +270,6 @@ def state_source(study, commit, edges=("e/inner.csv", "e/outer.csv")):
         edges=edges,
         min_speed_mps=5.0,
     )
-
-
-def git_repo_with_files(tmp_path: Path, files: dict[str, bytes]) -> tuple[Path, str]:
-    first, *rest = files.items()
-    root, _ = git_repo_with(tmp_path, *first)
-    repo = root / "owner+name" / "repo"
-    for rel, data in rest:
-        (repo / rel).parent.mkdir(parents=True, exist_ok=True)
-        (repo / rel).write_bytes(data)
-    run = lambda *a: subprocess.run(["git", "-C", str(repo), *a], check=True, capture_output=True)  # noqa: E731
-    run("add", ".")
-    run("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "more")
-    commit = run("rev-parse", "HEAD").stdout.decode().strip()
-    return root, commit
 
 
 def table_bytes(a: np.ndarray) -> bytes:
@@ -351,7 +336,7 @@ def test_a_drive_from_the_pit_starts_where_it_joins_the_track(study):
 
 def test_an_edges_source_loads_from_its_mirror_and_becomes_a_case(study, tmp_path):
     t, xy, yaw = oval_drive()
-    root, commit = git_repo_with_files(
+    root, commit = git_repo_with(
         tmp_path,
         {
             "d/run.csv": state_csv(t, xy, yaw),
@@ -360,8 +345,7 @@ def test_an_edges_source_loads_from_its_mirror_and_becomes_a_case(study, tmp_pat
         },
     )
     src = state_source(study, commit)
-    poses = study.load_poses(root, src)
-    edges = study.read_edges(root, src)
+    poses, edges = study.load_source(root, src)
     assert [e.shape for e in edges] == [(600, 2), (653, 2)]
     # on the track from 2.92 s to its stop (`moving_part`): the pit and the second stint left
     # out
