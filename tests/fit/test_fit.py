@@ -64,6 +64,24 @@ def short_default_data(oval_drives, short_drives):
 
 
 @pytest.fixture(scope="module")
+def theil_sen_case_fit(oval_drives, short_drives):
+    """The short drives as a study case, its line model fitted by `fit_case` with the Theil-Sen
+    estimator and the delay and smoothing free: (case, FitResult)."""
+    from fpe_jax.fit._cases import Case, fit_case
+
+    case = Case(
+        name="oval",
+        waypoints_xy_m=oval_drives[0].centerline_xy_m,
+        fit_drive=short_drives[0],
+        test_drive=short_drives[1],
+        latency_s=0.3,
+        half_width_m=None,
+        description="short oval drives",
+    )
+    return case, fit_case(case, fit=("delay", "smoothing"), estimator="theil-sen")
+
+
+@pytest.fixture(scope="module")
 def short_line_fit(oval_drives, short_drives):
     """The line model (Kalman filter, default groups) fitted on the short fit drive."""
     drive, test = short_drives
@@ -524,7 +542,7 @@ def test_fit_errors_name_the_argument_and_the_cli_names_its_flag(oval_drives, tm
 
 
 def test_the_line_models_estimator_is_the_kalman_filter_unless_told(
-    oval_drives, short_drives, short_line_fit
+    oval_drives, short_drives, short_line_fit, theil_sen_case_fit
 ):
     """The Kalman filter with its noise values fitted by default; `estimator="theil-sen"` runs
     the Theil-Sen lines, whose fit refuses the filter's group; an unknown name is an error."""
@@ -534,7 +552,7 @@ def test_the_line_models_estimator_is_the_kalman_filter_unless_told(
     assert kal.params.settings.estimator == "kalman"
     assert kal.info["fit"] == ["delay", "tau", "smoothing", "filter"]
     kw = dict(model="line", test_drives=[test])
-    ts = F.fit([drive], [track], estimator="theil-sen", free=("delay", "smoothing"), **kw)
+    ts = theil_sen_case_fit[1]  # fit([drive], [track], estimator="theil-sen", free=...) by fit_case
     assert ts.params.settings.estimator == "theil-sen" and ts.info["fit"] == ["delay", "smoothing"]
     assert F.default_groups(ts.params.settings) == ("delay", "tau", "smoothing")
     data = E.make_datasets([drive], [track], ts.params.settings, "training")
@@ -569,22 +587,10 @@ def test_the_filters_fitted_values_stay_near_their_defaults_on_a_short_drive(
     np.testing.assert_allclose(np.asarray(full[-4:]), prior, rtol=1e-12, atol=1e-15)
 
 
-def test_a_study_case_is_fitted_with_the_estimator_it_is_given(oval_drives, short_drives):
+def test_a_study_case_is_fitted_with_the_estimator_it_is_given(theil_sen_case_fit):
     """`fit_case` passes the line model's estimator on to the fit (the horizon study chooses it
     per case); its report scores that fit on the case's test drive."""
-    from fpe_jax.fit._cases import Case, fit_case
-
-    fit_d = oval_drives[0]
-    case = Case(
-        name="oval",
-        waypoints_xy_m=fit_d.centerline_xy_m,
-        fit_drive=short_drives[0],
-        test_drive=short_drives[1],
-        latency_s=0.3,
-        half_width_m=None,
-        description="short oval drives",
-    )
-    res = fit_case(case, fit=("delay", "smoothing"), estimator="theil-sen")
+    case, res = theil_sen_case_fit
     assert res.params.settings.estimator == "theil-sen"
     assert res.info["fit"] == ["delay", "smoothing"]
     data = E.make_datasets([case.test_drive], [case.track()], res.params.settings, "test")
