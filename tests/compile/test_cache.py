@@ -156,11 +156,12 @@ def assert_one_warning_and_recompiled(run: dict, fresh: dict) -> None:
 
 
 @pytest.fixture(scope="module")
-def filled_once(tmp_path_factory) -> tuple[Path, dict, dict]:
-    """A cache folder holding the child's one executable, stored by one child and loaded by the
-    next: (folder, fresh result, warm result). Tests damage copies of it (`filled`)."""
+def filled_once(tmp_path_factory, child_round) -> tuple[Path, dict, dict]:
+    """A cache folder holding the child's one executable, stored by one child (the first round
+    of `child_round`) and loaded by another: (folder, fresh result, warm result). Tests damage
+    copies of it (`filled`)."""
     folder = tmp_path_factory.mktemp("filled") / "cache"
-    fresh = child(folder)
+    fresh = child_round(folder)
     assert fresh["stderr"] == "" and fresh["compile_s"] > 0
     [_] = entries(folder)
     warm = child(folder)
