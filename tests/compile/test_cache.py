@@ -88,10 +88,10 @@ def child(cache_dir: Path, timeout_s: float = 120.0, limit_bytes: int | None = N
 
 
 class ChildRounds:
-    """One child running _ROUNDS for the damaged caches of this file's tests: calling it with a
-    cache folder gives what `child` gives for it. Each round importing JAX anew in a fresh
-    interpreter was most of these tests' time. A child that does not answer is killed (the next
-    call starts another); its own stderr must stay empty."""
+    """One child running _ROUNDS for this file's cache folders: calling it with a folder gives
+    what `child` gives for it, without a fresh interpreter per round (which spends most of its
+    time importing JAX). A child that does not answer is ended (the next call starts another);
+    its own stderr must stay empty."""
 
     def __init__(self):
         self._p = None
@@ -112,8 +112,8 @@ class ChildRounds:
         ready, _, _ = select.select([p.stdout], [], [], timeout_s)
         line = p.stdout.readline() if ready else ""
         if not line:
-            self.close()
-            raise AssertionError(f"the child gave no answer within {timeout_s} s")
+            err = self.close()
+            raise AssertionError(f"the child gave no answer within {timeout_s} s: {err[-3000:]}")
         return json.loads(line)
 
     def close(self) -> str:
