@@ -5,6 +5,7 @@ same numbers; `fpe cache clear|info` touch only what fpe wrote and follow no lin
 import json
 import os
 import pickle
+import select
 import shutil
 import subprocess
 import sys
@@ -21,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "data" / "samples"
 
 # a child process: the cache on in FPE_CACHE_DIR, one stored executable, its numbers as JSON
-_CHILD = """
+_SETUP = """
 import json, resource, sys
 import numpy as np
 import jax
@@ -33,13 +34,35 @@ from fpe_jax.compile import _cache as cache
 def wave(x):
     return {"y": jnp.cumsum(jnp.sin(3.0 * x) * jnp.exp(-x)) / (1.0 + x * x)}
 
-cache.enable()
-x = np.linspace(0.0, 2.0, 257)
-exe = aot.executable(wave, x)
-y = np.asarray(exe(x)["y"])
-print(json.dumps({"y": y.tolist(), "compile_s": exe.seconds["compile_s"],
-                  "maxrss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}))
+def run():
+    x = np.linspace(0.0, 2.0, 257)
+    exe = aot.executable(wave, x)
+    y = np.asarray(exe(x)["y"])
+    return {"y": y.tolist(), "compile_s": exe.seconds["compile_s"],
+            "maxrss_kb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}
 """
+_CHILD = _SETUP + "cache.enable()\nprint(json.dumps(run()))\n"
+# _CHILD once for each line on stdin (a cache folder), one JSON line back each: a round starts
+# as a new process does (nothing kept in memory, the cache turned on anew, the user's key read
+# again, no warning shown yet), and its "stderr" is what that round printed
+_ROUNDS = (
+    _SETUP
+    + """
+import contextlib, io, os
+for line in sys.stdin:
+    os.environ["FPE_CACHE_DIR"] = line.rstrip("\\n")
+    aot._MEMO.clear()
+    cache._ACTIVE.clear()
+    cache._SHOWN.clear()
+    cache._key_of.cache_clear()
+    jax.clear_caches()
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        cache.enable()
+        out = run()
+    print(json.dumps({**out, "stderr": err.getvalue()}), flush=True)
+"""
+)
 
 
 def child(cache_dir: Path, timeout_s: float = 120.0, limit_bytes: int | None = None) -> dict:
@@ -64,6 +87,59 @@ def child(cache_dir: Path, timeout_s: float = 120.0, limit_bytes: int | None = N
     return {**json.loads(r.stdout.strip().splitlines()[-1]), "stderr": r.stderr}
 
 
+class ChildRounds:
+    """One child running _ROUNDS for this file's cache folders: calling it with a folder gives
+    what `child` gives for it, without a fresh interpreter per round (which spends most of its
+    time importing JAX). A child that does not answer is ended (the next call starts another);
+    its own stderr must stay empty."""
+
+    def __init__(self):
+        self._p = None
+
+    def __call__(self, cache_dir: Path, timeout_s: float = 120.0) -> dict:
+        if self._p is None:
+            self._p = subprocess.Popen(
+                [sys.executable, "-c", _ROUNDS],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                cwd=ROOT,
+            )
+        p = self._p
+        p.stdin.write(f"{cache_dir}\n")
+        p.stdin.flush()
+        ready, _, _ = select.select([p.stdout], [], [], timeout_s)
+        line = p.stdout.readline() if ready else ""
+        if not line:
+            err = self.close()
+            raise AssertionError(f"the child gave no answer within {timeout_s} s: {err[-3000:]}")
+        return json.loads(line)
+
+    def close(self) -> str:
+        """End the child; what it printed on its stderr."""
+        p, self._p = self._p, None
+        if p is None:
+            return ""
+        p.stdin.close()
+        try:
+            p.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+        err = p.stderr.read()
+        p.stdout.close()
+        p.stderr.close()
+        return err
+
+
+@pytest.fixture(scope="module")
+def child_round():
+    rounds = ChildRounds()
+    yield rounds
+    assert rounds.close() == ""
+
+
 X = np.linspace(0.0, 2.0, 257)  # the child's input
 
 
@@ -80,11 +156,12 @@ def assert_one_warning_and_recompiled(run: dict, fresh: dict) -> None:
 
 
 @pytest.fixture(scope="module")
-def filled_once(tmp_path_factory) -> tuple[Path, dict, dict]:
-    """A cache folder holding the child's one executable, stored by one child and loaded by the
-    next: (folder, fresh result, warm result). Tests damage copies of it (`filled`)."""
+def filled_once(tmp_path_factory, child_round) -> tuple[Path, dict, dict]:
+    """A cache folder holding the child's one executable, stored by one child (the first round
+    of `child_round`) and loaded by another: (folder, fresh result, warm result). Tests damage
+    copies of it (`filled`)."""
     folder = tmp_path_factory.mktemp("filled") / "cache"
-    fresh = child(folder)
+    fresh = child_round(folder)
     assert fresh["stderr"] == "" and fresh["compile_s"] > 0
     [_] = entries(folder)
     warm = child(folder)
@@ -102,7 +179,9 @@ def filled(tmp_path, filled_once) -> tuple[Path, dict, Path]:
     return tmp_path / "cache", fresh, entry
 
 
-def test_a_flipped_bit_anywhere_gives_one_warning_and_a_recompile(filled, monkeypatch, capsys):
+def test_a_flipped_bit_anywhere_gives_one_warning_and_a_recompile(
+    filled, child_round, monkeypatch, capsys
+):
     cache_dir, fresh, entry = filled
     monkeypatch.setenv("FPE_CACHE_DIR", str(cache_dir))
     secret = cache.secret_key()
@@ -111,7 +190,7 @@ def test_a_flipped_bit_anywhere_gives_one_warning_and_a_recompile(filled, monkey
         damaged = bytearray(good)
         damaged[offset] ^= 0x10
         entry.write_bytes(bytes(damaged))
-        assert_one_warning_and_recompiled(child(cache_dir), fresh)
+        assert_one_warning_and_recompiled(child_round(cache_dir), fresh)
         # the recompiled executable replaced the damaged entry: it loads without a warning and
         # gives the fresh numbers (loaded here, as a later child's `aot.executable` would)
         healed = aot._load(entry, secret, traced=[0])
@@ -119,7 +198,7 @@ def test_a_flipped_bit_anywhere_gives_one_warning_and_a_recompile(filled, monkey
         assert np.asarray(healed(X)["y"]).tolist() == fresh["y"], offset
 
 
-def test_a_crafted_pickle_entry_is_never_unpickled(filled, tmp_path):
+def test_a_crafted_pickle_entry_is_never_unpickled(filled, child_round, tmp_path):
     cache_dir, fresh, entry = filled
     touched = tmp_path / "touched"
 
@@ -132,24 +211,24 @@ def test_a_crafted_pickle_entry_is_never_unpickled(filled, tmp_path):
     header = cache.MAGIC + bytes(32)
     for blob in (crafted, header + crafted, cache.MAGIC + entry.read_bytes()[-32:]):
         entry.write_bytes(blob)
-        assert_one_warning_and_recompiled(child(cache_dir), fresh)
+        assert_one_warning_and_recompiled(child_round(cache_dir), fresh)
         assert not touched.exists()
 
 
-def test_an_entry_from_another_users_key_is_not_loaded(filled):
+def test_an_entry_from_another_users_key_is_not_loaded(filled, child_round):
     cache_dir, fresh, entry = filled
     [key] = cache_dir.glob(".key-*")
     key.unlink()  # a new key: every stored entry is now unauthenticated (and named otherwise)
-    run = child(cache_dir)
+    run = child_round(cache_dir)
     assert run["compile_s"] > 0 and run["y"] == fresh["y"] and run["stderr"] == ""
 
 
-def test_a_fifo_entry_does_not_hang(filled):
+def test_a_fifo_entry_does_not_hang(filled, child_round):
     cache_dir, fresh, entry = filled
     entry.unlink()
     os.mkfifo(entry)
     t0 = time.perf_counter()
-    assert_one_warning_and_recompiled(child(cache_dir, timeout_s=60), fresh)
+    assert_one_warning_and_recompiled(child_round(cache_dir, timeout_s=60), fresh)
     assert time.perf_counter() - t0 < 60
     assert entry.is_file()  # replaced by the recompiled executable
 

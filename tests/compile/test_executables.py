@@ -33,9 +33,11 @@ def fpe(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def drive_dir(tmp_path_factory) -> Path:
+    """`fpe simulate --duration 12` (in this process: the commands under test read its files)."""
+    from fpe_jax import cli
+
     out = tmp_path_factory.mktemp("sim") / "d"
-    r = fpe("simulate", "--duration", "12", "--out", str(out))
-    assert r.returncode == 0, r.stderr
+    assert cli.main(["simulate", "--duration", "12", "--out", str(out)]) == 0
     return out
 
 
@@ -79,15 +81,17 @@ def test_preset_docs_name_every_preset():
     assert list(PRESET_DOCS) == list(presets)
 
 
-# Each runs `fpe_jax.cli.main` in a fresh interpreter and reports whether JAX got imported.
+# Runs `fpe_jax.cli.main` on each JSON argv of sys.argv[1:] in turn, in one fresh interpreter,
+# and reports after each whether JAX got imported (by it: none of the ones before had)
 _NO_JAX = """
-import sys
+import json, sys
 from fpe_jax import cli
-try:
-    rc = cli.main(sys.argv[1:])
-except SystemExit as e:
-    rc = e.code
-print("JAX-IMPORTED" if "jax" in sys.modules else "no-jax", rc, file=sys.stderr)
+for argv in map(json.loads, sys.argv[1:]):
+    try:
+        rc = cli.main(argv)
+    except SystemExit as e:
+        rc = e.code
+    print("JAX-IMPORTED" if "jax" in sys.modules else "no-jax", rc, argv, file=sys.stderr)
 """
 
 
@@ -103,26 +107,44 @@ def test_fast_commands_import_no_jax(tmp_path, drive_dir):
         ["cache", "info"],
         ["export", str(tmp_path / "c.json"), "--format", "json", "--out", str(tmp_path / "e.json")],
         ["export", str(tmp_path / "c.json"), "--format", "ros2", "--out", str(tmp_path / "e.yaml")],
-        ["run", "--config", str(tmp_path / "c.json"), "--waypoints", wp],
+        ["run", "--config", str(tmp_path / "c.json"), "--waypoints", wp],  # reads stdin
     ]
-    for argv in commands:
-        r = subprocess.run(
-            [sys.executable, "-c", _NO_JAX, *argv],
-            input="t,x,y\n0.0,1.0,2.0\n",
-            capture_output=True,
-            text=True,
-            cwd=ROOT,
-        )
-        last = r.stderr.strip().splitlines()[-1]
-        assert last.startswith("no-jax 0"), (argv, r.stderr[-2000:])
+    r = subprocess.run(
+        [sys.executable, "-c", _NO_JAX, *map(json.dumps, commands)],
+        input="t,x,y\n0.0,1.0,2.0\n",
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    reports = [ln for ln in r.stderr.splitlines() if ln.startswith(("no-jax", "JAX-IMPORTED"))]
+    assert len(reports) == len(commands), r.stderr[-2000:]
+    for argv, report in zip(commands, reports):
+        assert report.startswith("no-jax 0"), (argv, r.stderr[-2000:])
+
+
+def cache_command(capsys, monkeypatch, cache_dir: Path, *args: str) -> tuple[int, str]:
+    """`fpe cache ARGS` with FPE_CACHE_DIR=cache_dir, in this process (it imports no JAX:
+    test_fast_commands_import_no_jax): (exit status, stdout)."""
+    from helpers import cli_runner
+
+    with monkeypatch.context() as m:
+        m.setenv("FPE_CACHE_DIR", str(cache_dir))
+        rc, out, _ = cli_runner(capsys, ["cache", *args])
+    return rc, out
 
 
 def test_cache_is_written_reused_and_survives_corrupt_entries(
-    tmp_path, drive_dir, cold_predict, uncached_predict
+    tmp_path, drive_dir, cold_predict, uncached_predict, capsys, monkeypatch
 ):
     env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
+
+    def info_json(cache_dir: Path) -> dict:
+        rc, out = cache_command(capsys, monkeypatch, cache_dir, "info", "--json")
+        assert rc == 0
+        return json.loads(out)
+
     cold_predict_into(tmp_path, cold_predict, tmp_path / "a.csv")
-    info = json.loads(fpe("cache", "info", "--json", env=env).stdout)
+    info = info_json(tmp_path / "cache")
     assert info["path"] == str(tmp_path / "cache") and info["entries"] > 0 and info["bytes"] > 0
     [sub] = info["subfolders"]  # keyed by jax + jaxlib version, backend and x64 mode
     assert sub.startswith("jax-") and "jaxlib-" in sub and sub.endswith("_x64")
@@ -140,40 +162,66 @@ def test_cache_is_written_reused_and_survives_corrupt_entries(
     b = np.loadtxt(tmp_path / "b.csv", delimiter=",", skiprows=1)
     np.testing.assert_array_equal(a, b)
     # clear empties it; --no-cache and FPE_NO_CACHE=1 leave it empty
-    cleared = fpe("cache", "clear", env=env)
-    assert cleared.returncode == 0 and "removed" in cleared.stdout
-    assert json.loads(fpe("cache", "info", "--json", env=env).stdout)["entries"] == 0
+    rc, cleared = cache_command(capsys, monkeypatch, tmp_path / "cache", "clear")
+    assert rc == 0 and "removed" in cleared
+    assert info_json(tmp_path / "cache")["entries"] == 0
     off = fpe(*predict_args(drive_dir, tmp_path / "c.csv"), "--no-cache", "--quiet", env=env)
     assert off.returncode == 0, off.stderr
-    assert json.loads(fpe("cache", "info", "--json", env=env).stdout)["entries"] == 0
+    assert info_json(tmp_path / "cache")["entries"] == 0
     off, off_env = uncached_predict
     assert off.returncode == 0, off.stderr
-    assert json.loads(fpe("cache", "info", "--json", env=off_env).stdout)["entries"] == 0
+    assert info_json(Path(off_env["FPE_CACHE_DIR"]))["entries"] == 0
 
 
-def test_stored_executables_run_in_later_processes(tmp_path, drive_dir, cold_predict):
+@pytest.fixture(scope="module")
+def cold_evaluate(
+    tmp_path_factory, drive_dir, cold_predict
+) -> tuple[Path, subprocess.CompletedProcess]:
+    """`fpe evaluate --preset frenet --json --quiet` after `cold_predict`, with a copy of its
+    cache (it loads predict's executables and compiles its own): (folder holding that cache/
+    and predict's p.csv, evaluate's result). Tests take copies."""
+    folder = tmp_path_factory.mktemp("evaluated")
+    cold_predict_into(folder, cold_predict, folder / "p.csv")
+    env = {"FPE_CACHE_DIR": str(folder / "cache")}
+    return folder, fpe(
+        "evaluate", *log_args(drive_dir), "--preset", "frenet", "--json", "--quiet", env=env
+    )
+
+
+def log_args(drive_dir: Path) -> list[str]:
+    return [str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
+
+
+def cache_files(cache_dir: Path) -> dict:
+    """Every file under cache_dir (by its path there): its bytes."""
+    return {f.relative_to(cache_dir): f.read_bytes() for f in cache_dir.rglob("*") if f.is_file()}
+
+
+def test_stored_executables_run_in_later_processes(
+    tmp_path, drive_dir, cold_predict, cold_evaluate
+):
     """Each command loads what earlier ones stored and stores what it compiled itself: every
     later process runs them and gets the same numbers (a process that had read entries of
     JAX's own cache once stored executables that failed elsewhere with "Function ... not
     found")."""
     env = {"FPE_CACHE_DIR": str(tmp_path / "cache")}
-    log = [str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
 
-    def then_evaluate(p, out: Path):
-        """After predict p (into out), evaluate (loads predict's executables, compiles its
-        own): (predictions, metrics, the cache's files and bytes)."""
-        e = fpe("evaluate", *log, "--preset", "frenet", "--json", "--quiet", env=env)
+    def pair(p, e, out: Path, cache_dir: Path):
+        """Predict p (into out), then evaluate e (loads predict's executables, compiles its
+        own) with the cache in cache_dir: (predictions, metrics, the cache's files)."""
         assert p.returncode == 0 and e.returncode == 0, p.stderr + e.stderr
         assert "warning" not in p.stderr + e.stderr, p.stderr + e.stderr
         # --quiet: no progress lines, cold (compiling) or warm
         assert not [ln for ln in p.stderr.splitlines() if ln.startswith("[")], p.stderr
-        files = {f: f.read_bytes() for f in (tmp_path / "cache").rglob("*") if f.is_file()}
-        return np.loadtxt(out, delimiter=",", skiprows=1), e.stdout, files
+        return np.loadtxt(out, delimiter=",", skiprows=1), e.stdout, cache_files(cache_dir)
 
-    out = tmp_path / "cold.csv"
-    cold = then_evaluate(cold_predict_into(tmp_path, cold_predict, out), out)
+    folder, cold_e = cold_evaluate
+    cold = pair(cold_predict[1], cold_e, folder / "p.csv", folder / "cache")
+    shutil.copytree(folder / "cache", tmp_path / "cache", symlinks=True)
     out = tmp_path / "warm.csv"
-    warm = then_evaluate(fpe(*predict_args(drive_dir, out), "--quiet", env=env), out)
+    p = fpe(*predict_args(drive_dir, out), "--quiet", env=env)
+    e = fpe("evaluate", *log_args(drive_dir), "--preset", "frenet", "--json", "--quiet", env=env)
+    warm = pair(p, e, out, tmp_path / "cache")
     assert len(list((tmp_path / "cache").rglob("aot/*.exe"))) >= 3
     # the warm pair loaded everything and wrote nothing: any later process reads this same cache
     assert warm[2] == cold[2]
@@ -529,11 +577,13 @@ sys.exit(rc)
 """
 
 
-def test_a_warm_fit_compiles_nothing(tmp_path, drive_dir):
+def test_a_warm_fit_compiles_nothing(tmp_path, drive_dir, cold_evaluate):
     """The second `fpe fit` of a drive, with the cache the first one filled, loads every
-    executable it runs: no eager JAX operation compiles a program of its own."""
+    executable it runs: no eager JAX operation compiles a program of its own. The first starts
+    from the cache that predict and evaluate filled: it loads theirs and compiles the rest."""
+    shutil.copytree(cold_evaluate[0] / "cache", tmp_path / "cache", symlinks=True)
     env = {**os.environ, "FPE_CACHE_DIR": str(tmp_path / "cache")}
-    argv = ["fit", str(drive_dir / "drive.mcap"), "--waypoints", str(drive_dir / "waypoints.csv")]
+    argv = ["fit", *log_args(drive_dir)]
     counts = []
     for k in range(2):
         r = subprocess.run(

@@ -285,6 +285,44 @@ def written(drive_sim, tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def tag_drive(written):
+    """The simulator's own AprilTag recording, read: what every other file of it must give."""
+    return io.load_drive(written / "tag" / "drive.mcap")
+
+
+@pytest.fixture(scope="module")
+def no_mount_log(drive_sim, tmp_path_factory) -> Path:
+    """The recording without its tag -> base transform (the mount then comes from a flag)."""
+    path = tmp_path_factory.mktemp("no_mount") / "no_mount.mcap"
+    return _write_mcap(path, _events(drive_sim, drop_static=("other_base_link",)))
+
+
+LATE_EGO_S = 5.0  # late_log's localisation starts here
+
+
+@pytest.fixture(scope="module")
+def late_log(drive_sim, tmp_path_factory) -> Path:
+    """The recording with the ego TF only from LATE_EGO_S: the first detections are outside it."""
+    path = tmp_path_factory.mktemp("late") / "late.mcap"
+    return _write_mcap(path, _events(drive_sim, ego_from_s=LATE_EGO_S))
+
+
+@pytest.fixture(scope="module")
+def rosbag2_mcap(drive_sim, tmp_path_factory):
+    """style -> the rosbag2 folder (MCAP storage) rosbags writes of that detector's layout, written
+    once: one case reads the folder, another its storage file."""
+    folders = {}
+
+    def folder(style: str) -> Path:
+        if style not in folders:
+            bag = tmp_path_factory.mktemp("rosbag2") / "bag"
+            folders[style] = write_rosbags(bag, _events(drive_sim, style=style), storage="mcap")
+        return folders[style]
+
+    return folder
+
+
 def _events(res, style="apriltag_ros", drop_static=(), ego_from_s=None):
     """The layout's events (as the simulator writes them) plus truth odometry; optionally
     without some static transforms (by child frame) or the ego TF before `ego_from_s`."""
@@ -328,8 +366,8 @@ def _same_drive(a, b, exact=True):
     np.testing.assert_array_equal(a.truth_xy_m, b.truth_xy_m)
 
 
-def test_layout_composes_to_the_map_frame_log(drive_sim, written):
-    tag = io.load_drive(written / "tag" / "drive.mcap")
+def test_layout_composes_to_the_map_frame_log(drive_sim, written, tag_drive):
+    tag = tag_drive
     flat = io.load_drive(written / "map" / "drive.mcap")
     assert tag.meta["pose_topic"] == DET and tag.meta["truth_topic"] == "/opp/odom"
     _same_drive(tag, flat, exact=False)
@@ -423,7 +461,7 @@ def test_composition_matches_truth_within_the_noise(tmp_path):
     ],
 )
 def test_rosbags_written_variants_read_back_the_same(
-    drive_sim, written, tmp_path, style, container
+    drive_sim, tag_drive, rosbag2_mcap, tmp_path, style, container
 ):
     """ROS 1 bags and rosbag2 (MCAP / sqlite3 storage) written by rosbags, in each detector's
     message layout, compose to the very drive the simulator's own MCAP gives; "inner-mcap"
@@ -431,13 +469,14 @@ def test_rosbags_written_variants_read_back_the_same(
     events = _events(drive_sim, style=style)
     if container == "rosbag1":
         path = write_rosbags(tmp_path / "drive.bag", events, storage="ros1")
+    elif container == "rosbag2-db3":
+        path = write_rosbags(tmp_path / "bag", events, storage="sqlite3")
     else:
-        storage = "sqlite3" if container == "rosbag2-db3" else "mcap"
-        path = write_rosbags(tmp_path / "bag", events, storage=storage)
+        path = rosbag2_mcap(style)
         if container == "inner-mcap":
             (path,) = path.glob("*.mcap")
     got = io.load_drive(path)
-    _same_drive(got, io.load_drive(written / "tag" / "drive.mcap"))
+    _same_drive(got, tag_drive)
     det = got.meta["detection"]
     if style == "apriltag_msgs":
         assert det["tag_frame"] == "tag36h11:0"
@@ -449,7 +488,7 @@ def test_rosbags_written_variants_read_back_the_same(
     )
 
 
-def test_fork_layouts_read_from_their_embedded_definitions(drive_sim, written, tmp_path):
+def test_fork_layouts_read_from_their_embedded_definitions(drive_sim, tag_drive, tmp_path):
     """ROS 2 forks reuse names with other fields: e.g. an `apriltag_msgs` whose detection holds
     a scalar id and size and the ROS 1 pose. The file's own schema decides how it decodes."""
     from mcap_ros2.writer import Writer
@@ -474,14 +513,14 @@ def test_fork_layouts_read_from_their_embedded_definitions(drive_sim, written, t
         w.finish()
     got = io.load_drive(path)
     assert got.meta["pose_type"] == "apriltag_msgs/msg/AprilTagDetectionArray"
-    _same_drive(got, io.load_drive(written / "tag" / "drive.mcap"))
+    _same_drive(got, tag_drive)
 
 
-def test_recordings_without_definitions_use_the_shipped_ones(drive_sim, written, tmp_path):
+def test_recordings_without_definitions_use_the_shipped_ones(drive_sim, tag_drive, tmp_path):
     """An MCAP channel with an empty schema (what rosbag2 writes for a type it has no definition
     of) and a rosbag2 sqlite3 recording without definitions both decode."""
     events = _events(drive_sim)
-    want = io.load_drive(written / "tag" / "drive.mcap")
+    want = tag_drive
     # MCAP: the mcap writer with empty ros2msg schemas, CDR from rosbags.
     from mcap.writer import Writer
 
@@ -509,13 +548,12 @@ def test_recordings_without_definitions_use_the_shipped_ones(drive_sim, written,
     _same_drive(io.load_drive(folder), want)
 
 
-def test_tag_to_base_flag_equals_the_static_transform(drive_sim, written, tmp_path):
-    events = _events(drive_sim, drop_static=("other_base_link",))
-    path = _write_mcap(tmp_path / "no_mount.mcap", events)
+def test_tag_to_base_flag_equals_the_static_transform(no_mount_log, tag_drive):
+    path = no_mount_log
     cam = sim.Camera()
     mount = ",".join(f"{v!r}" for v in (*cam.tag_xyz_m, cam.tag_yaw_rad))
     got = io.load_drive(path, tag_to_base=mount)
-    _same_drive(got, io.load_drive(written / "tag" / "drive.mcap"), exact=False)
+    _same_drive(got, tag_drive, exact=False)
     assert got.meta["detection"]["links"][2]["from"].startswith("--tag-to-base -0.2,0,0.2,3.14159")
     with pytest.raises(InputError, match="--tag-to-base X,Y,Z,YAW"):
         io.load_drive(path)
@@ -524,7 +562,7 @@ def test_tag_to_base_flag_equals_the_static_transform(drive_sim, written, tmp_pa
     assert np.median(np.linalg.norm(off.xy_m - got.xy_m, axis=1)) == pytest.approx(0.3, abs=1e-9)
 
 
-def test_tag_frame_found_under_another_name(drive_sim, written, tmp_path):
+def test_tag_frame_found_under_another_name(drive_sim, tag_drive, tmp_path):
     """A tag frame not called tag_<id>: the car frame's parent in a tree of its own."""
     events = _events(drive_sim)
     for _, topic, _, msg in events:
@@ -533,10 +571,10 @@ def test_tag_frame_found_under_another_name(drive_sim, written, tmp_path):
                 t["header"]["frame_id"] = "rear_tag"
     got = io.load_drive(_write_mcap(tmp_path / "renamed.mcap", events))
     assert got.meta["detection"]["tag_frame"] == "rear_tag"
-    _same_drive(got, io.load_drive(written / "tag" / "drive.mcap"))
+    _same_drive(got, tag_drive)
 
 
-def test_detector_tf_beside_pose_carrying_detections(drive_sim, written, tmp_path):
+def test_detector_tf_beside_pose_carrying_detections(drive_sim, tag_drive, tmp_path):
     """apriltag_ros can also publish camera -> tag_0 on /tf: the tree then hangs the tag under
     the camera; the detections' own poses are still what is composed."""
     events = _events(drive_sim)
@@ -545,13 +583,12 @@ def test_detector_tf_beside_pose_carrying_detections(drive_sim, written, tmp_pat
             msg["transforms"][0]["child_frame_id"] = "tag_0"
             events.append((ns, topic, msgtype, msg))
     got = io.load_drive(_write_mcap(tmp_path / "both.mcap", events))
-    _same_drive(got, io.load_drive(written / "tag" / "drive.mcap"))
+    _same_drive(got, tag_drive)
     assert got.meta["detection"]["links"][1]["from"] == "the detection's pose"
 
 
-def test_drop_outside_tf_drops_and_counts(drive_sim, tmp_path):
-    start = 5.0
-    path = _write_mcap(tmp_path / "late.mcap", _events(drive_sim, ego_from_s=start))
+def test_drop_outside_tf_drops_and_counts(drive_sim, late_log):
+    start, path = LATE_EGO_S, late_log
     with pytest.raises(
         InputError, match="before its first transform.*drop-outside-tf|before its first"
     ):
@@ -574,7 +611,9 @@ def _bad(tmp_path, name, events):
     return _write_mcap(tmp_path / f"{name}.mcap", events)
 
 
-def test_cli_errors_are_one_line_and_exit_2(drive_sim, written, tmp_path, capsys):
+def test_cli_errors_are_one_line_and_exit_2(
+    drive_sim, written, no_mount_log, late_log, tmp_path, capsys
+):
     ev = _events(drive_sim)
     empty = [e for e in ev if e[1] != DET] + [
         (e[0], e[1], e[2], dict(e[3], detections=[])) for e in ev if e[1] == DET
@@ -591,7 +630,7 @@ def test_cli_errors_are_one_line_and_exit_2(drive_sim, written, tmp_path, capsys
             ["TF frame 'camera' is not in the log's TF tree", "frames: base_link, laser, map"],
         ),
         "too-old": (
-            _bad(tmp_path, "old", _events(drive_sim, ego_from_s=3.0)),
+            late_log,
             [],
             ["outside the TF buffer of map -> base_link", "s before its first transform"],
         ),
@@ -621,10 +660,13 @@ def test_cli_errors_are_one_line_and_exit_2(drive_sim, written, tmp_path, capsys
             assert w in err, (name, w, err)
         assert not out_csv.exists()
     # The mount as a user types it (a negative X needs the `=` form).
-    mount = tmp_path / "no_mount.mcap"
-    _write_mcap(mount, _events(drive_sim, drop_static=("other_base_link",)))
     rc, _, err = _fpe(
-        capsys, "convert", mount, "--out", tmp_path / "m.csv", "--tag-to-base=-0.2,0,0.2,3.14159265"
+        capsys,
+        "convert",
+        no_mount_log,
+        "--out",
+        tmp_path / "m.csv",
+        "--tag-to-base=-0.2,0,0.2,3.14159265",
     )
     assert rc == 0 and "wrote" in err
     # The same through a command that predicts (the error comes before any JAX work).
@@ -703,7 +745,7 @@ def test_cli_simulate_apriltag_and_convert_for_run(tmp_path, capsys):
     assert _fpe(capsys, "convert", out / "drive.mcap", "--out", csv)[0] == 2  # no overwrite
 
 
-def test_recipe_takes_tag_keys(written, tmp_path):
+def test_recipe_takes_tag_keys(written, tag_drive, tmp_path):
     from fpe_jax.fit._recipe import load_recipe
 
     cam = sim.Camera()
@@ -714,22 +756,19 @@ def test_recipe_takes_tag_keys(written, tmp_path):
         f"tag_to_base = {[*cam.tag_xyz_m, cam.tag_yaw_rad]}\n"
     )
     ((d, _, _),) = load_recipe(recipe).drives
-    _same_drive(d, io.load_drive(written / "tag" / "drive.mcap"), exact=False)
+    _same_drive(d, tag_drive, exact=False)
     recipe.write_text(recipe.read_text().replace("tag_to_base = [", "tag_to_base = [1, "))
     with pytest.raises(InputError, match="tag_to_base"):
         load_recipe(recipe)
 
 
-def test_fit_and_predict_equal_the_map_frame_log(tmp_path, capsys):
+def test_fit_and_predict_equal_the_map_frame_log(written, tmp_path, capsys):
     """`fpe fit` / `fpe predict` on the AprilTag recording give what they give on the map-frame
     log of the same simulated drive (within 1e-6 m; measured ~1e-14)."""
-    res = sim.simulate("oval", duration_s=20.0, seed=4, camera=sim.Camera())
-    sim.write_simulation(res, tmp_path / "tag")
-    sim.write_simulation(res, tmp_path / "map", layout="map")
-    wp = tmp_path / "tag" / "waypoints.csv"
+    wp = written / "tag" / "waypoints.csv"
     params, preds = {}, {}
     for k in ("tag", "map"):
-        log, cfg, pred = tmp_path / k / "drive.mcap", tmp_path / f"{k}.json", tmp_path / f"{k}.csv"
+        log, cfg, pred = written / k / "drive.mcap", tmp_path / f"{k}.json", tmp_path / f"{k}.csv"
         assert (
             _fpe(capsys, "fit", log, "--waypoints", wp, "--out", cfg, "--blend", "position")[0] == 0
         )

@@ -92,14 +92,20 @@ def test_predict_batch_over_cars_equals_looping_and_is_differentiable(circle):
         assert np.all(np.isfinite(v)) and np.all(v != 0.0), name
 
 
-def test_predict_batch_over_parameter_sets(circle):
+def param_sets() -> list[Params]:
+    """Four default presets with their own lookahead and delay (the tests below stack the same
+    four: one compiled program of each shape serves them all)."""
     base = presets["default"]
-    sets = [
+    return [
         dataclasses.replace(
             base, lookahead_m=jnp.asarray(0.6 + 0.5 * k), delay_s=jnp.asarray(0.05 * k)
         )
         for k in range(4)
     ]
+
+
+def test_predict_batch_over_parameter_sets(circle):
+    sets = param_sets()
     stacked = stack_params(sets)
     out = np.asarray(predict_batch(stacked, STATES, circle))
     assert out.shape == (4, 3, H, 3)
@@ -117,7 +123,7 @@ def test_poses_are_the_columns_of_the_packed_predictions(circle):
     """predict_poses' fields are predict_batch's columns x, y, yaw (under P parameter sets too);
     NumPy poses (the commands' finished predictions) pack to a writable NumPy array."""
     p = presets["default"]
-    for q in (p, stack_params([p, dataclasses.replace(p, delay_s=jnp.asarray(0.1))])):
+    for q in (p, stack_params(param_sets())):
         poses = eqx.filter_jit(predict_poses)(q, STATES, circle)
         packed = np.asarray(predict_batch(q, STATES, circle))
         assert poses.x_m.shape == packed.shape[:-1]
