@@ -130,7 +130,7 @@ def test_a_fit_over_several_blocks_equals_the_fit_in_one_piece(fits):
 def _temp_bytes(objective, n_rows: int, block_rows: int | None, datasets: int = 1) -> int:
     """XLA's temporary buffer size [bytes] of the compiled loss and gradient (what BFGS
     evaluates) of the line model on `datasets` datasets of n_rows target rows each (the
-    drive's rows repeated)."""
+    drive's rows, padded by repeating its last row)."""
     y0, (fixed, groups, huber), unravel, *_ = objective("line")
     states, track, xy, mask, fold, lines, scale = groups[0]
     big = pad_rows((states, xy, mask, fold), n_rows)
