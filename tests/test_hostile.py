@@ -178,6 +178,27 @@ def _npy_bytes(arr) -> bytes:
     return buf.getvalue()
 
 
+@pytest.fixture(scope="module")
+def square_grid_once():
+    """Every example predicts on SQUARE_WP: its projection grid (NumPy, a function of the track
+    alone, tests/predict/test_batch.py) is built by the first example that reaches it and
+    reused, as the examples differ only in their cars (its build was most of each example)."""
+    from fpe_jax.predict._batch import ProjectionGrid
+
+    build, grids = ProjectionGrid.build, {}
+
+    def once(track, **kwargs):
+        xy = np.asarray(track.xy_m)
+        key = (xy.dtype.str, xy.shape, xy.tobytes(), bool(track.closed), *sorted(kwargs.items()))
+        if key not in grids:
+            grids[key] = build(track, **kwargs)
+        return grids[key]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ProjectionGrid, "build", once)
+        yield grids
+
+
 @hostile
 @given(
     cars=st.one_of(
@@ -186,7 +207,7 @@ def _npy_bytes(arr) -> bytes:
         st.binary(max_size=200).map(lambda b: ("cars.npy", _npy_bytes(np.ones((1, 4)))[:8] + b)),
     )
 )
-def test_batch_cars(capsys, cars):
+def test_batch_cars(capsys, square_grid_once, cars):
     name, content = cars
     with user_folder({name: content, "wp.csv": SQUARE_WP}) as (folder, before):
         argv = ["batch", folder / name, "--waypoints", folder / "wp.csv", "--preset", "default"]
@@ -369,21 +390,30 @@ def streams_with_bad_lines(draw, rows):
     return lines, bad_at
 
 
+@pytest.fixture(scope="module")
+def stream_replies(stream_case) -> list[dict]:
+    """What a fresh runner replies to the good rows of stream_case, in order: every example's
+    stream holds these rows, and bad lines must change none of the replies."""
+    _, cfg, wp, rows = stream_case
+    r = Runner(cfg, wp)
+    return [
+        {"stamp": float(t), "poses": r.update(t, x, y, yaw).tolist(), "valid": r.valid}
+        for t, x, y, yaw in rows
+    ]
+
+
 @hostile
 @given(data=st.data())
-def test_stream_bad_lines_are_skipped_and_poison_nothing(capsys, monkeypatch, stream_case, data):
-    argv, cfg, wp, rows = stream_case
+def test_stream_bad_lines_are_skipped_and_poison_nothing(
+    capsys, monkeypatch, stream_case, stream_replies, data
+):
+    argv, _, _, rows = stream_case
     lines, bad_at = data.draw(streams_with_bad_lines(rows))
     rc, out, err = cli_runner(capsys, argv, "\n".join(lines) + "\n", monkeypatch)
     assert rc == 0, err
     warned = [int(line.split()[3].rstrip(":")) for line in err.strip().splitlines()]
     assert warned == bad_at, err
-    r = Runner(cfg, wp)
-    want = [
-        {"stamp": float(t), "poses": r.update(t, x, y, yaw).tolist(), "valid": r.valid}
-        for t, x, y, yaw in rows
-    ]
-    assert [json.loads(line) for line in out.splitlines()] == want
+    assert [json.loads(line) for line in out.splitlines()] == stream_replies
 
 
 @hostile
