@@ -1,13 +1,11 @@
 """Planning horizons: 5 s (50 steps of 0.1 s) in every command, the runner and the exports."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import track_drive
+from helpers import cli_runner, track_drive
 
 from fpe_jax import Params, Settings, Track, cli, predict_drive, presets
 from fpe_jax.errors import InputError
@@ -76,24 +74,24 @@ def test_the_horizon_limit_is_one_rule():
 
 
 @pytest.fixture(scope="module")
-def drives(tmp_path_factory):
+def drive(tmp_path_factory):
+    """A 25 s simulated oval drive (drive.mcap, waypoints.csv): fitted, then predicted,
+    evaluated and streamed (every assertion is on the horizon's length, not on held-out data)."""
     root = tmp_path_factory.mktemp("h50")
-    for name, seed, s in (("fit", 1, 25.0), ("test", 2, 12.0)):
-        write_simulation(simulate("oval", duration_s=s, seed=seed), root / name)
+    write_simulation(simulate("oval", duration_s=25.0, seed=1), root)
     return root
 
 
-def test_every_command_takes_horizon_50(drives, tmp_path, capsys):
-    fit, test = drives / "fit", drives / "test"
-    wp = str(fit / "waypoints.csv")
+def test_every_command_takes_horizon_50(drive, tmp_path, capsys, monkeypatch):
+    wp = str(drive / "waypoints.csv")
+    log = str(drive / "drive.mcap")
     cfg = tmp_path / "c.json"
-    argv = ["fit", str(fit / "drive.mcap"), "--waypoints", wp, "--horizon", str(H)]
+    argv = ["fit", log, "--waypoints", wp, "--horizon", str(H)]
     assert cli.main([*argv, "--out", str(cfg), "--quiet"]) == 0
     assert read_config(cfg)["settings"]["horizon"] == H
     assert len(read_config(cfg)["params"]["weights"]) == H
 
     pred = tmp_path / "p.csv"
-    log = str(test / "drive.mcap")
     argv = ["predict", log, "--waypoints", wp, "--config", str(cfg), "--out", str(pred)]
     assert cli.main([*argv, "--quiet"]) == 0
     rows = np.genfromtxt(pred, delimiter=",", names=True)
@@ -129,17 +127,11 @@ def test_every_command_takes_horizon_50(drives, tmp_path, capsys):
 
     # fpe run (the NumPy runner) streams 50 poses per observation
     lines = ["t,x,y"] + [
-        f"{float(t)!r},{float(x)!r},{float(y)!r}" for t, (x, y) in zip(*_first(test, 15))
+        f"{float(t)!r},{float(x)!r},{float(y)!r}" for t, (x, y) in zip(*_first(drive, 15))
     ]
-    proc = subprocess.run(
-        [sys.executable, "-m", "fpe_jax.cli", "run", "--config", str(cfg), "--waypoints", wp],
-        input="\n".join(lines) + "\n",
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert proc.returncode == 0, proc.stderr
-    out_rows = [json.loads(ln) for ln in proc.stdout.splitlines() if ln.startswith("{")]
+    argv = ["run", "--config", cfg, "--waypoints", wp]
+    _, out, _ = cli_runner(capsys, argv, "\n".join(lines) + "\n", monkeypatch, expect=0)
+    out_rows = [json.loads(ln) for ln in out.splitlines() if ln.startswith("{")]
     assert out_rows and all(len(r["poses"]) == H for r in out_rows)
 
 

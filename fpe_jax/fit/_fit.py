@@ -711,13 +711,16 @@ def fit_params(
     huber = np.float64(huber_m)
     # the solver's executable (from memory, from disk, or traced and compiled: seconds) is made
     # on a second thread from shapes alone while this one estimates the states
-    with ThreadPoolExecutor(1) as pool:
+    pool = ThreadPoolExecutor(1)
+    try:
         pending = pool.submit(aot.executable, _solve, free, fixed, abstract, huber, **static)
         groups = [
             (pad_rows(_joined([d.states(init) for d in part]), n), part[0].track, *tm, *c, sc)
             for part, n, tm, c, sc in zip(parts, sizes, targets, cross, scales)
         ]
         compiled = pending.result()
+    finally:  # an error or a Ctrl-C is reported without waiting for the compile to finish
+        pool.shutdown(wait=False, cancel_futures=True)
     took = dict(compiled.seconds)
     t = time.perf_counter()
     out = jax.block_until_ready(compiled(free, fixed, groups, huber, **static))

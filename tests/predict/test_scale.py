@@ -181,7 +181,8 @@ def test_uncertainty_frame_never_builds_predictions_by_track_points():
     ang = (s0[:, None] + 2.0 * np.arange(1, h + 1)[None, :]) / radius
     pts = np.stack([(radius + 0.5) * np.cos(ang), (radius + 0.5) * np.sin(ang)], -1)
     start = np.stack([radius * np.cos(s0 / radius), radius * np.sin(s0 / radius)], -1)
-    s_hint = jax.vmap(track.project)(jnp.asarray(start))
+    # one compiled program each (op by op, every primitive of the projection compiled alone)
+    s_hint = jax.jit(jax.vmap(track.project))(jnp.asarray(start))
     states = State(
         x_m=jnp.asarray(start[:, 0]),
         y_m=jnp.asarray(start[:, 1]),
@@ -190,7 +191,9 @@ def test_uncertainty_frame_never_builds_predictions_by_track_points():
         s_m=s_hint,
     )
     got = path_heading(track, pts, states)
-    want = jax.vmap(jax.vmap(lambda p: track.heading_at(track.project(p))))(jnp.asarray(pts))
+    want = jax.jit(jax.vmap(jax.vmap(lambda p: track.heading_at(track.project(p)))))(
+        jnp.asarray(pts)
+    )
     np.testing.assert_allclose(got, np.asarray(want), atol=1e-9)
 
 
