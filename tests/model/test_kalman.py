@@ -209,12 +209,14 @@ def test_jit_vmap_and_grad_against_finite_differences():
         mean, cov, speed_age = kalman_window(age, s_m, d_m, valid, prior, *noise)
         return jnp.sum(mean * jnp.array([1.0, 0.3, 2.0, 0.5])) + jnp.trace(cov) + speed_age
 
+    # f, its gradient and its JVP each as one compiled program: op by op, the filter's scan
+    # and gate would be dispatched (and compiled) primitive by primitive
     x = tuple(jnp.asarray(v) for v in (3.0, 1.0, 0.15, 4.0))
-    g = jax.grad(f)(x)
+    g = jax.jit(jax.grad(f))(x)
     assert all(np.isfinite(float(v)) for v in g)
     assert abs(float(g[3])) > 1e-6  # the gate matters for this window
     tangent = tuple(jnp.asarray(v) for v in (0.3, -0.2, 0.01, 0.5))
-    assert_jvp_matches_fd(f, x, tangent, 1e-6, rtol=1e-5, atol=1e-8)
+    assert_jvp_matches_fd(jax.jit(f), x, tangent, 1e-6, rtol=1e-5, atol=1e-8)
 
 
 def test_prediction_is_differentiable_in_the_filter_values():
@@ -233,7 +235,7 @@ def test_prediction_is_differentiable_in_the_filter_values():
         pred = jax.vmap(predict, in_axes=(None, 0, None))(q, rows, track)
         return jnp.sum(pred[..., :2] ** 2)
 
-    g = jax.grad(loss)(raw.filter_obs_m)
+    g = jax.jit(jax.grad(loss))(raw.filter_obs_m)  # one program, not one per primitive
     assert np.isfinite(float(g)) and abs(float(g)) > 0.0
 
 
