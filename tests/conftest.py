@@ -169,3 +169,37 @@ def _release_when_large():
         return
     if resident_bytes > _RELEASE_ABOVE_BYTES:
         release_compiled_programs()
+
+
+# `make test` hands whole files to two workers (`--dist loadfile`) in collection order
+# (`--no-loadscope-reorder`; pytest-xdist's own order puts the files with the most tests first,
+# which left the few-test fits and subprocess runs to the end, one worker busy for a minute
+# while the other idled). The files that take longest start first, so the short ones fill the
+# end; the rest keep their order. Wall seconds per file within a worker, `make test` on 2 cores.
+LONGEST_FIRST = (
+    "tests/fit/test_fit.py",  # 73 s
+    "tests/fit/test_blocks.py",  # 40 s
+    "tests/compile/test_executables.py",  # 26 s
+    "tests/fit/test_processes.py",  # 23 s
+    "tests/io/test_apriltag.py",  # 21 s
+    "tests/node/test_ros1.py",  # 20 s, mostly waiting on roscore
+    "tests/node/test_foxglove.py",  # 16 s, mostly waiting on the client
+    "tests/runner/test_runner.py",  # 16 s
+    "tests/test_horizon.py",  # 15 s
+    "tests/predict/test_batch.py",  # 14 s
+    "tests/test_hostile.py",  # 12 s
+    "tests/test_demo.py",  # 12 s
+    "tests/model/test_rollout.py",  # 12 s
+    "tests/test_pipeline.py",  # 11 s
+    "tests/node/test_ros2.py",  # 11 s, mostly waiting on DDS discovery
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    root = Path(__file__).resolve().parents[1]
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+
+    def file_rank(item) -> int:
+        return rank.get(Path(item.fspath).resolve().relative_to(root).as_posix(), len(rank))
+
+    items.sort(key=file_rank)  # stable: each file's tests, and the other files, keep their order

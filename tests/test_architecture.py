@@ -61,3 +61,13 @@ def test_a_wrong_import_breaks_a_contract(copy, module, line, contract):
     assert r.returncode != 0, r.stdout
     broken = r.stdout.split("Broken contracts")[-1]
     assert contract in broken, r.stdout
+
+
+def test_every_file_the_suite_starts_first_exists(request):
+    """conftest's LONGEST_FIRST names existing test files, each once: a renamed file would
+    quietly go back to its place in the collection order."""
+    plugins = request.config.pluginmanager.get_plugins()
+    [first] = [p.LONGEST_FIRST for p in plugins if hasattr(p, "LONGEST_FIRST")]
+    assert len(set(first)) == len(first)
+    for name in first:
+        assert (ROOT / name).is_file(), name
