@@ -175,7 +175,8 @@ def _release_when_large():
 # (`--no-loadscope-reorder`; pytest-xdist's own order puts the files with the most tests first,
 # which left the few-test fits and subprocess runs to the end, one worker busy for a minute
 # while the other idled). The files that take longest start first, so the short ones fill the
-# end; the rest keep their order. Wall seconds per file within a worker, `make test` on 2 cores.
+# end; the rest (5 s or less) keep their order. Wall seconds per file within a worker, `make test`
+# on 2 cores.
 LONGEST_FIRST = (
     "tests/fit/test_fit.py",  # 73 s
     "tests/fit/test_blocks.py",  # 40 s
@@ -192,6 +193,18 @@ LONGEST_FIRST = (
     "tests/model/test_rollout.py",  # 12 s
     "tests/test_pipeline.py",  # 11 s
     "tests/node/test_ros2.py",  # 11 s, mostly waiting on DDS discovery
+    "tests/geometry/test_track_check.py",  # 10 s
+    "tests/compile/test_cache.py",  # 10 s
+    "tests/runner/test_adapt.py",  # 10 s
+    "tests/io/test_hostile.py",  # 10 s
+    "tests/test_robust.py",  # 9 s
+    "tests/predict/test_predict.py",  # 9 s
+    "tests/predict/test_batch_io.py",  # 9 s
+    "tests/model/test_kalman.py",  # 7 s
+    "tests/predict/test_scale.py",  # 7 s
+    "tests/fit/test_speed_shift.py",  # 7 s
+    "tests/predict/test_shard.py",  # 6 s
+    "tests/io/test_export.py",  # 6 s
 )
 
 
