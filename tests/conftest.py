@@ -4,21 +4,26 @@ import ctypes
 import ctypes.util
 import gc
 import os
+import shutil
 import signal
 import tempfile
 from pathlib import Path
 
 # the compilation cache of the tests and of the commands they start is a temporary folder: never
-# the user's, and each session starts cold (subprocesses inherit the environment). The workers
-# of one parallel run (pytest-xdist) share it, so each executable is compiled once per run; its
+# the user's, and each session starts cold (subprocesses inherit the environment). The process
+# that starts pytest makes it and removes it when the run ends; the workers of a parallel run
+# (pytest-xdist) inherit it and share it, so each executable is compiled once per run; its
 # writes are atomic renames, so a worker reads an executable whole or compiles it itself.
-_RUN = os.environ.get("PYTEST_XDIST_TESTRUNUID")
-if _RUN:
-    _CACHE = Path(tempfile.gettempdir()) / f"fpe-test-cache-{_RUN}"
-    _CACHE.mkdir(exist_ok=True)
-    os.environ["FPE_CACHE_DIR"] = str(_CACHE)
-else:
-    os.environ["FPE_CACHE_DIR"] = tempfile.mkdtemp(prefix="fpe-test-cache-")
+_OWN_CACHE = "FPE_TEST_CACHE_DIR" not in os.environ
+if _OWN_CACHE:
+    os.environ["FPE_TEST_CACHE_DIR"] = tempfile.mkdtemp(prefix="fpe-test-cache-")
+os.environ["FPE_CACHE_DIR"] = os.environ["FPE_TEST_CACHE_DIR"]
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE:
+        shutil.rmtree(os.environ["FPE_TEST_CACHE_DIR"], ignore_errors=True)
+
 
 # The suite compiles a few thousand programs and runs each on little data, so XLA's compiler is
 # most of its time. Its programs (and the commands it starts) compile as a debug build would:

@@ -26,9 +26,9 @@ OPPONENT_IDS = [3, 7, 11, 20]
 
 
 def make_drive(tmp: Path) -> dict:
-    """A 12 s simulated drive in the seed's layout (`fpe simulate --sensor apriltag`) under tmp,
+    """An 8 s simulated drive in the seed's layout (`fpe simulate --sensor apriltag`) under tmp,
     a config with per-step covariance, and `fpe predict`'s CSV of it. Returns the config dict."""
-    argv = ["simulate", "--sensor", "apriltag", "--duration", "12", "--out", str(tmp / "sim")]
+    argv = ["simulate", "--sensor", "apriltag", "--duration", "8", "--out", str(tmp / "sim")]
     assert main(argv) == 0
     cfg = params_to_config(presets["default"], uncertainty={"frame": "track", "cov_m2": COV})
     write_config(tmp / "cfg.json", cfg)
@@ -45,7 +45,7 @@ def predicted_rows(pred_csv: Path) -> dict[int, np.ndarray]:
     return {round(row["stamp"][0] * 1e9): row for row in valid.reshape(-1, H)}
 
 
-def obstacle_frames(log_path: Path, waypoints_xy_m: np.ndarray, n_rows: int = 120) -> list:
+def obstacle_frames(log_path: Path, waypoints_xy_m: np.ndarray, n_rows: int = 80) -> list:
     """[(stamp [ns], obstacles)] at 40 Hz: the drive's opponent at four lags as obstacles
     OPPONENT_IDS (s, d along the waypoints) plus a static obstacle 99 the node must ignore.
     Obstacle dicts carry the fields both f110_msgs flavours share."""

@@ -71,3 +71,20 @@ def test_every_file_the_suite_starts_first_exists(request):
     assert len(set(first)) == len(first)
     for name in first:
         assert (ROOT / name).is_file(), name
+
+
+def test_a_test_run_leaves_no_compilation_cache_behind(tmp_path):
+    """The suite's compilation cache is a temporary folder of one run (tests/conftest.py): the
+    run removes it at its end, so `make test` does not fill the temporary folder run by run."""
+    test = "tests/test_architecture.py::test_every_file_the_suite_starts_first_exists"
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("FPE_", "PYTEST_"))}
+    r = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", test],
+        cwd=ROOT,
+        env={**env, "TMPDIR": str(tmp_path)},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert not list(tmp_path.glob("fpe-test-cache-*"))

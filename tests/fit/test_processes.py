@@ -269,8 +269,8 @@ def test_the_handshake_lets_a_whole_group_go_on():
 def test_the_handshake_refuses_a_second_process_with_one_id_or_another_count():
     port = free_port()
     groups = [
-        P.ProcessGroup("127.0.0.1", port, 2, 0, 3.0),
-        P.ProcessGroup("127.0.0.1", port, 3, 1, 3.0),
+        P.ProcessGroup("127.0.0.1", port, 2, 0, 2.0),
+        P.ProcessGroup("127.0.0.1", port, 3, 1, 2.0),
     ]
     errors = run_handshakes(groups)
     assert errors[1] == (
@@ -279,11 +279,11 @@ def test_the_handshake_refuses_a_second_process_with_one_id_or_another_count():
     )
     assert "1 of 2 processes joined" in errors[0] and "missing process id(s) 1" in errors[0]
     port = free_port()
-    groups = [P.ProcessGroup("127.0.0.1", port, 3, i, 3.0) for i in (0, 1, 1)]
+    groups = [P.ProcessGroup("127.0.0.1", port, 3, i, 2.0) for i in (0, 1, 1)]
     errors = run_handshakes(groups)  # the later of the two with id 1 is refused
     assert "missing process id(s) 2" in errors[0]
     refused, waited = sorted([errors[1], errors[2]], key=lambda e: "refused" not in e)
     assert refused == (
         "coordinator: process 0 refused this process: two processes were started with process id 1"
     )
-    assert "did not answer within 3 s" in waited
+    assert "did not answer within 2 s" in waited

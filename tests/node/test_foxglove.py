@@ -519,11 +519,11 @@ def test_fpe_view_bad_input_is_one_line_and_exit_2(argv, says, tmp_path, capsys)
 
 def test_fpe_view_serves_the_replay_live(tmp_path):
     """`fpe view --foxglove 0` in its own process: a client connects while the drive replays
-    (10x) and receives its predicted paths."""
+    (20x) and receives its predicted paths."""
     _need("foxglove")
     cmd = [sys.executable, "-m", "fpe_jax.cli", "view", *_flags(), "--foxglove", "0"]
     proc = subprocess.Popen(
-        [*cmd, "--speed", "10"], stderr=subprocess.PIPE, text=True, cwd=tmp_path
+        [*cmd, "--speed", "20"], stderr=subprocess.PIPE, text=True, cwd=tmp_path
     )
     client = None
     try:

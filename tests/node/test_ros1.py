@@ -65,7 +65,7 @@ def ros(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def drive(tmp_path_factory):
-    """A 12 s simulated drive in the seed's layout, a config with per-step covariance, and
+    """An 8 s simulated drive in the seed's layout, a config with per-step covariance, and
     `fpe predict`'s CSV of it."""
     tmp = tmp_path_factory.mktemp("drive")
     return tmp, make_drive(tmp)
