@@ -148,31 +148,39 @@ def release_compiled_programs() -> None:
         _LIBC.malloc_trim(0)
 
 
+def _resident_bytes() -> int:
+    try:
+        with open("/proc/self/statm") as f:  # Linux: (total, resident, ...) in pages
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except OSError:
+        return 0
+
+
+# After a test file that left its process above _KEEP_BELOW_BYTES, the next file starts with
+# nothing compiled: one process runs many files, and the programs of 50-odd files would otherwise
+# stay resident (several GB). Below it the programs stay: a release costs 0.3 CPU s (most of it
+# jax.clear_caches and the garbage collector), and the next file often compiles the same ones
+# (tests/model, tests/geometry and tests/runner in one process: 115 -> 105 CPU s).
+_KEEP_BELOW_BYTES = 0.7e9
+# A test that leaves its process above _RELEASE_ABOVE_BYTES keeps nothing compiled for the next
+# one: the two workers of `make test` (`pytest -n 2`) then stay within 3 GB together (4.0 GB
+# before), while the many small tests keep their programs (releasing after every test made
+# tests/fit 28 % slower; above 1.5 GB instead of 1.2, tests/fit/test_fit.py and test_blocks.py
+# took 129 CPU s instead of 140, but make test was no faster and its peak rose to 2.6-3.0 GB).
+_RELEASE_ABOVE_BYTES = 1.2e9
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_programs():
-    """After each test file: one process runs many files, and the programs of 50-odd files would
-    otherwise stay resident (several GB)."""
     yield
-    release_compiled_programs()
-
-
-# A test that leaves its process above this keeps nothing compiled for the next one: the two
-# workers of `make test` (`pytest -n 2`) then stay within 3 GB together (4.0 GB before), while
-# the many small tests keep their programs (releasing after every test made tests/fit 28 %
-# slower; above 1.5 GB instead of 1.2, tests/fit/test_fit.py and test_blocks.py took 129 CPU s
-# instead of 140, but make test was no faster and its peak rose to 2.6-3.0 GB).
-_RELEASE_ABOVE_BYTES = 1.2e9
+    if _resident_bytes() > _KEEP_BELOW_BYTES:
+        release_compiled_programs()
 
 
 @pytest.fixture(autouse=True)
 def _release_when_large():
     yield
-    try:
-        with open("/proc/self/statm") as f:  # Linux: (total, resident, ...) in pages
-            resident_bytes = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except OSError:
-        return
-    if resident_bytes > _RELEASE_ABOVE_BYTES:
+    if _resident_bytes() > _RELEASE_ABOVE_BYTES:
         release_compiled_programs()
 
 
