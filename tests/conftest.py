@@ -136,7 +136,8 @@ def fpe_cache_dir() -> Path:
 
 def release_compiled_programs() -> None:
     """Drop the compiled programs held in memory (JAX's and the package's executables) and give
-    the freed memory back to the system; what is used again comes from the session's disk cache.
+    the freed memory back to the system; what is used again is compiled again, or loaded from
+    the session's disk cache once a command run in this process has turned it on (`pipeline`).
     glibc keeps freed memory otherwise (a process stayed at its high-water mark, 2.3 GB after
     tests/fit, for the rest of the run), and the package's executables alone held 0.65 GB."""
     from fpe_jax.compile import _aot
