@@ -190,7 +190,7 @@ def _release_when_large():
 # which left the few-test fits and subprocess runs to the end, one worker busy for a minute
 # while the other idled). The files that take longest start first, so the short ones fill the
 # end; the rest (5 s or less) keep their order. Wall seconds per file within a worker, `make test`
-# on 2 cores.
+# on 2 cores (`pytest -n 2 --dist loadfile --durations=0` gives them per test, to sum by file).
 LONGEST_FIRST = (
     "tests/fit/test_fit.py",  # 73 s
     "tests/fit/test_blocks.py",  # 40 s

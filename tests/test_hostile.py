@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import cli_runner
+from helpers import cli_runner, expected
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -31,7 +31,6 @@ from fpe_jax import spec
 from fpe_jax.fit._recipe import DRIVE_KEYS, SIMULATE_KEYS
 from fpe_jax.io.config import params_to_config, write_config
 from fpe_jax.model._params import presets
-from fpe_jax.runner._runner import Runner
 
 ROOT = Path(__file__).resolve().parents[1]
 SQUARE_WP = "x,y\n0,0\n10,0\n10,10\n0,10\n"
@@ -395,11 +394,7 @@ def stream_replies(stream_case) -> list[dict]:
     """What a fresh runner replies to the good rows of stream_case, in order: every example's
     stream holds these rows, and bad lines must change none of the replies."""
     _, cfg, wp, rows = stream_case
-    r = Runner(cfg, wp)
-    return [
-        {"stamp": float(t), "poses": r.update(t, x, y, yaw).tolist(), "valid": r.valid}
-        for t, x, y, yaw in rows
-    ]
+    return expected(cfg, wp, rows)
 
 
 @hostile
