@@ -17,9 +17,8 @@ from fpe_jax.geometry._path import (
     BRANCH_COS,
     BRANCH_M,
     LOCAL_PROJECTION_ITERS,
-    WINDOW_AHEAD_M,
-    WINDOW_BEHIND_M,
     build_path,
+    window_points,
 )
 
 
@@ -36,8 +35,11 @@ class Track(eqx.Module):
             after the last point of an open path), and the unit path tangents at its start and
             end (tx, ty each): everything a lookup needs in one gathered row.
         closed: static; True for a loop (arc length wraps), False for an open path (clamps).
-        window_ds_m: static copy of the spacing [m], only to size projection windows (shapes
-            must be static; the traced `ds_m` does the arithmetic).
+        window: static; the points (behind, ahead) `project_window` searches around its hint
+            (`window_points` of the spacing). Shapes must be static, and counts rather than the
+            spacing itself let tracks whose spacing differs in its last bit (a local-origin
+            shift, a CSV round trip) share compiled programs; the traced `ds_m` does the
+            arithmetic.
     """
 
     xy_m: Float[Array, "M 2"]
@@ -47,7 +49,7 @@ class Track(eqx.Module):
     raw_xy_m: Float[Array, "K 2"]
     seg_m: Float[Array, "M 8"]
     closed: bool = eqx.field(static=True)
-    window_ds_m: float = eqx.field(static=True, default=0.1)
+    window: tuple[int, int] = eqx.field(static=True, default=window_points(0.1))
 
     @classmethod
     def from_waypoints(cls, waypoints_xy_m, **kwargs) -> Track:
@@ -67,7 +69,7 @@ class Track(eqx.Module):
             raw_xy_m=device_array(p["raw_xy_m"]),
             seg_m=device_array(np.concatenate([xy, nxt[:, :2] - xy, tangent, nxt[:, 2:]], axis=1)),
             closed=p["closed"],
-            window_ds_m=p["ds_m"],
+            window=window_points(p["ds_m"]),
         )
 
     @property
@@ -135,19 +137,15 @@ class Track(eqx.Module):
         return s_ref_m + wrap_to(s_m - s_ref_m, self.length_m) if self.closed else s_m
 
     def project_window(
-        self,
-        p_m: Float[Array, "2"],
-        s_hint_m: Float[Array, ""],
-        behind_m=WINDOW_BEHIND_M,
-        ahead_m=WINDOW_AHEAD_M,
+        self, p_m: Float[Array, "2"], s_hint_m: Float[Array, ""]
     ) -> Float[Array, ""]:
-        """Arc length [m] of the closest point within [s_hint - behind, s_hint + ahead].
+        """Arc length [m] of the closest point within [s_hint - behind, s_hint + ahead]
+        (`_path.WINDOW_BEHIND_M`, `WINDOW_AHEAD_M`, in whole points: `window`).
 
         The window keeps a car on its own stretch of path: never snapped to the far side of a
-        hairpin or across the seam of a noisy loop. `behind_m`, `ahead_m` are static floats.
+        hairpin or across the seam of a noisy loop.
         """
-        n_back = int(np.ceil(behind_m / self.window_ds_m))
-        n_ahead = int(np.ceil(ahead_m / self.window_ds_m))
+        n_back, n_ahead = self.window
         i0 = jnp.floor(s_hint_m / self.ds_m).astype(jnp.int32)
         idx = i0 + jnp.arange(-n_back, n_ahead + 1, dtype=jnp.int32)
         if self.closed:

@@ -42,11 +42,10 @@ from fpe_jax.geometry._path import (
     LOCAL_PROJECTION_ITERS,
     MIN_HEADING_SPEED_MPS,
     MIN_ON_TRACK_SHARE,
-    WINDOW_AHEAD_M,
-    WINDOW_BEHIND_M,
     build_path,
     check_share_near,
     on_track_m,
+    window_points,
 )
 from fpe_jax.io.config import LINE_KEYS, check_waypoints, read_config
 from fpe_jax.model._constants import (
@@ -165,8 +164,7 @@ class RunnerPath:
         self.xy_m: np.ndarray = xy  # (M, 2) the resampled points [m] and their headings [rad]
         self.heading_rad: np.ndarray = p["heading_rad"]
         self._all_segments = range(m if self.closed else m - 1)
-        n_back = int(np.ceil(WINDOW_BEHIND_M / self.ds_m))
-        n_ahead = int(np.ceil(WINDOW_AHEAD_M / self.ds_m))
+        n_back, n_ahead = window_points(self.ds_m)
         self._window = np.arange(-n_back, n_ahead + 1)
         self._window_lo, self._window_hi = -n_back, n_ahead  # its first and last offsets
         self._last_window: tuple = (None, 0.0)  # ((x, y, hint's segment), its search's result)

@@ -471,6 +471,33 @@ def test_drives_of_similar_length_share_executables():
     assert first > 0 and poses.shape == (len(b.drive.t_s), params.settings.horizon, 3)
 
 
+def test_a_track_moved_by_whole_metres_shares_executables():
+    """The local-origin shift (whole metres) or a CSV round trip moves a track's spacing in
+    its last bit; its predictions still trace and compile nothing new."""
+    import jax
+
+    from fpe_jax.geometry._track import Track
+    from fpe_jax.predict._predict import predict_drive
+    from fpe_jax.sim import _sim as sim
+
+    res = sim.simulate("oval", duration_s=20.0, seed=3)
+    shift = np.array([3.0, -7.0])
+    track, moved = (Track.from_waypoints(res.centerline_xy_m + d) for d in (0.0, shift))
+    assert float(track.ds_m) != float(moved.ds_m) and track.n_points == moved.n_points
+    drive = dataclasses.replace(res.drive, xy_m=res.drive.xy_m + shift)
+    params = with_settings(presets["default"], horizon=11)  # a horizon no other test uses
+    events = _count_compilations()
+    try:
+        _, poses = predict_drive(params, res.drive, track)
+        first = len(events)
+        _, moved_poses = predict_drive(params, drive, moved)
+        assert len(events) == first, "the moved track compiled again"
+    finally:
+        jax.monitoring.clear_event_listeners()
+    assert first > 0
+    np.testing.assert_allclose(moved_poses[..., :2] - shift, poses[..., :2], atol=1e-9)
+
+
 def _with_history(params, n: int):
     return dataclasses.replace(params, settings=dataclasses.replace(params.settings, history=n))
 

@@ -59,16 +59,23 @@ def test_the_runner_shares_the_models_constants():
         assert getattr(runner, name) is getattr(_constants, name), name
         users = [m for m in (rollout, _kalman, _estimate) if hasattr(m, name)]
         assert users and all(getattr(m, name) is shared[name] for m in users), name
-    window = inspect.signature(Track.project_window).parameters
-    assert window["behind_m"].default is _path.WINDOW_BEHIND_M is runner.WINDOW_BEHIND_M
-    assert window["ahead_m"].default is _path.WINDOW_AHEAD_M is runner.WINDOW_AHEAD_M
+    # both projections search the window `_path.window_points` sizes from the same spacing
+    assert runner.window_points is _path.window_points
+    from fpe_jax.geometry import builtin_track
+
+    for wp in (builtin_track("hairpin")[0], builtin_track("hairpin")[0][::7] * 1.3):
+        path, track = runner.RunnerPath(wp), Track.from_waypoints(wp)
+        n_back, n_ahead = track.window
+        assert (path._window_lo, path._window_hi) == (-n_back, n_ahead)
+        assert n_back * path.ds_m >= _path.WINDOW_BEHIND_M > (n_back - 1) * path.ds_m
+        assert n_ahead * path.ds_m >= _path.WINDOW_AHEAD_M > (n_ahead - 1) * path.ds_m
     local = inspect.signature(Track.project_local).parameters
     assert local["iters"].default is _path.LOCAL_PROJECTION_ITERS is runner.LOCAL_PROJECTION_ITERS
     src = inspect.getsource(_estimate.track_frame_window)
     assert "iters=TRACK_FRAME_ITERS" in src
     # no assignment of a shared name in the runner's own source
     runner_src = inspect.getsource(importlib.import_module("fpe_jax.runner._runner"))
-    for name in [*shared, "WINDOW_BEHIND_M", "WINDOW_AHEAD_M", "LOCAL_PROJECTION_ITERS"]:
+    for name in [*shared, "LOCAL_PROJECTION_ITERS"]:
         assert f"\n{name} = " not in runner_src, name
 
 
