@@ -13,10 +13,12 @@ import copy
 import functools
 import importlib
 import io
+import shutil
 import struct
 import sys
 import threading
 import time
+import types
 import warnings
 from collections.abc import Callable
 
@@ -68,9 +70,28 @@ def message_class(type_name: str) -> type:
             full = f"{pkg}/msg/{name}"
             if full not in typestore("ros1").types:
                 raise ValueError(f"unknown ROS 1 message type {key!r}") from None
-            cls = genpy.dynamic.generate_dynamic(key, full_definition("ros1", full))[key]
+            cls = _generate(key, full_definition("ros1", full))
         _CLASSES[key] = cls
         return cls
+
+
+def _generate(key: str, definition: str) -> type:
+    """genpy's class of type `key` generated from its full definition.
+
+    genpy writes the class's code into a new folder /tmp/genpy_* and leaves its removal to the
+    interpreter's exit, which `fpe` skips (`fpe_jax.cli.entry` ends with os._exit): every node
+    would leave one behind. The folder is removed here, once its module is imported."""
+    folders: list[str] = []
+    real = genpy.dynamic.atexit
+    genpy.dynamic.atexit = types.SimpleNamespace(register=lambda _rmtree, f: folders.append(f))
+    try:
+        return genpy.dynamic.generate_dynamic(key, definition)[key]
+    finally:
+        genpy.dynamic.atexit = real
+        for folder in folders:
+            shutil.rmtree(folder, ignore_errors=True)
+            if folder in sys.path:
+                sys.path.remove(folder)
 
 
 def to_dict(msg) -> dict:

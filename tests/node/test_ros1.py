@@ -324,6 +324,33 @@ def test_messages_from_dicts_equal_genpys_own():
         r1.from_dict(path, {"poses": [{"pose": {"position": {"q": 1.0}}}]})
 
 
+def test_a_generated_message_class_leaves_no_folder_behind(tmp_path, monkeypatch):
+    """A class generated for a type Debian does not ship (f110_msgs) leaves nothing in the
+    temporary folder and nothing for the interpreter's exit to remove: `fpe node` ends without
+    it, so every node would otherwise leave a genpy_* folder in /tmp. The class still works:
+    a message of it survives serialization."""
+    import atexit
+    import io
+    import tempfile
+
+    need_ros1()
+    from fpe_jax.node import _ros1 as r1
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(r1, "_CLASSES", {})
+    callbacks, path = atexit._ncallbacks(), list(r1.sys.path)
+    cls = r1.message_class("f110_msgs/ObstacleArray")
+    assert list(tmp_path.iterdir()) == []
+    assert atexit._ncallbacks() == callbacks and r1.sys.path == path
+    msg = r1.from_dict(
+        cls, {"header": {"frame_id": "map"}, "obstacles": [{"id": 3, "s_center": 7.5}]}
+    )
+    buf = io.BytesIO()
+    msg.serialize(buf)
+    back = cls().deserialize(buf.getvalue())
+    assert r1.to_dict(back) == r1.to_dict(msg) and back.obstacles[0].s_center == 7.5
+
+
 def test_generated_ros1_bytes_equal_genpys():
     """The generated ROS 1 writers (no roscore needed): the zero message of every type of the
     ROS 1 store, and every message the node publishes for two opponents, serialize to the
