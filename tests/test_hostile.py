@@ -46,9 +46,11 @@ hostile = settings(
 
 @contextlib.contextmanager
 def user_folder(files: dict[str, str | bytes]):
-    """A fresh folder holding the user's files; yields (folder, snapshot of it)."""
+    """A fresh folder holding the user's files; yields (folder, snapshot of it). The folder
+    sits inside a temporary one of its own, so what a target of ".." writes is removed too."""
     with tempfile.TemporaryDirectory() as d:
-        folder = Path(d)
+        folder = Path(d) / "user"
+        folder.mkdir()
         for name, content in files.items():
             p = folder / name
             p.parent.mkdir(parents=True, exist_ok=True)
