@@ -16,11 +16,13 @@ $(VENV): $(VENV)/.installed
 demo: $(VENV)
 	$(BIN)/fpe demo --out out/demo --force
 
+# PYTHONDONTWRITEBYTECODE empty: the suite's fpe processes read the package's compiled bytecode
+# rather than compile it each, and a second run reuses pytest's rewritten test modules
 test: $(VENV)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/lint-imports
-	$(BIN)/pytest -q -n 2 --dist loadfile --no-loadscope-reorder
+	PYTHONDONTWRITEBYTECODE= $(BIN)/pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 bench: $(VENV)
 	$(BIN)/python experiments/benchmarks/run.py
