@@ -306,17 +306,15 @@ BRANCH_M = 2.0
 WINDOW_BEHIND_M = 2.0
 WINDOW_AHEAD_M = 4.0
 LOCAL_PROJECTION_ITERS = 2
+MIN_HEADING_SPEED_MPS = 0.5
+
+ALLOW_HINT = "pass --allow-off-track to use them anyway"
 
 
 def window_points(ds_m: float) -> tuple[int, int]:
     """How many points (behind, ahead) of the hint a local projection searches on a path of
     spacing ds [m]: the window covers at least WINDOW_BEHIND_M and WINDOW_AHEAD_M."""
     return math.ceil(WINDOW_BEHIND_M / ds_m), math.ceil(WINDOW_AHEAD_M / ds_m)
-
-
-MIN_HEADING_SPEED_MPS = 0.5
-
-ALLOW_HINT = "pass --allow-off-track to use them anyway"
 
 
 def _vertex_stride(xy_m: np.ndarray) -> int:
