@@ -9,12 +9,15 @@ the sampling used 7 % of one of the two cores the suite runs on) and prints the 
 sums, with the load average before and after: resident memory (RSS: a page that several
 processes map, as the JAX library's code, counts once per process) and proportional memory
 (PSS: each shared page split among the processes that map it, so the sum is what the tree holds
-of the machine's memory). Linux only.
+of the machine's memory). It also prints the CPU seconds (user + system) of every descendant
+the command waited for: a shared host's own speed varies, and the same work then takes more
+CPU seconds, so compare wall times only beside them. Linux only.
 """
 
 from __future__ import annotations
 
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -67,8 +70,10 @@ def main() -> int:
         time.sleep(0.5)
     wall_s = time.perf_counter() - t0
     load1 = os.getloadavg()
+    used = resource.getrusage(resource.RUSAGE_CHILDREN)
     print(
-        f"exit {proc.returncode}; wall {wall_s:.0f} s; peak memory of the process tree: "
+        f"exit {proc.returncode}; wall {wall_s:.0f} s; CPU {used.ru_utime + used.ru_stime:.0f} s; "
+        "peak memory of the process tree: "
         f"RSS {peak_rss / 1e9:.2f} GB, PSS {peak_pss / 1e9:.2f} GB; "
         f"load average {load0[0]:.1f} before, {load1[0]:.1f} after "
         f"(15 min: {load1[2]:.1f})",
