@@ -63,7 +63,8 @@ def test_the_runner_shares_the_models_constants():
     assert runner.window_points is _path.window_points
     from fpe_jax.geometry import builtin_track
 
-    for wp in (builtin_track("hairpin")[0], builtin_track("hairpin")[0][::7] * 1.3):
+    hairpin = builtin_track("hairpin")[0]
+    for wp in (hairpin, hairpin[::7] * 1.3):  # windows of 20/40 and 21/41 points
         path, track = runner.RunnerPath(wp), Track.from_waypoints(wp)
         n_back, n_ahead = track.window
         assert (path._window_lo, path._window_hi) == (-n_back, n_ahead)
