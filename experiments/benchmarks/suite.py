@@ -4,14 +4,17 @@
 
 `/usr/bin/time -v` reports the largest single process; pytest-xdist's workers and the commands
 the tests start run side by side, so this samples the memory of the whole process tree every
-0.5 s from /proc (reading a JAX process's memory map takes up to tens of milliseconds: at 0.2 s
-the sampling used 7 % of one of the two cores the suite runs on) and prints the peak of two
-sums, with the load average before and after: resident memory (RSS: a page that several
-processes map, as the JAX library's code, counts once per process) and proportional memory
-(PSS: each shared page split among the processes that map it, so the sum is what the tree holds
-of the machine's memory). It also prints the CPU seconds (user + system) of every descendant
-the command waited for: a shared host's own speed varies, and the same work then takes more
-CPU seconds, so compare wall times only beside them. Linux only.
+0.5 s from /proc and prints the peak of two sums, with the load average before and after:
+resident memory (RSS: a page that several processes map, as the JAX library's code, counts once
+per process) and proportional memory (PSS: each shared page split among the processes that map
+it, so the sum is what the tree holds of the machine's memory). RSS comes from `statm`, which
+costs next to nothing; PSS needs each process's whole memory map (`smaps_rollup`, tens of
+milliseconds for a JAX process: read every 0.5 s it took 32 of the suite's 888 CPU seconds),
+so it is read only while the RSS sum exceeds the PSS peak so far (PSS never exceeds RSS, so no
+other moment can hold a higher PSS): this sampler then used 3 CPU s over a whole suite. It
+also prints the CPU seconds (user + system) of every descendant the command waited for: a
+shared host's own speed varies, and the same work then takes more CPU seconds, so compare wall
+times only beside them. Linux only.
 """
 
 from __future__ import annotations
@@ -35,22 +38,42 @@ def _children() -> dict[int, list[int]]:
     return tree
 
 
-def tree_memory_bytes(root: int) -> tuple[int, int]:
-    """Summed resident and proportional memory [bytes] (RSS, PSS) of `root` and its
-    descendants."""
-    tree, todo, rss, pss = _children(), [root], 0, 0
+_PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
+
+
+def _tree(root: int) -> list[int]:
+    """`root` and its descendants' process ids."""
+    tree, todo, pids = _children(), [root], []
     while todo:
         pid = todo.pop()
+        pids.append(pid)
+        todo += tree.get(pid, [])
+    return pids
+
+
+def rss_bytes(pids: list[int]) -> int:
+    """Summed resident memory [bytes] of `pids`, from `statm`."""
+    total = 0
+    for pid in pids:
+        try:
+            total += int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * _PAGE_BYTES
+        except (OSError, ValueError, IndexError):  # the process ended meanwhile
+            pass
+    return total
+
+
+def pss_bytes(pids: list[int]) -> int:
+    """Summed proportional memory [bytes] of `pids`, from `smaps_rollup`."""
+    total = 0
+    for pid in pids:
         try:
             for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
-                if line.startswith("Rss:"):
-                    rss += int(line.split()[1]) * 1024
-                elif line.startswith("Pss:"):
-                    pss += int(line.split()[1]) * 1024
+                if line.startswith("Pss:"):
+                    total += int(line.split()[1]) * 1024
+                    break
         except (OSError, ValueError):  # the process ended meanwhile
             pass
-        todo += tree.get(pid, [])
-    return rss, pss
+    return total
 
 
 def main() -> int:
@@ -65,8 +88,11 @@ def main() -> int:
     proc = subprocess.Popen(argv)
     peak_rss = peak_pss = 0
     while proc.poll() is None:
-        rss, pss = tree_memory_bytes(proc.pid)
-        peak_rss, peak_pss = max(peak_rss, rss), max(peak_pss, pss)
+        pids = _tree(proc.pid)
+        rss = rss_bytes(pids)
+        peak_rss = max(peak_rss, rss)
+        if rss > peak_pss:
+            peak_pss = max(peak_pss, pss_bytes(pids))
         time.sleep(0.5)
     wall_s = time.perf_counter() - t0
     load1 = os.getloadavg()
