@@ -378,10 +378,11 @@ import numpy as np
 from fpe_jax.io.export import load
 
 f = load(sys.argv[1])
-inputs = np.load(sys.argv[2])
+with np.load(sys.argv[2]) as npz:
+    inputs = dict(npz)
 out = {}
 for b in (1, 7, 1000):
-    out[f"b{b}"] = f(**{k: inputs[k][:b] for k in inputs.files})
+    out[f"b{b}"] = f(**{k: inputs[k][:b] for k in inputs})
 # omitted optional inputs: the State defaults, s_m NaN (a global projection on the track)
 out["defaults"] = f(*(inputs[k][:7] for k in ("x_m", "y_m", "yaw_rad", "v_mps")))
 assert not jax.config.jax_enable_x64  # the loader's float64 does not leak into the process

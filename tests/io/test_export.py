@@ -107,7 +107,8 @@ def test_round_trip_stablehlo_in_a_fresh_process(case):
         timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
-    got = np.load(case["tmp"] / "out.npz")
+    with np.load(case["tmp"] / "out.npz") as npz:  # closed: see test_cli_fit_evaluate_predict
+        got = dict(npz)
     want = np.asarray(predict_batch(params, states, track))
     for b in BATCHES:
         assert got[f"b{b}"].shape == (b, 10, 3) and got[f"b{b}"].dtype == np.float64
