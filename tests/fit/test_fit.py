@@ -514,8 +514,8 @@ def test_cli_fit_evaluate_predict(tmp_path, capsys):
     )
     assert proc.returncode == 0, proc.stderr
     want = np.asarray(predict_batch(params, states, track))
-    # closed here: an open NpzFile sits in a reference cycle, and the collector's later pass
-    # raised its unclosed-file ResourceWarning inside whichever test was running then
+    # closed here, not left to the collector: freed during a later test, its unclosed-file
+    # ResourceWarning failed that test
     with np.load(tmp_path / "out.npz") as artifact:
         for b in (1, 7, 1000):
             assert np.max(np.abs(artifact[f"b{b}"] - want[:b])) <= 1e-6
