@@ -123,10 +123,8 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 @pytest.fixture(scope="session", autouse=True)
 def _collector_as_in_fpe():
     """The collector's young passes every `cli.GC_YOUNG_THRESHOLD` new objects, as in an `fpe`
-    process (`cli.entry`): at the default, its passes scanned the many long-lived objects of
-    JAX, equinox and the tests' traces again and again (tests/model, geometry, predict and
-    fit/test_fit.py in one process, run beside the same tests at the default: 10.6 s in 7,157
-    passes -> 3.2 s in 260; 232 -> 228 CPU s)."""
+    process (`cli.entry`): at Python's default its passes scan the many long-lived objects of
+    JAX, equinox and the tests' traces again and again."""
     from fpe_jax.cli import GC_YOUNG_THRESHOLD
 
     gc.set_threshold(GC_YOUNG_THRESHOLD, *gc.get_threshold()[1:])

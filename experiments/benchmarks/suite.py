@@ -9,12 +9,11 @@ resident memory (RSS: a page that several processes map, as the JAX library's co
 per process) and proportional memory (PSS: each shared page split among the processes that map
 it, so the sum is what the tree holds of the machine's memory). RSS comes from `statm`, which
 costs next to nothing; PSS needs each process's whole memory map (`smaps_rollup`, tens of
-milliseconds for a JAX process: read every 0.5 s it took 32 of the suite's 888 CPU seconds),
-so it is read only while the RSS sum exceeds the PSS peak so far (PSS never exceeds RSS, so no
-other moment can hold a higher PSS): this sampler then used 3 CPU s over a whole suite. It
-also prints the CPU seconds (user + system) of every descendant the command waited for: a
-shared host's own speed varies, and the same work then takes more CPU seconds, so compare wall
-times only beside them. Linux only.
+milliseconds for a JAX process, taken from the cores the suite runs on), so it is read only
+while the RSS sum exceeds the PSS peak so far: PSS never exceeds RSS, so no other moment can
+hold a higher PSS. It also prints the CPU seconds (user + system) of every descendant the
+command waited for: a shared host's own speed varies, and the same work then takes more CPU
+seconds, so compare wall times only beside them; and the sampler's own. Linux only.
 """
 
 from __future__ import annotations
@@ -97,8 +96,10 @@ def main() -> int:
     wall_s = time.perf_counter() - t0
     load1 = os.getloadavg()
     used = resource.getrusage(resource.RUSAGE_CHILDREN)
+    own = resource.getrusage(resource.RUSAGE_SELF)
     print(
-        f"exit {proc.returncode}; wall {wall_s:.0f} s; CPU {used.ru_utime + used.ru_stime:.0f} s; "
+        f"exit {proc.returncode}; wall {wall_s:.0f} s; CPU {used.ru_utime + used.ru_stime:.0f} s "
+        f"(sampling: {own.ru_utime + own.ru_stime:.1f} s); "
         "peak memory of the process tree: "
         f"RSS {peak_rss / 1e9:.2f} GB, PSS {peak_pss / 1e9:.2f} GB; "
         f"load average {load0[0]:.1f} before, {load1[0]:.1f} after "
