@@ -826,12 +826,13 @@ def fit(
         model, blend, init, free, train_d, tracks, test_tracks, progress, estimator
     )
     settings = next(iter(candidates.values()))[0].settings  # every candidate's targets
-    # whether the first states estimate also runs the Kalman filter (`Dataset.kalman`): on the
-    # training data if a candidate needs it, on the held-out data also if a preset does
-    kalman = any(uses_filter(p.settings) for p, _ in candidates.values())
-    scored = kalman or any(uses_filter(presets[n].settings) for n in BASELINES)
+    # the first states estimate of every dataset also runs the Kalman filter (`Dataset.kalman`)
+    # when a candidate or a baseline uses it: one compiled states program then serves the
+    # training, validation and held-out data, a blend's own states included
+    scored = [p.settings for p, _ in candidates.values()] + [presets[n].settings for n in BASELINES]
+    kalman = any(uses_filter(s) for s in scored)
     train = make_datasets(train_d, tracks, settings, "training", kalman=kalman)
-    test = make_datasets(test_d, test_tracks, settings, "held-out", kalman=scored)
+    test = make_datasets(test_d, test_tracks, settings, "held-out", kalman=kalman)
     for label, (p0, groups) in candidates.items():
         if "speed" in groups:  # start the typical speed where the data is
             v = np.concatenate([np.asarray(d.states(p0).v_mps) for d in train])

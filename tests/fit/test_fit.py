@@ -396,14 +396,26 @@ def test_lead_time_scale_weighs_every_step_by_its_typical_error(oval_drives):
     np.testing.assert_allclose(np.sum(count * scale**2) / np.sum(count), 1.0, rtol=1e-12)
 
 
-def test_blend_default_fit_drives_at_the_measured_speed(oval_drives):
+def test_blend_default_fit_drives_at_the_measured_speed(oval_drives, monkeypatch):
     """No memorised speed: the blend's default groups leave out `speed`, and it starts (and so
-    stays) at speed_weight 1; naming `speed` still fits the shrinkage."""
+    stays) at speed_weight 1; naming `speed` still fits the shrinkage. The frenet baseline's
+    Kalman filter runs in every states estimate of the fit, the training data's included: the
+    blend's states then come from the held-out data's compiled program, not from a second one
+    without the filter."""
     fit_d, test_d, track = oval_drives
+    with_filter = []  # the `kalman` of each states estimate
+    real = E.states_both
+
+    def spy(*args, kalman, **kw):
+        with_filter.append(kalman)
+        return real(*args, kalman=kalman, **kw)
+
+    monkeypatch.setattr(E, "states_both", spy)
     # test drives given (no holdout): the shapes, and so the compiled solver, of the --model
     # auto test's blend fit
     kw = dict(model="blend", blend="position", test_drives=[test_d.drive])
     res = F.fit([fit_d.drive], [track], **kw)
+    assert with_filter and all(with_filter), with_filter
     assert "speed" not in res.info["fit"]
     assert float(res.params.speed_weight) == pytest.approx(1.0, abs=1e-5)  # the raw map's 1e-6
     named = F.fit([fit_d.drive], [track], free=("speed",), **kw)
