@@ -43,3 +43,29 @@ def test_prediction_csv_is_what_savetxt_writes(tmp_path, extras):
     write_predictions(tmp_path / "p.csv", stamps, poses, 0.1, cov_m2=cov_m2, valid=ok)
     _savetxt_reference(tmp_path / "ref.csv", stamps, poses, 0.1, cov_m2, ok)
     assert (tmp_path / "p.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes()
+
+
+def test_a_long_prediction_csv_is_written_in_blocks_of_bounded_memory(tmp_path, monkeypatch):
+    """The text goes out a block of rows at a time: the memory the writer holds does not grow
+    with the log (a 300,000-row log's predictions as one string and one tuple of Python floats
+    took 0.6 GB more), and the blocks join to savetxt's text, a partial last block included."""
+    import tracemalloc
+
+    import fpe_jax.io.writers as W
+
+    rng = np.random.default_rng(3)
+    n, h = 2_000, 10  # 20,000 rows: as one text and one tuple of floats they held 7 MB
+    stamps, poses = np.arange(n) * 0.05, rng.normal(0.0, 10.0, (n, h, 3))
+    monkeypatch.setattr(W, "CSV_BLOCK_ROWS", 1_000, raising=False)
+    tracemalloc.start()
+    write_predictions(tmp_path / "long.csv", stamps, poses, 0.1)
+    peak_b = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak_b < 1e6, peak_b  # a block of 1,000 rows: ~0.35 MB
+    _savetxt_reference(tmp_path / "ref.csv", stamps, poses, 0.1, None, None)
+    assert (tmp_path / "long.csv").read_bytes() == (tmp_path / "ref.csv").read_bytes()
+    monkeypatch.setattr(W, "CSV_BLOCK_ROWS", 40)  # 4 observations of 10 steps
+    cov, valid = rng.uniform(0.0, 1.0, (37, h, 2, 2)), rng.integers(0, 2, 37).astype(bool)
+    write_predictions(tmp_path / "p.csv", stamps[:37], poses[:37], 0.1, cov_m2=cov, valid=valid)
+    _savetxt_reference(tmp_path / "r.csv", stamps[:37], poses[:37], 0.1, cov, valid)
+    assert (tmp_path / "p.csv").read_bytes() == (tmp_path / "r.csv").read_bytes()
