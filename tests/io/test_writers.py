@@ -47,8 +47,8 @@ def test_prediction_csv_is_what_savetxt_writes(tmp_path, extras):
 
 def test_a_long_prediction_csv_is_written_in_blocks_of_bounded_memory(tmp_path, monkeypatch):
     """The text goes out a block of rows at a time: the memory the writer holds does not grow
-    with the log (a 300,000-row log's predictions as one string and one tuple of Python floats
-    took 0.6 GB more), and the blocks join to savetxt's text, a partial last block included."""
+    with the log (`fpe predict` of the hostile study's 300,000-row log), and the blocks join to
+    savetxt's text, a partial last block included."""
     import tracemalloc
 
     import fpe_jax.io.writers as W
