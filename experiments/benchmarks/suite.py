@@ -8,8 +8,8 @@ the tests start run side by side, so this samples the memory of the whole proces
 resident memory (RSS: a page that several processes map, as the JAX library's code, counts once
 per process) and proportional memory (PSS: each shared page split among the processes that map
 it, so the sum is what the tree holds of the machine's memory). RSS comes from `statm`, which
-costs next to nothing; PSS needs each process's whole memory map (`smaps_rollup`, tens of
-milliseconds for a JAX process, taken from the cores the suite runs on), so it is read only
+costs next to nothing; PSS needs each process's whole memory map (`smaps_rollup`, long for a
+JAX process, and taken from the cores the suite runs on), so it is read only
 while the RSS sum exceeds the PSS peak so far: PSS never exceeds RSS, so no other moment can
 hold a higher PSS. It also prints the CPU seconds (user + system) of every descendant the
 command waited for: a shared host's own speed varies, and the same work then takes more CPU

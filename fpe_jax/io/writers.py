@@ -26,8 +26,8 @@ from fpe_jax.io import ros_msgs as rm
 
 PREDICTION_TOPIC = "/future_pose"
 OBSERVATION_TOPIC = "/opp/pose"
-# CSV rows formatted by one `%` at a time (`write_predictions`): ~2 MB of their values as Python
-# floats and ~1 MB of text, written before the next
+# CSV rows formatted by one `%` at a time (`write_predictions`): each block's values as Python
+# floats (24 bytes each) and its text are written out before the next block is made
 CSV_BLOCK_ROWS = 1 << 14
 _ZERO_COV = [0.0] * 36  # mcap_ros2 wants a list (not an array) for float64[36]
 
@@ -357,8 +357,8 @@ def write_predictions(
             return np.column_stack(cols)
 
         # np.savetxt's text to the byte (its rows are `line % tuple(row)` too), formatted by one
-        # `%` per block of rows: a third less time than row by row, in memory bounded by the
-        # block whatever the log's length
+        # `%` per block of rows instead of one per row, in memory bounded by the block whatever
+        # the log's length
         line = ",".join(fmt) + "\n"
         per_block = max(1, CSV_BLOCK_ROWS // max(h, 1))  # observations
         with atomic_output(path, force) as tmp, open(tmp, "x", newline="") as f:
