@@ -13,7 +13,9 @@ JAX process, and taken from the cores the suite runs on), so it is read only
 while the RSS sum exceeds the PSS peak so far: PSS never exceeds RSS, so no other moment can
 hold a higher PSS. It also prints the CPU seconds (user + system) of every descendant the
 command waited for: a shared host's own speed varies, and the same work then takes more CPU
-seconds, so compare wall times only beside them; and the sampler's own. Linux only.
+seconds, so compare wall times only beside them; and the sampler's own. The host's speed is
+also probed before and after the command (`host_loop_s`): on a quiet machine a slower loop means
+the host itself gave the machine less. Linux only.
 """
 
 from __future__ import annotations
@@ -75,6 +77,19 @@ def pss_bytes(pids: list[int]) -> int:
     return total
 
 
+def host_loop_s(n: int = 10**7, tries: int = 3) -> float:
+    """Seconds a Python loop summing n integers takes, the best of `tries` runs: one core's speed
+    as this machine gets it now."""
+    best = float("inf")
+    for _ in range(tries):
+        t0 = time.perf_counter()
+        total = 0
+        for i in range(n):
+            total += i
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
 def main() -> int:
     argv = sys.argv[1:]
     if argv[:1] == ["--"]:
@@ -83,6 +98,8 @@ def main() -> int:
         print(__doc__, file=sys.stderr)
         return 2
     load0 = os.getloadavg()
+    loop0_s = host_loop_s()
+    before = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     proc = subprocess.Popen(argv)
     peak_rss = peak_pss = 0
@@ -95,15 +112,17 @@ def main() -> int:
         time.sleep(0.5)
     wall_s = time.perf_counter() - t0
     load1 = os.getloadavg()
-    used = resource.getrusage(resource.RUSAGE_CHILDREN)
     own = resource.getrusage(resource.RUSAGE_SELF)
+    sampling_s = own.ru_utime + own.ru_stime - before.ru_utime - before.ru_stime
+    loop1_s = host_loop_s()
+    used = resource.getrusage(resource.RUSAGE_CHILDREN)
     print(
         f"exit {proc.returncode}; wall {wall_s:.0f} s; CPU {used.ru_utime + used.ru_stime:.0f} s "
-        f"(sampling: {own.ru_utime + own.ru_stime:.1f} s); "
+        f"(sampling: {sampling_s:.1f} s); "
         "peak memory of the process tree: "
         f"RSS {peak_rss / 1e9:.2f} GB, PSS {peak_pss / 1e9:.2f} GB; "
         f"load average {load0[0]:.1f} before, {load1[0]:.1f} after "
-        f"(15 min: {load1[2]:.1f})",
+        f"(15 min: {load1[2]:.1f}); host loop {loop0_s:.2f} s before, {loop1_s:.2f} s after",
         file=sys.stderr,
     )
     return proc.returncode
