@@ -409,7 +409,9 @@ def _build_parser(only: str | None = None) -> argparse.ArgumentParser:
         "--raceline",
         help="raceline file (with speeds) the driver follows (default: none, the centerline)",
     )
-    p.add_argument("--duration", type=float, default=60.0, metavar="S", help="seconds (def. 60)")
+    p.add_argument(
+        "--duration", type=float, default=60.0, metavar="S", help="length of the drive [s]"
+    )
     p.add_argument("--latency", type=float, default=0.3, metavar="S", help="detection latency")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument(

@@ -4,8 +4,10 @@ example of the command."""
 from __future__ import annotations
 
 import argparse
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -40,6 +42,16 @@ def test_help_says_every_default_and_ends_with_an_example(name):
         assert "default" in said or said.endswith("(required)"), (name, action.option_strings)
         if action.default not in (None, False):
             assert str(action.default) in said, (name, action.option_strings, said)
+
+
+def test_the_commands_reference_shows_each_commands_help_as_it_is(monkeypatch):
+    """docs/commands.md holds every command's `--help` at 100 columns, as `fpe` prints it."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "commands.md").read_text()
+    shown = dict(re.findall(r"### fpe (\S+)\n\n```\n(usage: fpe .*?)```", doc, re.S))
+    assert shown.keys() == _subparsers().keys()
+    monkeypatch.setenv("COLUMNS", "100")  # argparse wraps help to the terminal's width
+    for name, parser in _subparsers().items():
+        assert shown[name] == parser.format_help(), name
 
 
 def _only(word: str) -> dict[str, argparse.ArgumentParser]:
