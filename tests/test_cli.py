@@ -1,5 +1,5 @@
-"""`fpe`'s own face: --version, and help that says every option's default and ends with an
-example of the command."""
+"""`fpe`'s own face: --version, help that says every option's default and ends with an example
+of the command, and docs/commands.md showing that help as it is."""
 
 from __future__ import annotations
 
