@@ -48,9 +48,10 @@ def test_the_commands_reference_shows_each_commands_help_as_it_is(monkeypatch):
     """docs/commands.md holds every command's `--help` at 100 columns, as `fpe` prints it."""
     doc = (Path(__file__).resolve().parents[1] / "docs" / "commands.md").read_text()
     shown = dict(re.findall(r"### fpe (\S+)\n\n```\n(usage: fpe .*?)```", doc, re.S))
-    assert shown.keys() == _subparsers().keys()
+    parsers = _subparsers()
+    assert shown.keys() == parsers.keys()
     monkeypatch.setenv("COLUMNS", "100")  # argparse wraps help to the terminal's width
-    for name, parser in _subparsers().items():
+    for name, parser in parsers.items():
         assert shown[name] == parser.format_help(), name
 
 

@@ -54,9 +54,9 @@ def test_a_long_prediction_csv_is_written_in_blocks_of_bounded_memory(tmp_path, 
     import fpe_jax.io.writers as W
 
     rng = np.random.default_rng(3)
-    n, h = 2_000, 10  # 20,000 rows: as one text and one tuple of floats they held 7 MB
+    n, h = 2_000, 10  # 20,000 rows, 20 blocks: held whole they would exceed the limit
     stamps, poses = np.arange(n) * 0.05, rng.normal(0.0, 10.0, (n, h, 3))
-    monkeypatch.setattr(W, "CSV_BLOCK_ROWS", 1_000, raising=False)
+    monkeypatch.setattr(W, "CSV_BLOCK_ROWS", 1_000)
     tracemalloc.start()
     write_predictions(tmp_path / "long.csv", stamps, poses, 0.1)
     peak_b = tracemalloc.get_traced_memory()[1]
